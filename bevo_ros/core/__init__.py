@@ -1,0 +1,1 @@
+"""The BEVO engine: pure PyTorch, no ROS imports. Batched tensors, shapes in docstrings."""

@@ -1,0 +1,159 @@
+"""Frames, rotations and the camera/BEV geometry every other module shares.
+
+Conventions (REP-103 / REP-105), fixed here once:
+
+* ``base`` frame = the IMU frame: x forward, y left, z up. ``base_link`` in ROS.
+* Attitude angles are intrinsic Z-Y-X Euler angles, ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+  Positive pitch = nose down (right-handed about y-left), positive roll = left side up,
+  which is also the OXTS convention of KITTI.
+* ``road`` frame: origin on the road surface directly below the base origin, z along the road
+  normal, x along the vehicle heading projected onto the road. The vehicle's attitude
+  relative to it is ``R_road_base = Ry(pitch) @ Rx(roll)``.
+* Camera frames are optical frames: z along the optical axis, x right, y down.
+  ``T_base_cam`` (4, 4) is the camera pose in the base frame (maps camera points to base).
+* The camera centre is held at a fixed height above the road (``CameraModel.height``): the
+  paper's constant-elevation assumption, expressed for the camera because that is what a
+  user measures.
+* BEV pixels: row 0 is the far edge, the last row the near edge; column 0 is the left edge.
+  Pixel (row, col) centre sits at ``x = forward_offset + (size - 0.5 - row) * mpp`` and
+  ``y = ((size - 1) / 2 - col) * mpp`` in the road frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+Tensor = torch.Tensor
+
+
+def rotation_x(angle: Tensor) -> Tensor:
+    """Rotation about x. ``(...,)`` -> ``(..., 3, 3)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    o, z = torch.ones_like(angle), torch.zeros_like(angle)
+    return torch.stack([o, z, z, z, c, -s, z, s, c], dim=-1).reshape(*angle.shape, 3, 3)
+
+
+def rotation_y(angle: Tensor) -> Tensor:
+    """Rotation about y. ``(...,)`` -> ``(..., 3, 3)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    o, z = torch.ones_like(angle), torch.zeros_like(angle)
+    return torch.stack([c, z, s, z, o, z, -s, z, c], dim=-1).reshape(*angle.shape, 3, 3)
+
+
+def rotation_z(angle: Tensor) -> Tensor:
+    """Rotation about z. ``(...,)`` -> ``(..., 3, 3)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    o, z = torch.ones_like(angle), torch.zeros_like(angle)
+    return torch.stack([c, -s, z, s, c, z, z, z, o], dim=-1).reshape(*angle.shape, 3, 3)
+
+
+def rotation_from_rpy(roll: Tensor, pitch: Tensor, yaw: Tensor) -> Tensor:
+    """``Rz(yaw) @ Ry(pitch) @ Rx(roll)``. ``(...,)`` x3 -> ``(..., 3, 3)``."""
+    return rotation_z(yaw) @ rotation_y(pitch) @ rotation_x(roll)
+
+
+def rpy_from_rotation(rotation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Inverse of :func:`rotation_from_rpy` (pitch in [-pi/2, pi/2]). ``(..., 3, 3)`` -> 3 x ``(...,)``."""
+    r = rotation
+    pitch = torch.asin((-r[..., 2, 0]).clamp(-1.0, 1.0))
+    roll = torch.atan2(r[..., 2, 1], r[..., 2, 2])
+    yaw = torch.atan2(r[..., 1, 0], r[..., 0, 0])
+    return roll, pitch, yaw
+
+
+def quaternion_from_rpy(roll: Tensor, pitch: Tensor, yaw: Tensor) -> Tensor:
+    """Unit quaternion ``(x, y, z, w)`` (ROS order) of ``Rz(yaw) Ry(pitch) Rx(roll)``. -> ``(..., 4)``."""
+    cr, sr = torch.cos(roll / 2), torch.sin(roll / 2)
+    cp, sp = torch.cos(pitch / 2), torch.sin(pitch / 2)
+    cy, sy = torch.cos(yaw / 2), torch.sin(yaw / 2)
+    return torch.stack(
+        [
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy,
+        ],
+        dim=-1,
+    )
+
+
+def wrap_angle(angle: Tensor) -> Tensor:
+    """Wrap to ``[-pi, pi)``."""
+    return torch.remainder(angle + torch.pi, 2 * torch.pi) - torch.pi
+
+
+@dataclass
+class CameraModel:
+    """A pinhole camera rigidly mounted on the vehicle.
+
+    Attributes:
+        K: intrinsics ``(3, 3)`` of the (rectified) image.
+        width, height_px: image size in pixels.
+        T_base_cam: camera pose in the base (IMU) frame, ``(4, 4)``; optical camera axes.
+        height: camera centre height above the road plane in metres (held constant).
+    """
+
+    K: Tensor
+    width: int
+    height_px: int
+    T_base_cam: Tensor
+    height: float = 1.65
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "CameraModel":
+        return CameraModel(
+            self.K.to(device=device, dtype=dtype),
+            self.width,
+            self.height_px,
+            self.T_base_cam.to(device=device, dtype=dtype),
+            self.height,
+        )
+
+
+def camera_pose_on_road(camera: CameraModel, pitch: Tensor, roll: Tensor) -> tuple[Tensor, Tensor]:
+    """Camera pose in the road frame for the vehicle attitude (pitch, roll) relative to the road.
+
+    Args:
+        camera: the camera model.
+        pitch, roll: ``(B,)`` attitude of the base frame relative to the road plane, radians.
+
+    Returns:
+        ``R_road_cam (B, 3, 3)`` and ``t_road_cam (B, 3)``; ``t_road_cam[:, 2] == camera.height``.
+    """
+    dtype, device = pitch.dtype, pitch.device
+    R_base_cam = camera.T_base_cam[:3, :3].to(device=device, dtype=dtype)
+    t_base_cam = camera.T_base_cam[:3, 3].to(device=device, dtype=dtype)
+    R_road_base = rotation_y(pitch) @ rotation_x(roll)
+    R_road_cam = R_road_base @ R_base_cam
+    t = R_road_base @ t_base_cam
+    # The camera height is fixed: the base origin moves up/down with the attitude instead.
+    t_road_cam = torch.stack([t[..., 0], t[..., 1], torch.full_like(t[..., 2], camera.height)], dim=-1)
+    return R_road_cam, t_road_cam
+
+
+@dataclass(frozen=True)
+class BevSpec:
+    """The bird's-eye-view grid on the road plane.
+
+    Attributes:
+        size: BEV is ``size x size`` pixels (the paper uses 100).
+        metres_per_pixel: ground sampling distance (the paper's DPP).
+        forward_offset: distance from the base origin to the BEV's near edge along x, metres.
+    """
+
+    size: int = 100
+    metres_per_pixel: float = 0.1
+    forward_offset: float = 7.5
+
+    @property
+    def centre(self) -> tuple[float, float]:
+        """Road-frame (x, y) of the BEV centre, metres."""
+        return (self.forward_offset + self.size * self.metres_per_pixel / 2.0, 0.0)
+
+    def ground_points(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
+        """Road-frame (x, y) of every pixel centre. -> ``(size, size, 2)``, indexed [row, col]."""
+        idx = torch.arange(self.size, dtype=dtype, device=device)
+        x = self.forward_offset + (self.size - 0.5 - idx) * self.metres_per_pixel
+        y = ((self.size - 1) / 2.0 - idx) * self.metres_per_pixel
+        xx, yy = torch.meshgrid(x, y, indexing="ij")
+        return torch.stack([xx, yy], dim=-1)

@@ -1,0 +1,27 @@
+"""Shared fixtures. ROS tests stay on localhost; KITTI tests skip only outside CI."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+REPO = Path(__file__).resolve().parents[1]
+KITTI_ROOT = Path(os.environ.get("BEVO_KITTI_ROOT", REPO.parent / "shared" / "data" / "kitti"))
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+@pytest.fixture(scope="session")
+def kitti_root() -> Path:
+    """The real KITTI sample. Skips with the reason on a fresh clone; fails in CI if absent."""
+    if not (KITTI_ROOT / "odometry" / "sequences" / "06").is_dir():
+        msg = f"KITTI sample not found at {KITTI_ROOT} (expected ../shared/data/kitti beside the repo)"
+        if in_ci():
+            pytest.fail(msg + "; CI=true requires it")
+        pytest.skip(msg)
+    return KITTI_ROOT
