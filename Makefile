@@ -15,11 +15,13 @@ PIP_FILTER := grep -v -E "Location '.*' is ignored" || true
 
 setup: $(STAMP)
 
-$(STAMP): requirements.txt setup.py setup.cfg package.xml
+$(STAMP): requirements.txt setup.py setup.cfg package.xml tools/build_tf2_msgs.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@echo "[setup] installing pinned requirements into $(VENV) (fast when nothing changed)"
 	@set -o pipefail; $(PY) -m pip install -q --disable-pip-version-check -r requirements.txt 2>&1 | $(PIP_FILTER)
 	@set -o pipefail; $(PY) -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e . 2>&1 | $(PIP_FILTER)
+	@# tf2_msgs has no wheel: build TFMessage from its interface into the venv (stamped, seconds).
+	@bash tools/build_tf2_msgs.sh $(VENV)
 	@touch $(STAMP)
 	@echo "[setup] done"
 

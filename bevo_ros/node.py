@@ -1,2 +1,652 @@
-def main():
-    print("stub")
+"""``bevo_node``: the thin rclpy layer around :class:`bevo_ros.core.odometry.BevoOdometry`.
+
+    ros2 run bevo_ros bevo_node --ros-args --params-file params/kitti.yaml
+
+Subscribes to IMU, images and (optionally) CameraInfo; runs the DUKF on every IMU message and
+BEV + phase correlation on every frame through the same engine the offline tools use; publishes
+nav_msgs/Odometry (header stamp = the image's stamp), a bounded nav_msgs/Path, a BEV image (only
+when subscribed), TF ``odom -> base_link`` and ``/diagnostics``. Every parameter is documented in
+``params/kitti.yaml``. Bad input is dropped, counted (``/diagnostics``) and logged (throttled per
+reason); no callback exception can kill the node. A missing or malformed learned-parameters file,
+or an unusable configuration, stops the node at start with one log line and exit code 2.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import sys
+import time
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from rclpy.node import Node
+
+from bevo_ros.config import (BevoConfig, ConfigError, build_odometry, camera_model, load_learned_params,
+                             resolve_path)
+from bevo_ros.ros_conversions import (ImageConversionError, bev_to_mono8, camera_info_intrinsics,
+                                      gray_to_image_msg, heatmap_to_mono8, image_to_gray, imu_to_arrays,
+                                      odometry_msg, pose_stamped_from_odometry, sec_to_stamp, stamp_to_sec,
+                                      transform_from_odometry)
+
+NODE_NAME = "bevo_node"
+EXIT_CONFIG_ERROR = 2
+
+
+# ------------------------------------------------------------------------------------ parameters
+@dataclass
+class NodeSettings:
+    """Parameters of the ROS wiring (the engine's come from :class:`BevoConfig`)."""
+
+    imu_topic: str = "/imu/data"
+    image_topic: str = "/camera/image_raw"
+    camera_info_topic: str = "/camera/camera_info"
+    use_camera_info: bool = False
+    camera_info_use_p: bool = True
+    odometry_topic: str = "/bevo/odometry"
+    path_topic: str = "/bevo/path"
+    bev_image_topic: str = "/bevo/bev_image"
+    bev_image_heatmap: bool = True
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    publish_tf: bool = True
+    path_max_length: int = 1000
+    input_qos: str = "sensor_data"
+    imu_qos_depth: int = 100
+    image_qos_depth: int = 5
+    output_qos_depth: int = 10
+    image_wait: float = 0.2
+    max_pending_images: int = 20
+    max_time_jump_back: float = 1.0
+    diagnostics_period: float = 1.0
+    log_throttle_period: float = 5.0
+    latency_window: int = 1000
+    torch_threads: int = 0
+
+
+DESCRIPTIONS = {
+    # node wiring
+    "imu_topic": "sensor_msgs/Imu input topic",
+    "image_topic": "sensor_msgs/Image input topic (rectified; mono8, rgb8/bgr8/rgba8/bgra8, mono16 accepted)",
+    "camera_info_topic": "sensor_msgs/CameraInfo topic (read when use_camera_info is true)",
+    "use_camera_info": "take the intrinsics and image size from CameraInfo instead of the camera.* parameters",
+    "camera_info_use_p": "use CameraInfo P[:3,:3] (rectified camera matrix) rather than K",
+    "odometry_topic": "nav_msgs/Odometry output topic",
+    "path_topic": "nav_msgs/Path output topic (published only when subscribed)",
+    "bev_image_topic": "sensor_msgs/Image mono8 BEV output (computed only when subscribed)",
+    "bev_image_heatmap": "put the correlation heat-map beside the BEV when the engine provides it",
+    "odom_frame": "frame_id of the odometry (the fixed odometry frame)",
+    "base_frame": "child_frame_id of the odometry (the vehicle/IMU frame)",
+    "publish_tf": "broadcast odom_frame -> base_frame on /tf",
+    "path_max_length": "poses kept in the path (oldest dropped first); 0 disables the path",
+    "input_qos": "'sensor_data' (best effort, live sensors) or 'reliable' (bag replay)",
+    "imu_qos_depth": "history depth of the IMU subscription",
+    "image_qos_depth": "history depth of the image (and CameraInfo) subscription",
+    "output_qos_depth": "history depth of the odometry/path/BEV publishers",
+    "image_wait": "seconds an image waits for IMU past its stamp before it is processed anyway",
+    "max_pending_images": "images waiting for IMU beyond this are dropped (oldest first, counted)",
+    "max_time_jump_back": "a stamp earlier than the previous by more than this (s) resets the odometry",
+    "diagnostics_period": "seconds between /diagnostics messages",
+    "log_throttle_period": "seconds between two log lines of the same drop reason",
+    "latency_window": "number of recent frames the latency percentiles cover",
+    "torch_threads": "torch CPU threads for the engine; 0 keeps torch's default",
+    # engine (bevo_ros.config.BevoConfig)
+    "camera.fx": "focal length x (px) of the rectified image; 0 = from CameraInfo",
+    "camera.fy": "focal length y (px); 0 = from CameraInfo",
+    "camera.cx": "principal point x (px)",
+    "camera.cy": "principal point y (px)",
+    "camera.width": "image width (px); images of another size are dropped",
+    "camera.height_px": "image height (px)",
+    "camera.height": "camera centre height above the road (m)",
+    "camera.base_T_camera": "camera optical frame pose in the base (IMU) frame, 4x4 row-major",
+    "bev.size": "BEV grid is size x size pixels",
+    "bev.metres_per_pixel": "BEV ground sampling distance (m/px)",
+    "bev.forward_offset": "distance from the base origin to the BEV near edge (m)",
+    "filter.motion_model": "'euler' (exact Euler-angle kinematics) or 'additive' (the paper's)",
+    "filter.road_tilt_time_constant": "low-pass time constant (s) separating road tilt from vehicle attitude; 0 disables",
+    "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
+    "learned_params_file": "learned O/Q YAML; relative paths resolve beside the parameters file, then the package",
+    "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
+}
+
+
+def _coerce(name: str, value: Any, default: Any) -> Any:
+    try:
+        if isinstance(default, bool):
+            if isinstance(value, bool):
+                return value
+        elif isinstance(default, int):
+            if not isinstance(value, bool) and int(value) == value:
+                return int(value)
+        elif isinstance(default, float):
+            if not isinstance(value, bool) and math.isfinite(float(value)):
+                return float(value)
+        elif isinstance(value, str):
+            return value
+    except (TypeError, ValueError):
+        pass
+    raise ConfigError(f"parameter '{name}' = {value!r} is not a valid {type(default).__name__}")
+
+
+def _validate(s: NodeSettings) -> None:
+    if s.input_qos not in ("sensor_data", "reliable"):
+        raise ConfigError(f"parameter 'input_qos' must be 'sensor_data' or 'reliable', got {s.input_qos!r}")
+    for name in ("imu_qos_depth", "image_qos_depth", "output_qos_depth", "max_pending_images", "latency_window"):
+        if getattr(s, name) < 1:
+            raise ConfigError(f"parameter '{name}' must be >= 1, got {getattr(s, name)}")
+    for name in ("image_wait", "max_time_jump_back", "diagnostics_period"):
+        if getattr(s, name) <= 0:
+            raise ConfigError(f"parameter '{name}' must be > 0, got {getattr(s, name)}")
+    for name in ("path_max_length", "torch_threads"):
+        if getattr(s, name) < 0:
+            raise ConfigError(f"parameter '{name}' must be >= 0, got {getattr(s, name)}")
+    for name in ("odom_frame", "base_frame", "imu_topic", "image_topic", "odometry_topic"):
+        if not getattr(s, name):
+            raise ConfigError(f"parameter '{name}' must not be empty")
+
+
+def _tf_backend(node) -> tuple[str, Callable[[Any], None] | None]:
+    """``(name, send(TransformStamped))``: tf2_ros when installed, else our own /tf publisher."""
+    try:
+        from tf2_ros import TransformBroadcaster  # full ROS 2 install
+    except ImportError:
+        pass
+    else:
+        broadcaster = TransformBroadcaster(node)
+        return "tf2_ros", broadcaster.sendTransform
+    try:
+        from tf2_msgs.msg import TFMessage  # built by tools/build_tf2_msgs.sh (make setup)
+    except ImportError:
+        return "none", None
+    from rclpy.qos import QoSProfile
+
+    pub = node.create_publisher(TFMessage, "/tf", QoSProfile(depth=100))  # tf2_ros's broadcaster QoS
+
+    def send(transform) -> None:
+        pub.publish(TFMessage(transforms=[transform]))
+
+    return "tf2_msgs", send
+
+
+# ------------------------------------------------------------------------------------ the node
+class BevoNode(Node):
+    """See the module docstring. ``engine_factory(config, learned, camera)`` is for tests."""
+
+    def __init__(self, params_file: str | None = None, engine_factory: Callable | None = None,
+                 node_name: str = NODE_NAME, **node_kwargs) -> None:
+        from rcl_interfaces.msg import ParameterDescriptor
+        from rclpy.clock import Clock, ClockType
+
+        super().__init__(node_name, **node_kwargs)
+        self._t_start = time.monotonic()
+        self._engine_factory = engine_factory or build_odometry
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+
+        # ---- parameters: one per NodeSettings field and per flat BevoConfig key
+        flat_defaults = {f.name: getattr(NodeSettings(), f.name) for f in dataclasses.fields(NodeSettings)}
+        flat_defaults.update(BevoConfig().to_flat())
+        flat: dict[str, Any] = {}
+        for name, default in flat_defaults.items():
+            desc = ParameterDescriptor(description=DESCRIPTIONS.get(name, ""), dynamic_typing=True)
+            flat[name] = self.declare_parameter(name, default, desc).value
+        self.settings = NodeSettings(**{f.name: _coerce(f.name, flat[f.name], getattr(NodeSettings(), f.name))
+                                        for f in dataclasses.fields(NodeSettings)})
+        _validate(self.settings)
+        self.config = BevoConfig.from_flat(flat, source=f"{node_name} parameters")
+        base_dir = Path(params_file).resolve().parent if params_file else None
+        self.learned_path = resolve_path(self.config.learned_params_file, base_dir)
+        self.learned = load_learned_params(self.learned_path)  # ConfigError: refuse to start
+        self.config.learned_params_file = str(self.learned_path)
+        s = self.settings
+
+        import torch
+
+        if s.torch_threads > 0:
+            torch.set_num_threads(s.torch_threads)
+        if self.config.device.startswith("cuda") and not torch.cuda.is_available():
+            self.get_logger().warning(f"device '{self.config.device}' requested but CUDA is not available: "
+                                      "running on the CPU")
+
+        # ---- state
+        self.engine = None
+        self.camera = None
+        self.drops: collections.Counter[str] = collections.Counter()
+        self.events: collections.Counter[str] = collections.Counter()
+        self.log_history: collections.deque[tuple[str, str]] = collections.deque(maxlen=200)
+        self._throttle: dict[str, list[float]] = {}
+        self.counts = collections.Counter()  # imu_in, images_in, odometry_out, camera_info_in
+        self._latency: collections.deque[float] = collections.deque(maxlen=s.latency_window)
+        self._quality: collections.deque[float] = collections.deque(maxlen=100)
+        self._pending: dict[float, tuple[Any, float]] = {}  # engine stamp -> (header Time, arrival)
+        self._engine_counters: dict[str, int] = {}
+        self._last_imu_stamp: float | None = None
+        self._last_gap = 0.0
+        self._path = collections.deque(maxlen=max(1, s.path_max_length))
+        self._last_diag = (time.monotonic(), collections.Counter())
+
+        if self.config.camera.has_intrinsics():
+            self._set_camera(camera_model(self.config.camera))
+        elif not s.use_camera_info:
+            raise ConfigError("camera intrinsics are not set (camera.fx, fy, cx, cy, width, height_px) and "
+                              "use_camera_info is false: set them or enable use_camera_info")
+
+        # ---- interfaces
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry, Path as PathMsg
+        from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import CameraInfo, Image, Imu
+        from std_srvs.srv import Trigger
+
+        def in_qos(depth: int) -> QoSProfile:
+            if s.input_qos == "reliable":
+                return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+            q = QoSProfile(**{k: getattr(qos_profile_sensor_data, k) for k in ("history", "reliability", "durability")},
+                           depth=depth)
+            return q
+
+        self.odom_pub = self.create_publisher(Odometry, s.odometry_topic, s.output_qos_depth)
+        self.path_pub = self.create_publisher(PathMsg, s.path_topic, s.output_qos_depth) if s.path_max_length else None
+        self.bev_pub = self.create_publisher(Image, s.bev_image_topic, s.output_qos_depth)
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.tf_backend, self._send_tf = ("disabled", None)
+        if s.publish_tf:
+            self.tf_backend, self._send_tf = _tf_backend(self)
+            if self._send_tf is None:
+                self.get_logger().warning(
+                    "publish_tf is true but neither tf2_ros nor tf2_msgs is available: TF is DISABLED "
+                    "(odometry is still published; run `make setup` to build tf2_msgs, or install ROS 2 tf2_ros)")
+        self.create_subscription(Imu, s.imu_topic, self._guard("imu", self._on_imu), in_qos(s.imu_qos_depth))
+        self.create_subscription(Image, s.image_topic, self._guard("image", self._on_image),
+                                 in_qos(s.image_qos_depth))
+        if s.use_camera_info:
+            self.create_subscription(CameraInfo, s.camera_info_topic,
+                                     self._guard("camera_info", self._on_camera_info), in_qos(s.image_qos_depth))
+        self.create_service(Trigger, "~/reset", self._guard("reset", self._on_reset))
+        # Steady-clock timers: they tick with or without /clock (use_sim_time).
+        self.create_timer(min(0.05, s.image_wait / 2), self._guard("flush_timer", self._on_flush_timer),
+                          clock=self._steady)
+        self.create_timer(s.diagnostics_period, self._guard("diagnostics", self._publish_diagnostics),
+                          clock=self._steady)
+        self._install_clock_jump_handler()
+
+        cam = (f"{self.camera.width}x{self.camera.height_px} fx={float(self.camera.K[0, 0]):.2f}" if self.camera
+               else f"waiting for CameraInfo on {s.camera_info_topic}")
+        self.get_logger().info(
+            f"ready: imu={s.imu_topic} image={s.image_topic} ({s.input_qos}) -> {s.odometry_topic}, "
+            f"camera {cam}, BEV {self.config.bev.size}px x {self.config.bev.metres_per_pixel} m, "
+            f"learned={self.learned_path}, tf={self.tf_backend}")
+
+    # ------------------------------------------------------------------ helpers
+    def _guard(self, name: str, fn: Callable) -> Callable:
+        """Wrap a callback: an unexpected exception is logged (throttled) and counted, never raised."""
+
+        def wrapped(*args):
+            try:
+                return fn(*args)
+            except Exception as exc:  # noqa: BLE001 - the node must survive anything
+                self._drop("callback_error", f"unexpected {type(exc).__name__} in the {name} callback: {exc}\n"
+                                             f"{traceback.format_exc()}", level="error")
+                if name == "reset" and len(args) == 2:  # a service must still answer
+                    response = args[1]
+                    response.success, response.message = False, f"{type(exc).__name__}: {exc}"
+                    return response
+                return None
+
+        return wrapped
+
+    def _log(self, key: str, text: str, level: str = "warning") -> None:
+        """Log ``text``, at most once per ``log_throttle_period`` per ``key`` (then with a count)."""
+        self.log_history.append((key, text))
+        now = time.monotonic()
+        state = self._throttle.setdefault(key, [-math.inf, 0])
+        if now - state[0] < self.settings.log_throttle_period:
+            state[1] += 1
+            return
+        if state[1]:
+            text += f" ({state[1]} more since the last report)"
+        state[0], state[1] = now, 0
+        getattr(self.get_logger(), level)(text)
+
+    def _drop(self, reason: str, text: str, level: str = "warning") -> None:
+        self.drops[reason] += 1
+        self._log(reason, f"dropped ({reason}): {text}", level)
+
+    def _set_camera(self, camera) -> None:
+        self.camera = camera
+        if self.engine is None:
+            self.engine = self._engine_factory(self.config, self.learned, camera)
+            if hasattr(self.engine, "max_pending_images"):
+                self.engine.max_pending_images = self.settings.max_pending_images
+            self._engine_counters = self._read_engine_counters()
+        else:
+            self.engine.set_camera(camera)
+
+    def _read_engine_counters(self) -> dict[str, int]:
+        c = getattr(self.engine, "counters", None)
+        return dict(vars(c)) if c is not None and hasattr(c, "__dict__") else {}
+
+    def _check_engine_counters(self) -> None:
+        """Turn the engine's own drop/gap counters into counted, logged node events."""
+        now = self._read_engine_counters()
+        old, self._engine_counters = self._engine_counters, now
+        d = {k: now.get(k, 0) - old.get(k, 0) for k in now}
+        if d.get("dropped_no_imu", 0) > 0:
+            self.drops["no_imu"] += d["dropped_no_imu"]
+            self._log("no_imu", f"dropped (no_imu): {d['dropped_no_imu']} image(s) with no IMU sample at or before "
+                                "their stamp (frames before any IMU)")
+        if d.get("dropped_pending_overflow", 0) > 0:
+            self.drops["pending_overflow"] += d["dropped_pending_overflow"]
+            self._log("pending_overflow", f"dropped (pending_overflow): {d['dropped_pending_overflow']} image(s): "
+                                          f"more than max_pending_images={self.settings.max_pending_images} "
+                                          "images were waiting for IMU")
+        if d.get("imu_gaps", 0) > 0:
+            self.events["imu_gap"] += d["imu_gaps"]
+            self._log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.config.filter.max_imu_gap} s "
+                                 f"(last gap {self._last_gap:.3f} s): the DUKF re-initialised its pitch/roll "
+                                 "from the accelerometer")
+        # the engine drops the oldest waiting images: forget their stamps too
+        n_dropped = d.get("dropped_no_imu", 0) + d.get("dropped_pending_overflow", 0)
+        excess = len(self._pending) - (self.settings.max_pending_images + 2)
+        for k in sorted(self._pending)[: max(n_dropped, excess, 0)]:
+            self._pending.pop(k, None)
+
+    def _out_of_order(self, kind: str, exc, stamp: float, retry: Callable[[], list]) -> list | None:
+        """A stamp not after the previous one: a big jump back resets and retries, else a drop (None)."""
+        jump = float(getattr(exc, "jump", 0.0))
+        if jump > self.settings.max_time_jump_back:
+            self.events["time_jump_reset"] += 1
+            self.get_logger().warning(
+                f"{kind} stamp {stamp:.6f} is {jump:.3f} s before the previous one (> max_time_jump_back="
+                f"{self.settings.max_time_jump_back} s): time jumped back (bag restarted?) - resetting the "
+                "odometry; the trajectory restarts at identity")
+            self._reset()
+            return retry()
+        reason = f"{kind}_duplicate" if jump == 0 else f"{kind}_out_of_order"
+        self._drop(reason, f"{kind} stamp {stamp:.9f} is not after the previous {kind} stamp "
+                           f"{float(getattr(exc, 'last', stamp)):.9f} ({jump * 1e3:.3f} ms back)")
+        return None
+
+    def _reset(self) -> None:
+        if self.engine is not None:
+            self.engine.reset()
+            self._engine_counters = self._read_engine_counters()
+        self._pending.clear()
+        self._path.clear()
+        self._last_imu_stamp = None
+        self.events["reset"] += 1
+
+    # ------------------------------------------------------------------ callbacks
+    def _on_imu(self, msg) -> None:
+        self.counts["imu_in"] += 1
+        t = stamp_to_sec(msg.header.stamp)
+        gyro, accel = imu_to_arrays(msg)
+        if not (math.isfinite(t) and np.isfinite(gyro).all() and np.isfinite(accel).all()):
+            self._drop("imu_nonfinite", f"IMU message at {t:.6f} has NaN/inf "
+                                        f"(gyro {gyro.tolist()}, accel {accel.tolist()})")
+            return
+        if self.engine is None:
+            self._drop("no_camera_info", f"IMU at {t:.6f}: waiting for CameraInfo on "
+                                         f"{self.settings.camera_info_topic} before starting", level="info")
+            return
+        self._last_gap = 0.0 if self._last_imu_stamp is None else t - self._last_imu_stamp
+        steps = self._engine_call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
+        if steps is None:
+            return
+        self._last_imu_stamp = t
+        self._publish_steps(steps)
+
+    def _on_image(self, msg) -> None:
+        arrival = time.monotonic()
+        self.counts["images_in"] += 1
+        t = stamp_to_sec(msg.header.stamp)
+        if self.engine is None:
+            self._drop("no_camera_info", f"image at {t:.6f}: no intrinsics yet (waiting for CameraInfo on "
+                                         f"{self.settings.camera_info_topic})")
+            return
+        try:
+            img = image_to_gray(msg)
+        except ImageConversionError as exc:
+            self._drop(exc.reason, f"image at {t:.6f}: {exc}")
+            return
+        cam = self.camera
+        if (img.shape[1], img.shape[0]) != (cam.width, cam.height_px):
+            self._drop("bad_image_size", f"image at {t:.6f} is {img.shape[1]}x{img.shape[0]} but the calibration "
+                                         f"is {cam.width}x{cam.height_px} (camera.width/height_px or CameraInfo)")
+            return
+        inserted = t not in self._pending
+        entry = (msg.header.stamp, arrival)
+
+        def call() -> list:
+            if inserted:
+                self._pending.setdefault(t, entry)  # again after a time-jump reset cleared the map
+            return self.engine.add_image(t, img)
+
+        steps = self._engine_call("image", t, call)
+        if steps is None:
+            if inserted:
+                self._pending.pop(t, None)
+            return
+        self._publish_steps(steps)
+
+    def _engine_call(self, kind: str, t: float, call: Callable[[], list]) -> list | None:
+        """Run an engine call. Returns its steps, or None when the input was dropped (counted)."""
+        from bevo_ros.core.odometry import OutOfOrderError
+
+        try:
+            steps = call()
+        except OutOfOrderError as exc:
+            try:
+                steps = self._out_of_order(kind, exc, t, call)
+            except ValueError as exc2:
+                self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc2}")
+                steps = None
+        except ValueError as exc:
+            self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc}")
+            steps = None
+        self._check_engine_counters()
+        return steps
+
+    def _on_camera_info(self, msg) -> None:
+        self.counts["camera_info_in"] += 1
+        try:
+            K, w, h = camera_info_intrinsics(msg, self.settings.camera_info_use_p)
+        except ValueError as exc:
+            self._drop("bad_camera_info", str(exc))
+            return
+        if self.camera is not None and (w, h) == (self.camera.width, self.camera.height_px) and \
+                np.allclose(np.asarray(self.camera.K.detach().cpu(), dtype=np.float64), K, rtol=0, atol=1e-9):
+            return
+        self._set_camera(camera_model(self.config.camera, K=K, width=w, height_px=h))
+        self.get_logger().info(f"camera intrinsics from CameraInfo: {w}x{h} fx={K[0, 0]:.3f} fy={K[1, 1]:.3f} "
+                               f"cx={K[0, 2]:.3f} cy={K[1, 2]:.3f}")
+
+    def _on_flush_timer(self) -> None:
+        if self.engine is None or not self._pending or not getattr(self.engine, "pending_images", 0):
+            return
+        oldest = min(arrival for _, arrival in self._pending.values())
+        if time.monotonic() - oldest < self.settings.image_wait:
+            return
+        n = self.engine.pending_images
+        steps = self.engine.flush()
+        self.events["flushed_images"] += len(steps)
+        self._check_engine_counters()
+        self._log("image_wait", f"{n} image(s) waited more than image_wait={self.settings.image_wait} s for IMU "
+                                f"past their stamp: processed with the IMU fused so far ({len(steps)} published)",
+                  level="info")
+        self._publish_steps(steps)
+
+    def _on_reset(self, request, response):
+        self._reset()
+        self.get_logger().info("reset requested: odometry restarted at identity")
+        response.success = True
+        response.message = "odometry reset: the trajectory restarts at identity"
+        return response
+
+    def _install_clock_jump_handler(self) -> None:
+        """With use_sim_time, /clock jumping back (bag restarted) resets like robot_localization."""
+        try:
+            from rclpy.clock import JumpThreshold
+            from rclpy.duration import Duration
+
+            threshold = JumpThreshold(min_forward=None, on_clock_change=False,
+                                      min_backward=Duration(nanoseconds=-int(self.settings.max_time_jump_back * 1e9)))
+
+            def on_jump(info) -> None:
+                if self._last_imu_stamp is None and not self._pending:
+                    return
+                self.events["clock_jump_reset"] += 1
+                self.get_logger().warning("ROS time jumped backwards (bag restarted?): resetting the odometry")
+                self._reset()
+
+            self._jump_handle = self.get_clock().create_jump_handler(threshold, post_callback=self._guard(
+                "clock_jump", on_jump))
+        except Exception as exc:  # noqa: BLE001 - optional feature
+            self.get_logger().debug(f"no clock jump handler: {exc}")
+
+    # ------------------------------------------------------------------ outputs
+    def _publish_steps(self, steps: list) -> None:
+        if not steps:
+            return
+        s = self.settings
+        for step in steps:
+            entry = self._pending.pop(step.stamp, None)
+            stamp_msg, arrival = entry if entry is not None else (sec_to_stamp(step.stamp), None)
+            odom = odometry_msg(step, stamp_msg, s.odom_frame, s.base_frame)
+            self.odom_pub.publish(odom)
+            if arrival is not None:
+                self._latency.append(time.monotonic() - arrival)
+            self.counts["odometry_out"] += 1
+            q = float(getattr(step, "peak_quality", float("nan")))
+            if math.isfinite(q):
+                self._quality.append(q)
+            if self._send_tf is not None:
+                self._send_tf(transform_from_odometry(odom))
+            if self.path_pub is not None:
+                self._path.append(pose_stamped_from_odometry(odom))
+                if self.path_pub.get_subscription_count() > 0:
+                    from nav_msgs.msg import Path as PathMsg
+
+                    self.path_pub.publish(PathMsg(header=odom.header, poses=list(self._path)))
+            if self.bev_pub.get_subscription_count() > 0:
+                self._publish_bev(step, odom.header)
+        # images older than the last published one can no longer come out of the engine
+        last = steps[-1].stamp
+        for k in [k for k in self._pending if k <= last]:
+            self._pending.pop(k, None)
+
+    def _publish_bev(self, step, header) -> None:
+        from std_msgs.msg import Header
+
+        img = bev_to_mono8(step.bev, getattr(step, "bev_mask", None))
+        heat = getattr(step, "correlation", None)
+        if self.settings.bev_image_heatmap and heat is not None:
+            sep = np.full((img.shape[0], 2), 128, np.uint8)
+            img = np.hstack([img, sep, heatmap_to_mono8(heat, img.shape)])
+        self.bev_pub.publish(gray_to_image_msg(img, Header(stamp=header.stamp, frame_id=self.settings.base_frame)))
+
+    def latency_percentiles(self) -> tuple[float, float, float]:
+        """(p50, p99, max) of image arrival -> odometry publication, seconds (nan when empty)."""
+        if not self._latency:
+            return (math.nan,) * 3
+        a = np.asarray(self._latency)
+        return float(np.percentile(a, 50)), float(np.percentile(a, 99)), float(a.max())
+
+    def diagnostics_values(self) -> dict[str, str]:
+        now = time.monotonic()
+        last_t, last_counts = self._last_diag
+        dt = max(now - last_t, 1e-9)
+        self._last_diag = (now, collections.Counter(self.counts))
+        rate = lambda k: (self.counts[k] - last_counts[k]) / dt  # noqa: E731
+        p50, p99, pmax = self.latency_percentiles()
+        values = {
+            "imu_rate_hz": f"{rate('imu_in'):.1f}",
+            "image_rate_hz": f"{rate('images_in'):.1f}",
+            "odometry_rate_hz": f"{rate('odometry_out'):.1f}",
+            "imu_received": str(self.counts["imu_in"]),
+            "images_received": str(self.counts["images_in"]),
+            "odometry_published": str(self.counts["odometry_out"]),
+            "drops_total": str(sum(self.drops.values())),
+            "latency_p50_ms": f"{p50 * 1e3:.2f}",
+            "latency_p99_ms": f"{p99 * 1e3:.2f}",
+            "latency_max_ms": f"{pmax * 1e3:.2f}",
+            "peak_quality_last": f"{self._quality[-1]:.3f}" if self._quality else "nan",
+            "peak_quality_mean": f"{float(np.mean(self._quality)):.3f}" if self._quality else "nan",
+            "pending_images": str(getattr(self.engine, "pending_images", 0) if self.engine else 0),
+            "tf": self.tf_backend,
+        }
+        for reason, n in sorted(self.drops.items()):
+            values[f"drop.{reason}"] = str(n)
+        for name, n in sorted(self.events.items()):
+            values[f"event.{name}"] = str(n)
+        return values
+
+    def _publish_diagnostics(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        prev_drops = getattr(self, "_diag_drops", 0)
+        values = self.diagnostics_values()
+        drops = int(values["drops_total"])
+        self._diag_drops = drops
+        status = DiagnosticStatus(name=f"{self.get_name()}: odometry", hardware_id="bevo")
+        if self.engine is None:
+            status.level, status.message = DiagnosticStatus.WARN, "waiting for CameraInfo"
+        elif drops > prev_drops:
+            status.level, status.message = DiagnosticStatus.WARN, f"{drops - prev_drops} input(s) dropped"
+        elif float(values["image_rate_hz"]) > 0 and float(values["odometry_rate_hz"]) == 0:
+            status.level, status.message = DiagnosticStatus.WARN, "images arrive but no odometry is produced"
+        else:
+            status.level, status.message = DiagnosticStatus.OK, "running"
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.diag_pub.publish(msg)
+
+
+# ------------------------------------------------------------------------------------ entry point
+def _params_file_from_args(argv: list[str]) -> str | None:
+    """The last ``--params-file X`` among the ROS arguments (for resolving relative paths)."""
+    found = None
+    for i, a in enumerate(argv):
+        if a == "--params-file" and i + 1 < len(argv):
+            found = argv[i + 1]
+    return found
+
+
+def main(args: list[str] | None = None) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    argv = list(sys.argv if args is None else args)
+    try:
+        rclpy.init(args=argv)
+    except Exception as exc:  # noqa: BLE001 - e.g. an unreadable --params-file
+        print(f"[FATAL] [{NODE_NAME}]: cannot initialise ROS 2: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    node = None
+    code = 0
+    try:
+        try:
+            node = BevoNode(params_file=_params_file_from_args(argv))
+        except ConfigError as exc:
+            logger.fatal(f"refusing to start: {exc}")
+            return EXIT_CONFIG_ERROR
+        except Exception as exc:  # noqa: BLE001 - a clear line, no traceback
+            logger.fatal(f"refusing to start: {type(exc).__name__}: {exc}")
+            return EXIT_CONFIG_ERROR
+        try:
+            rclpy.spin(node)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            logger.info("shutting down")
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,644 @@
+"""rosbag2 read/write helpers shared by the tools (rosbags only, no rclpy).
+
+* :class:`BagWriter` writes sensor_msgs/nav_msgs messages into a new rosbag2 (sqlite3 or mcap)
+  atomically: everything goes to a hidden temp directory beside the target, which is renamed
+  into place only when the ``with`` block ends without an exception (and removed otherwise).
+* :func:`read_recording` loads a whole recording into numpy arrays (IMU, images, camera info,
+  ground truth) for offline tools and training.
+* :func:`iter_messages` / :func:`iter_raw_messages` stream messages in bag-time order.
+
+Stamps: writer methods take ``stamp`` as float seconds, or as an ``int`` / numpy integer meaning
+*nanoseconds* (exact; KITTI stamps have 9 decimals, more than a float64 of ~1e9 s can carry).
+The bag (receive) time of every message equals its header stamp.
+"""
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+PathLike = str | Path
+
+# Default topic names (the node, the tools and the tests agree on them).
+IMU_TOPIC = "/imu/data"
+IMAGE_TOPIC = "/camera/image_raw"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+GT_ODOMETRY_TOPIC = "/ground_truth/odometry"
+GT_IMU_TOPIC = "/ground_truth/imu"
+
+STORAGES = ("sqlite3", "mcap")
+
+IMU_MSG = "sensor_msgs/msg/Imu"
+IMAGE_MSG = "sensor_msgs/msg/Image"
+CAMERA_INFO_MSG = "sensor_msgs/msg/CameraInfo"
+ODOMETRY_MSG = "nav_msgs/msg/Odometry"
+
+
+class BagError(ValueError):
+    """A bag that cannot be read or written as asked (message names the bag)."""
+
+
+# ----------------------------------------------------------------------------------------------
+# Small conversions
+# ----------------------------------------------------------------------------------------------
+@lru_cache(maxsize=1)
+def typestore():
+    """The rosbags type store of ROS 2 Jazzy (cached)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def to_ns(stamp: float | int) -> int:
+    """Float seconds or integer nanoseconds -> integer nanoseconds (see module docstring)."""
+    if isinstance(stamp, (bool, np.bool_)):
+        raise TypeError("stamp must be float seconds or integer nanoseconds, not bool")
+    if isinstance(stamp, (int, np.integer)):
+        return int(stamp)
+    s = float(stamp)
+    if not math.isfinite(s):
+        raise ValueError(f"non-finite stamp {stamp!r}")
+    whole = math.floor(s)
+    return int(whole) * 1_000_000_000 + int(round((s - whole) * 1e9))  # s - whole is exact
+
+
+def ns_to_sec_nanosec(ns: int) -> tuple[int, int]:
+    if ns < 0:
+        raise ValueError(f"negative stamp {ns} ns cannot go into builtin_interfaces/Time")
+    return ns // 1_000_000_000, ns % 1_000_000_000
+
+
+def stamp_ns(msg_stamp: Any) -> int:
+    """``builtin_interfaces/Time``-like (``sec``, ``nanosec``) -> integer nanoseconds."""
+    return int(msg_stamp.sec) * 1_000_000_000 + int(msg_stamp.nanosec)
+
+
+def ns_to_seconds(ns: np.ndarray | Sequence[int]) -> np.ndarray:
+    """int64 nanoseconds -> float64 seconds (whole seconds split off first)."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation ``(3, 3)`` -> unit quaternion ``(x, y, z, w)`` with ``w >= 0`` (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
+        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
+        q[i] = 0.25 * s
+        q[j] = (R[j, i] + R[i, j]) / s
+        q[k] = (R[k, i] + R[i, k]) / s
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def matrix_from_quaternion(q: Sequence[float]) -> np.ndarray:
+    """Quaternion ``(x, y, z, w)`` (normalised here) -> rotation ``(3, 3)``."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """``Rz(yaw) Ry(pitch) Rx(roll)`` (geometry.py convention) -> ``(x, y, z, w)``."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                     cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy])
+
+
+def rpy_from_matrix(R: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of ``Rz(yaw) Ry(pitch) Rx(roll)`` -> (roll, pitch, yaw)."""
+    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    return math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])
+
+
+def _covariance(value: float | Sequence[float] | np.ndarray | None, n: int, default: float) -> np.ndarray:
+    """Scalar variance, per-axis variances ``(n,)`` or a full ``(n, n)`` -> flat row-major."""
+    if value is None:
+        value = default
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = np.eye(n) * float(arr)
+    elif arr.shape == (n,):
+        arr = np.diag(arr)
+    elif arr.shape != (n, n):
+        raise ValueError(f"covariance must be a scalar, ({n},) or ({n}, {n}); got {arr.shape}")
+    return arr.reshape(-1).copy()
+
+
+# ----------------------------------------------------------------------------------------------
+# Message builders (rosbags dataclasses)
+# ----------------------------------------------------------------------------------------------
+def _header(stamp: float | int, frame_id: str):
+    ts = typestore().types
+    sec, nanosec = ns_to_sec_nanosec(to_ns(stamp))
+    return ts["std_msgs/msg/Header"](stamp=ts["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+                                     frame_id=frame_id)
+
+
+def _vector3(v: Sequence[float]):
+    x, y, z = (float(a) for a in np.asarray(v, dtype=np.float64).reshape(3))
+    return typestore().types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
+
+
+def _quaternion(q: Sequence[float]):
+    x, y, z, w = (float(a) for a in np.asarray(q, dtype=np.float64).reshape(4))
+    return typestore().types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
+
+
+def imu_message(stamp: float | int, gyro: Sequence[float], accel: Sequence[float], frame_id: str,
+                orientation: Sequence[float] | None = None, orientation_covariance=None,
+                gyro_covariance=None, accel_covariance=None):
+    """sensor_msgs/Imu. Without ``orientation``, ``orientation_covariance[0] = -1`` ("no estimate").
+
+    Covariances: scalar variance, ``(3,)`` variances or ``(3, 3)``. Defaults: gyro 1e-4 (rad/s)^2,
+    accel 1e-2 (m/s^2)^2 (OXTS RT3000-class noise, rounded up).
+    """
+    types = typestore().types
+    if orientation is None:
+        q = (0.0, 0.0, 0.0, 1.0)
+        ocov = np.zeros(9)
+        ocov[0] = -1.0
+    else:
+        q = orientation
+        ocov = _covariance(orientation_covariance, 3, 1e-6)
+    return types[IMU_MSG](
+        header=_header(stamp, frame_id),
+        orientation=_quaternion(q),
+        orientation_covariance=ocov,
+        angular_velocity=_vector3(gyro),
+        angular_velocity_covariance=_covariance(gyro_covariance, 3, 1e-4),
+        linear_acceleration=_vector3(accel),
+        linear_acceleration_covariance=_covariance(accel_covariance, 3, 1e-2),
+    )
+
+
+def image_message(stamp: float | int, image: np.ndarray, frame_id: str, encoding: str | None = None):
+    """sensor_msgs/Image from ``(H, W)`` uint8 (mono8), ``(H, W)`` uint16 (mono16) or ``(H, W, 3)``
+    uint8 (rgb8 unless ``encoding='bgr8'``)."""
+    image = np.asarray(image)
+    if image.ndim == 2 and image.dtype == np.uint8:
+        enc, channels, depth = encoding or "mono8", 1, 1
+    elif image.ndim == 2 and image.dtype == np.uint16:
+        enc, channels, depth = encoding or "mono16", 1, 2
+    elif image.ndim == 3 and image.shape[2] == 3 and image.dtype == np.uint8:
+        enc, channels, depth = encoding or "rgb8", 3, 1
+    else:
+        raise ValueError(f"unsupported image: shape {image.shape}, dtype {image.dtype} "
+                         "(need (H, W) uint8/uint16 or (H, W, 3) uint8)")
+    if enc not in ENCODINGS or ENCODINGS[enc] != (channels, depth):
+        raise ValueError(f"encoding {enc!r} does not fit an image of shape {image.shape}, dtype {image.dtype}")
+    h, w = image.shape[:2]
+    data = np.ascontiguousarray(image).astype(image.dtype.newbyteorder("<"), copy=False).view(np.uint8).reshape(-1)
+    return typestore().types[IMAGE_MSG](header=_header(stamp, frame_id), height=h, width=w, encoding=enc,
+                                        is_bigendian=0, step=w * channels * depth, data=data)
+
+
+def camera_info_message(stamp: float | int, K: np.ndarray, width: int, height: int, frame_id: str,
+                        P: np.ndarray | None = None, D: Sequence[float] | None = None,
+                        distortion_model: str = "plumb_bob", R: np.ndarray | None = None):
+    """sensor_msgs/CameraInfo; for rectified images D = 0 (plumb_bob), R = I, P = [K | 0]."""
+    types = typestore().types
+    K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+    P = np.hstack([K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=np.float64).reshape(3, 4)
+    R = np.eye(3) if R is None else np.asarray(R, dtype=np.float64).reshape(3, 3)
+    D = np.zeros(5) if D is None else np.asarray(D, dtype=np.float64).reshape(-1)
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return types[CAMERA_INFO_MSG](header=_header(stamp, frame_id), height=int(height), width=int(width),
+                                  distortion_model=distortion_model, d=D.copy(), k=K.reshape(-1).copy(),
+                                  r=R.reshape(-1).copy(), p=P.reshape(-1).copy(), binning_x=0, binning_y=0,
+                                  roi=roi)
+
+
+def odometry_message(stamp: float | int, T: np.ndarray, frame_id: str, child_frame_id: str,
+                     pose_covariance=None, twist: Sequence[float] | None = None, twist_covariance=None):
+    """nav_msgs/Odometry of pose ``T (4, 4)`` (child in frame_id); twist (vx, vy, vz, wx, wy, wz)."""
+    types = typestore().types
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"pose must be (4, 4), got {T.shape}")
+    t = T[:3, 3]
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=float(t[0]), y=float(t[1]), z=float(t[2])),
+        orientation=_quaternion(quaternion_from_matrix(T[:3, :3])))
+    tw = np.zeros(6) if twist is None else np.asarray(twist, dtype=np.float64).reshape(6)
+    twist_msg = types["geometry_msgs/msg/Twist"](linear=_vector3(tw[:3]), angular=_vector3(tw[3:]))
+    return types[ODOMETRY_MSG](
+        header=_header(stamp, frame_id), child_frame_id=child_frame_id,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=_covariance(pose_covariance, 6, 0.0)),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist_msg,
+                                                            covariance=_covariance(twist_covariance, 6, 0.0)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Writer
+# ----------------------------------------------------------------------------------------------
+def _storage_plugin(storage: str):
+    from rosbags.rosbag2 import StoragePlugin
+
+    if storage not in STORAGES:
+        raise ValueError(f"unknown storage {storage!r} (choose from {', '.join(STORAGES)})")
+    return StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+
+
+class BagWriter:
+    """Atomic rosbag2 writer (context manager).
+
+    Example::
+
+        with BagWriter("out_bag", storage="mcap") as bag:
+            bag.write_imu(t, gyro, accel, "imu_link")
+
+    Everything is written into ``.<name>.partial-XXXX/<name>`` beside ``path``; on success it is
+    renamed to ``path`` (replacing an old bag only when ``overwrite``); on an exception (including
+    KeyboardInterrupt) the temp directory is removed and ``path`` is untouched.
+
+    Raises:
+        FileExistsError: ``path`` exists and ``overwrite`` is False (raised by the constructor,
+            before any work is done).
+    """
+
+    def __init__(self, path: PathLike, storage: str = "sqlite3", overwrite: bool = False):
+        self.path = Path(path)
+        self.storage = storage
+        self.overwrite = overwrite
+        self._plugin = _storage_plugin(storage)
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path}: output bag exists (use --overwrite to replace it)")
+        if not self.path.parent.is_dir():
+            raise FileNotFoundError(f"{self.path.parent}: output directory does not exist")
+        self.counts: dict[str, int] = {}
+        self._writer = None
+        self._tmpdir: Path | None = None
+        self._connections: dict[str, Any] = {}
+        self._msgtypes: dict[str, str] = {}
+
+    # context management ------------------------------------------------------------------
+    def __enter__(self) -> "BagWriter":
+        from rosbags.rosbag2 import Writer
+
+        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent))
+        self._writer = Writer(self._tmpdir / self.path.name, version=9, storage_plugin=self._plugin)
+        self._writer.open()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if exc_type is None:
+                self._writer.close()
+                self._commit()
+            else:
+                try:
+                    self._writer.close()
+                except Exception:  # the original exception matters, not this one
+                    pass
+        finally:
+            if self._tmpdir is not None and self._tmpdir.exists():
+                shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._tmpdir = None
+
+    def _commit(self) -> None:
+        assert self._tmpdir is not None
+        new = self._tmpdir / self.path.name
+        if self.path.exists():
+            if not self.overwrite:
+                raise FileExistsError(f"{self.path}: output bag appeared while writing; not replacing it")
+            trash = self._tmpdir / (self.path.name + ".old")
+            os.replace(self.path, trash)  # same filesystem: two renames, never a half bag at path
+        os.replace(new, self.path)
+
+    # writing --------------------------------------------------------------------------------
+    def write(self, topic: str, msgtype: str, msg: Any, stamp: float | int) -> None:
+        """Serialize ``msg`` (a rosbags message of ``msgtype``) to ``topic`` at bag time ``stamp``."""
+        if self._writer is None or self._tmpdir is None:
+            raise RuntimeError("BagWriter must be used as a context manager ('with BagWriter(...) as bag:')")
+        conn = self._connections.get(topic)
+        if conn is None:
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore())
+            self._connections[topic] = conn
+            self._msgtypes[topic] = msgtype
+        elif self._msgtypes[topic] != msgtype:
+            raise BagError(f"{self.path}: topic {topic} already has type {self._msgtypes[topic]}, not {msgtype}")
+        self._writer.write(conn, to_ns(stamp), typestore().serialize_cdr(msg, msgtype))
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def write_imu(self, stamp: float | int, gyro: Sequence[float], accel: Sequence[float], frame_id: str = "imu_link",
+                  topic: str = IMU_TOPIC, **kwargs) -> None:
+        """Rates (rad/s) and specific force (m/s^2) only; see :func:`imu_message` for kwargs."""
+        self.write(topic, IMU_MSG, imu_message(stamp, gyro, accel, frame_id, **kwargs), stamp)
+
+    def write_imu_attitude(self, stamp: float | int, roll: float, pitch: float, yaw: float,
+                           gyro: Sequence[float] = (0.0, 0.0, 0.0), accel: Sequence[float] = (0.0, 0.0, 0.0),
+                           frame_id: str = "imu_link", topic: str = GT_IMU_TOPIC,
+                           orientation_covariance=None, **kwargs) -> None:
+        """An Imu message whose orientation is ``Rz(yaw) Ry(pitch) Rx(roll)`` (e.g. the OXTS attitude)."""
+        msg = imu_message(stamp, gyro, accel, frame_id, orientation=quaternion_from_rpy(roll, pitch, yaw),
+                          orientation_covariance=orientation_covariance, **kwargs)
+        self.write(topic, IMU_MSG, msg, stamp)
+
+    def write_image(self, stamp: float | int, image: np.ndarray, frame_id: str = "camera_optical_frame",
+                    topic: str = IMAGE_TOPIC, encoding: str | None = None) -> None:
+        self.write(topic, IMAGE_MSG, image_message(stamp, image, frame_id, encoding), stamp)
+
+    def write_camera_info(self, stamp: float | int, K: np.ndarray, width: int, height: int,
+                          frame_id: str = "camera_optical_frame", topic: str = CAMERA_INFO_TOPIC, **kwargs) -> None:
+        self.write(topic, CAMERA_INFO_MSG, camera_info_message(stamp, K, width, height, frame_id, **kwargs), stamp)
+
+    def write_odometry(self, stamp: float | int, T: np.ndarray, frame_id: str = "odom",
+                       child_frame_id: str = "base_link", topic: str = GT_ODOMETRY_TOPIC, **kwargs) -> None:
+        self.write(topic, ODOMETRY_MSG, odometry_message(stamp, T, frame_id, child_frame_id, **kwargs), stamp)
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+# ----------------------------------------------------------------------------------------------
+def _open_reader(bag_path: PathLike):
+    from rosbags.highlevel import AnyReader
+
+    path = Path(bag_path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: bag not found")
+    if path.is_file() and path.suffix in (".db3", ".mcap"):
+        path = path.parent  # accept the storage file of a bag directory too
+    try:
+        reader = AnyReader([path], default_typestore=typestore())
+        reader.open()
+    except Exception as exc:  # rosbags raises its own error classes for broken bags
+        raise BagError(f"{path}: cannot open as a rosbag2 ({exc})") from None
+    return reader
+
+
+def bag_topics(bag_path: PathLike) -> dict[str, tuple[str, int]]:
+    """{topic: (msgtype, message count)} of a bag."""
+    reader = _open_reader(bag_path)
+    try:
+        return {name: (info.msgtype or "", int(info.msgcount)) for name, info in reader.topics.items()}
+    finally:
+        reader.close()
+
+
+def bag_time_range(bag_path: PathLike) -> tuple[int, int]:
+    """``(first, last)`` bag time of any message, ns; ``(0, 0)`` for an empty bag."""
+    reader = _open_reader(bag_path)
+    try:
+        if reader.message_count == 0:
+            return 0, 0
+        return int(reader.start_time), int(reader.end_time)
+    finally:
+        reader.close()
+
+
+@dataclass
+class RawMessage:
+    """One message as stored: CDR bytes (ROS 1 bags are converted), bag time in ns."""
+
+    topic: str
+    msgtype: str
+    stamp_ns: int
+    data: bytes
+
+
+def iter_raw_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start_ns: int | None = None,
+                      stop_ns: int | None = None) -> Iterator[RawMessage]:
+    """Serialized messages in bag-time order (ties: storage order), optionally filtered by topic."""
+    reader = _open_reader(bag_path)
+    try:
+        conns = _select_connections(reader, bag_path, topics)
+        if not conns:
+            return
+        for conn, t_ns, raw in reader.messages(connections=conns, start=start_ns, stop=stop_ns):
+            data = bytes(raw)
+            if _is_ros1(conn):
+                data = bytes(reader.typestore.ros1_to_cdr(data, conn.msgtype))
+            yield RawMessage(conn.topic, conn.msgtype, int(t_ns), data)
+    finally:
+        reader.close()
+
+
+def _is_ros1(conn) -> bool:
+    return type(conn.ext).__name__ == "ConnectionExtRosbag1"
+
+
+def _select_connections(reader, bag_path: PathLike, topics: Sequence[str] | None) -> list:
+    if topics is None:
+        return list(reader.connections)
+    available = {c.topic for c in reader.connections}
+    missing = [t for t in topics if t not in available]
+    if missing:
+        raise BagError(f"{bag_path}: no topic {', '.join(missing)} (the bag has: {', '.join(sorted(available)) or 'none'})")
+    return [c for c in reader.connections if c.topic in set(topics)]
+
+
+def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start_ns: int | None = None,
+                  stop_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
+    """``(topic, bag time ns, deserialized rosbags message)`` in bag-time order."""
+    reader = _open_reader(bag_path)
+    try:
+        conns = _select_connections(reader, bag_path, topics)
+        if not conns:
+            return
+        for conn, t_ns, raw in reader.messages(connections=conns, start=start_ns, stop=stop_ns):
+            yield conn.topic, int(t_ns), reader.deserialize(raw, conn.msgtype)
+    finally:
+        reader.close()
+
+
+# Image encodings decoded here: name -> (channels, bytes per channel).
+ENCODINGS = {"mono8": (1, 1), "8UC1": (1, 1), "mono16": (1, 2), "16UC1": (1, 2), "rgb8": (3, 1), "bgr8": (3, 1)}
+
+
+def decode_image(msg: Any, to_gray: bool = True) -> np.ndarray:
+    """sensor_msgs/Image -> uint8 ``(H, W)`` (``to_gray``) or the native layout.
+
+    Colour is converted with ITU-R BT.601 luma weights (as OpenCV does); mono16 is scaled to 8
+    bits by /257 (65535 -> 255).
+    """
+    enc = msg.encoding
+    if enc not in ENCODINGS:
+        raise BagError(f"unsupported image encoding {enc!r} (supported: {', '.join(ENCODINGS)})")
+    channels, depth = ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, dtype=np.uint8)
+    row = w * channels * depth
+    if step < row or data.size < step * h:
+        raise BagError(f"image {w}x{h} {enc}: step {step} / data size {data.size} inconsistent")
+    rows = data[: step * h].reshape(h, step)[:, :row]
+    if depth == 2:
+        dtype = np.dtype(">u2" if msg.is_bigendian else "<u2")
+        img = np.ascontiguousarray(rows).view(dtype).reshape(h, w).astype(np.uint16)
+        return np.round(img / 257.0).astype(np.uint8) if to_gray else img
+    img = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
+    if channels == 1 or not to_gray:
+        return np.ascontiguousarray(img)
+    r, g, b = (img[..., 0], img[..., 1], img[..., 2]) if enc == "rgb8" else (img[..., 2], img[..., 1], img[..., 0])
+    gray = 0.299 * r + 0.587 * g + 0.114 * b
+    return np.clip(np.round(gray), 0, 255).astype(np.uint8)
+
+
+@dataclass
+class CameraInfo:
+    """The parts of sensor_msgs/CameraInfo the tools use."""
+
+    K: np.ndarray  # (3, 3)
+    P: np.ndarray  # (3, 4)
+    D: np.ndarray  # (n,)
+    width: int
+    height: int
+    frame_id: str
+    distortion_model: str
+
+
+@dataclass
+class Recording:
+    """A whole recording in numpy arrays. Stamps are header stamps: float64 seconds, plus the
+    exact int64 nanoseconds in the ``*_ns`` twins.
+
+    Attributes:
+        imu_stamps: ``(N,)``; gyro, accel: ``(N, 3)`` float64 (rad/s, m/s^2).
+        frame_stamps: ``(F,)``; images: ``(F, H, W)`` uint8 (grey), or None if not loaded.
+        camera_info: the first CameraInfo message, or None.
+        gt_stamps: ``(G,)``; gt_poses: ``(G, 4, 4)`` base poses in ``gt_frame_id``, or None.
+        gt_att_stamps, gt_roll, gt_pitch, gt_yaw: ``(A,)`` attitude of the ground-truth Imu, or None.
+    """
+
+    path: Path
+    imu_stamps_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    frame_stamps_ns: np.ndarray
+    images: np.ndarray | None
+    image_encoding: str = ""
+    imu_frame_id: str = ""
+    image_frame_id: str = ""
+    camera_info: CameraInfo | None = None
+    gt_stamps_ns: np.ndarray | None = None
+    gt_poses: np.ndarray | None = None
+    gt_frame_id: str = ""
+    gt_child_frame_id: str = ""
+    gt_att_stamps_ns: np.ndarray | None = None
+    gt_roll: np.ndarray | None = None
+    gt_pitch: np.ndarray | None = None
+    gt_yaw: np.ndarray | None = None
+    topics: dict[str, tuple[str, int]] = field(default_factory=dict)
+
+    @property
+    def imu_stamps(self) -> np.ndarray:
+        return ns_to_seconds(self.imu_stamps_ns)
+
+    @property
+    def frame_stamps(self) -> np.ndarray:
+        return ns_to_seconds(self.frame_stamps_ns)
+
+    @property
+    def gt_stamps(self) -> np.ndarray | None:
+        return None if self.gt_stamps_ns is None else ns_to_seconds(self.gt_stamps_ns)
+
+    @property
+    def gt_att_stamps(self) -> np.ndarray | None:
+        return None if self.gt_att_stamps_ns is None else ns_to_seconds(self.gt_att_stamps_ns)
+
+
+def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: str = IMAGE_TOPIC,
+                   camera_info_topic: str = CAMERA_INFO_TOPIC, gt_odometry_topic: str = GT_ODOMETRY_TOPIC,
+                   gt_imu_topic: str = GT_IMU_TOPIC, load_images: bool = True,
+                   required: Sequence[str] = ("imu", "image")) -> Recording:
+    """Load a recording. Topics listed in ``required`` (``imu``, ``image``, ``camera_info``,
+    ``gt_odometry``, ``gt_imu``) must exist; the others are read when present.
+
+    Raises:
+        FileNotFoundError: no bag at ``bag_path``.
+        BagError: unreadable bag, a required topic missing, images of different sizes or an
+            unsupported encoding (the message names the bag, topic and message index).
+    """
+    names = {"imu": imu_topic, "image": image_topic, "camera_info": camera_info_topic,
+             "gt_odometry": gt_odometry_topic, "gt_imu": gt_imu_topic}
+    unknown = set(required) - set(names)
+    if unknown:
+        raise ValueError(f"unknown required topic keys {sorted(unknown)} (use {sorted(names)})")
+    path = Path(bag_path)
+    topics = bag_topics(path)
+    missing = [names[k] for k in required if names[k] not in topics]
+    if missing:
+        raise BagError(f"{path}: required topic(s) {', '.join(missing)} missing "
+                       f"(the bag has: {', '.join(sorted(topics)) or 'none'})")
+    wanted = [t for t in names.values() if t in topics]
+
+    imu_t, gyro, accel = [], [], []
+    frame_t, images = [], []
+    gt_t, gt_T = [], []
+    att_t, att = [], []
+    rec = Recording(path, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
+                    None, topics=topics)
+    shape = None
+    for topic, _, msg in iter_messages(path, wanted):
+        if topic == imu_topic:
+            imu_t.append(stamp_ns(msg.header.stamp))
+            gyro.append((msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z))
+            accel.append((msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z))
+            rec.imu_frame_id = msg.header.frame_id
+        elif topic == image_topic:
+            frame_t.append(stamp_ns(msg.header.stamp))
+            rec.image_frame_id, rec.image_encoding = msg.header.frame_id, msg.encoding
+            if load_images:
+                try:
+                    img = decode_image(msg)
+                except BagError as exc:
+                    raise BagError(f"{path}: {topic} message {len(frame_t) - 1}: {exc}") from None
+                if shape is None:
+                    shape = img.shape
+                elif img.shape != shape:
+                    raise BagError(f"{path}: {topic} message {len(frame_t) - 1} is {img.shape[1]}x{img.shape[0]}, "
+                                   f"the first was {shape[1]}x{shape[0]}")
+                images.append(img)
+        elif topic == camera_info_topic and rec.camera_info is None:
+            rec.camera_info = CameraInfo(np.asarray(msg.k, np.float64).reshape(3, 3),
+                                         np.asarray(msg.p, np.float64).reshape(3, 4),
+                                         np.asarray(msg.d, np.float64).copy(), int(msg.width), int(msg.height),
+                                         msg.header.frame_id, msg.distortion_model)
+        elif topic == gt_odometry_topic:
+            p = msg.pose.pose
+            T = np.eye(4)
+            T[:3, :3] = matrix_from_quaternion((p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+            T[:3, 3] = (p.position.x, p.position.y, p.position.z)
+            gt_t.append(stamp_ns(msg.header.stamp))
+            gt_T.append(T)
+            rec.gt_frame_id, rec.gt_child_frame_id = msg.header.frame_id, msg.child_frame_id
+        elif topic == gt_imu_topic:
+            if msg.orientation_covariance[0] == -1.0:
+                continue  # no attitude in this message
+            q = msg.orientation
+            att_t.append(stamp_ns(msg.header.stamp))
+            att.append(rpy_from_matrix(matrix_from_quaternion((q.x, q.y, q.z, q.w))))
+
+    rec.imu_stamps_ns = np.asarray(imu_t, dtype=np.int64)
+    rec.gyro = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
+    rec.accel = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
+    rec.frame_stamps_ns = np.asarray(frame_t, dtype=np.int64)
+    if load_images:
+        rec.images = np.stack(images) if images else np.zeros((0, 0, 0), np.uint8)
+    if gt_T:
+        rec.gt_stamps_ns, rec.gt_poses = np.asarray(gt_t, np.int64), np.stack(gt_T)
+    if att:
+        a = np.asarray(att, dtype=np.float64)
+        rec.gt_att_stamps_ns = np.asarray(att_t, np.int64)
+        rec.gt_roll, rec.gt_pitch, rec.gt_yaw = a[:, 0], a[:, 1], a[:, 2]
+    return rec

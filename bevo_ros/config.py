@@ -1,0 +1,349 @@
+"""Settings and learned parameters: the one place that reads and writes them.
+
+* ``BevoConfig``: everything the engine needs (camera, extrinsics, BEV grid, filters), built
+  from a ROS 2 parameters file (``params/*.yaml``) or from the node's declared parameters, so
+  ``bevo_node`` and the offline tools read the very same file the same way.
+* Learned parameters (the DUKF's O and Q): a human-readable YAML, written atomically. No pickle.
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+LEARNED_FORMAT = "bevo_learned_params/1"
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+class ConfigError(ValueError):
+    """A parameters or learned-parameters file is missing or malformed."""
+
+
+# --------------------------------------------------------------------------- settings
+@dataclass
+class CameraSettings:
+    """Pinhole intrinsics of the rectified image; 0 means "take them from CameraInfo"."""
+
+    fx: float = 0.0
+    fy: float = 0.0
+    cx: float = 0.0
+    cy: float = 0.0
+    width: int = 0
+    height_px: int = 0
+    # Camera centre height above the road (m): the paper's constant-elevation assumption.
+    height: float = 1.65
+    # Camera (optical frame) pose in the base/IMU frame, 4x4 row-major. Default: KITTI's rig
+    # (2011_09_26 chain imu -> velo -> cam0 -> R_rect_00), see params/kitti.yaml.
+    base_T_camera: list[float] = field(
+        default_factory=lambda: [
+            0.0, 0.0, 1.0, 1.08,
+            -1.0, 0.0, 0.0, -0.32,
+            0.0, -1.0, 0.0, 0.73,
+            0.0, 0.0, 0.0, 1.0,
+        ]
+    )
+
+    def has_intrinsics(self) -> bool:
+        return self.fx > 0 and self.fy > 0 and self.width > 0 and self.height_px > 0
+
+
+@dataclass
+class BevSettings:
+    size: int = 100
+    metres_per_pixel: float = 0.1
+    forward_offset: float = 7.5
+
+
+@dataclass
+class FilterSettings:
+    # "euler": exact Euler-angle kinematics (default); "additive": the paper's rates-added model.
+    motion_model: str = "euler"
+    # Low-pass time constant (s) separating road camber/slope from vehicle attitude; 0 disables.
+    road_tilt_time_constant: float = 10.0
+    # Longest IMU gap (s) the filter predicts across; longer gaps re-initialise from the accelerometer.
+    max_imu_gap: float = 0.5
+
+
+@dataclass
+class BevoConfig:
+    camera: CameraSettings = field(default_factory=CameraSettings)
+    bev: BevSettings = field(default_factory=BevSettings)
+    filter: FilterSettings = field(default_factory=FilterSettings)
+    # Learned O/Q file; relative paths resolve against the parameters file, then the package.
+    learned_params_file: str = "params/learned_default.yaml"
+    # "cpu" or "cuda" ("cuda" falls back to CPU with a warning when unavailable).
+    device: str = "cpu"
+
+    # ---- flat "a.b" views, the shape ROS parameters take
+    def to_flat(self) -> dict[str, Any]:
+        return _flatten(dataclasses.asdict(self))
+
+    @classmethod
+    def from_flat(cls, flat: dict[str, Any], source: str = "parameters") -> "BevoConfig":
+        """Build from ``{"camera.fx": ..., ...}``; unknown keys are ignored, bad types raise."""
+        return _from_flat(cls, flat, prefix="", source=source)
+
+
+def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def _from_flat(cls: type, flat: dict[str, Any], prefix: str, source: str) -> Any:
+    kwargs: dict[str, Any] = {}
+    defaults = cls()
+    for f in dataclasses.fields(cls):
+        name = prefix + f.name
+        default = getattr(defaults, f.name)
+        if dataclasses.is_dataclass(default):
+            kwargs[f.name] = _from_flat(type(default), flat, name + ".", source)
+        elif name in flat:
+            kwargs[f.name] = _coerce(flat[name], default, name, source)
+    return cls(**kwargs)
+
+
+def _coerce(value: Any, default: Any, name: str, source: str) -> Any:
+    try:
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise TypeError
+            return value
+        if isinstance(default, int):
+            if isinstance(value, bool) or int(value) != value:
+                raise TypeError
+            return int(value)
+        if isinstance(default, float):
+            out = float(value)
+            if not math.isfinite(out):
+                raise TypeError
+            return out
+        if isinstance(default, list):
+            out = [float(v) for v in value]
+            if len(out) != len(default):
+                raise TypeError
+            return out
+        return str(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: parameter '{name}' = {value!r} is not a valid {type(default).__name__}"
+                          + (f" of length {len(default)}" if isinstance(default, list) else "")) from None
+
+
+def load_params_file(path: str | os.PathLike, node_name: str = "bevo_node") -> dict[str, Any]:
+    """Read a ROS 2 parameters YAML and return the node's parameters flattened to "a.b" keys."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"parameters file not found: {path}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"parameters file {path} is not valid YAML: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"parameters file {path}: expected a mapping at the top level")
+    for key in (node_name, f"/{node_name}", "/**", "**"):
+        section = doc.get(key)
+        if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
+            return _flatten(section["ros__parameters"])
+    raise ConfigError(f"parameters file {path}: no '{node_name}: ros__parameters:' section")
+
+
+def load_config(path: str | os.PathLike, node_name: str = "bevo_node") -> tuple[BevoConfig, dict[str, Any]]:
+    """``(BevoConfig, all flat parameters)`` from a parameters file; learned path made absolute."""
+    flat = load_params_file(path, node_name)
+    config = BevoConfig.from_flat(flat, source=str(path))
+    config.learned_params_file = str(resolve_path(config.learned_params_file, Path(path).resolve().parent))
+    return config, flat
+
+
+def resolve_path(name: str, base_dir: Path | None = None) -> Path:
+    """Absolute path for ``name``: as given, else beside ``base_dir``, else in the repo/package share."""
+    p = Path(name).expanduser()
+    if p.is_absolute():
+        return p
+    candidates = []
+    if base_dir is not None:
+        candidates += [base_dir / p, base_dir.parent / p]
+    candidates += [Path.cwd() / p, REPO_ROOT / p]
+    try:  # installed package: <prefix>/share/bevo_ros/params/...
+        from ament_index_python.packages import get_package_share_directory
+
+        candidates.append(Path(get_package_share_directory("bevo_ros")) / p)
+    except Exception:  # noqa: BLE001 - ament index absent or package not installed
+        pass
+    for c in candidates:
+        if c.exists():
+            return c.resolve()
+    return candidates[0].resolve() if base_dir is not None else (REPO_ROOT / p)
+
+
+# --------------------------------------------------------------------------- learned parameters
+@dataclass
+class LearnedParams:
+    """The DUKF's 4 trainable numbers plus provenance.
+
+    process_noise_density: O per axis (pitch, roll), rad^2/s; multiplied by each IMU dt.
+    measurement_noise_variance: Q per axis (pitch, roll), rad^2.
+    """
+
+    process_noise_density: tuple[float, float] = (1e-4, 1e-4)
+    measurement_noise_variance: tuple[float, float] = (3e-3, 3e-3)
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def learned_to_dict(params: LearnedParams) -> dict[str, Any]:
+    o, q = params.process_noise_density, params.measurement_noise_variance
+    return {
+        "format": LEARNED_FORMAT,
+        "process_noise_density": {"pitch": float(o[0]), "roll": float(o[1]), "units": "rad^2/s"},
+        "measurement_noise_variance": {"pitch": float(q[0]), "roll": float(q[1]), "units": "rad^2"},
+        "info": dict(params.info),
+    }
+
+
+def save_learned_params(params: LearnedParams, path: str | os.PathLike) -> Path:
+    """Write the learned parameters YAML atomically (temp file in the same dir + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = (
+        "# BEVO learned DUKF noise parameters (human-readable; loaded by bevo_node and tools).\n"
+        "# O = process noise density of the [pitch, roll] random walk (rad^2/s, times each IMU dt);\n"
+        "# Q = accelerometer pitch/roll measurement noise variance (rad^2).\n"
+    )
+    text = header + yaml.safe_dump(learned_to_dict(params), sort_keys=False, default_flow_style=False)
+    atomic_write_text(path, text)
+    return path
+
+
+def load_learned_params(path: str | os.PathLike) -> LearnedParams:
+    """Load and validate; raises ConfigError naming the file and the problem."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"learned-parameters file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"learned-parameters file {path} cannot be read: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"learned-parameters file {path} is not valid YAML: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"learned-parameters file {path}: expected a mapping, got {type(doc).__name__}")
+    if doc.get("format") != LEARNED_FORMAT:
+        raise ConfigError(f"learned-parameters file {path}: 'format' must be '{LEARNED_FORMAT}', got {doc.get('format')!r}")
+
+    def pair(key: str) -> tuple[float, float]:
+        section = doc.get(key)
+        if not isinstance(section, dict):
+            raise ConfigError(f"learned-parameters file {path}: missing section '{key}' with 'pitch' and 'roll'")
+        out = []
+        for axis in ("pitch", "roll"):
+            try:
+                v = float(section[axis])
+            except (KeyError, TypeError, ValueError):
+                raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' missing or not a number") from None
+            if not (math.isfinite(v) and v > 0):
+                raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' = {v} must be finite and > 0")
+            out.append(v)
+        return out[0], out[1]
+
+    info = doc.get("info") or {}
+    if not isinstance(info, dict):
+        raise ConfigError(f"learned-parameters file {path}: 'info' must be a mapping")
+    return LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` atomically: readers see the old or the new file, never half."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def provenance(extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Date and code version for the learned-parameters file."""
+    from bevo_ros import __version__
+
+    info: dict[str, Any] = {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                            "code_version": __version__}
+    try:
+        import subprocess
+
+        sha = subprocess.run(["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
+                             capture_output=True, text=True, timeout=5)
+        if sha.returncode == 0:
+            info["code_version"] += f"+g{sha.stdout.strip()}"
+    except Exception:  # noqa: BLE001 - not a git checkout
+        pass
+    if extra:
+        info.update(extra)
+    return info
+
+
+# --------------------------------------------------------------------------- engine factory
+def camera_model(settings: CameraSettings, K=None, width: int | None = None, height_px: int | None = None):
+    """CameraModel from settings; ``K``/size (e.g. from CameraInfo) override the settings."""
+    import torch
+
+    from bevo_ros.core.geometry import CameraModel
+
+    if K is None:
+        if not settings.has_intrinsics():
+            raise ConfigError("camera intrinsics are not set (camera.fx/fy/cx/cy/width/height_px) "
+                              "and no CameraInfo was given")
+        K = [[settings.fx, 0.0, settings.cx], [0.0, settings.fy, settings.cy], [0.0, 0.0, 1.0]]
+        width, height_px = settings.width, settings.height_px
+    T = torch.tensor(settings.base_T_camera, dtype=torch.float64).reshape(4, 4)
+    if not torch.allclose(T[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)):
+        raise ConfigError("camera.base_T_camera: last row must be [0, 0, 0, 1]")
+    R = T[:3, :3]
+    if not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-4):
+        raise ConfigError("camera.base_T_camera: rotation part is not orthonormal")
+    if settings.height <= 0:
+        raise ConfigError(f"camera.height must be > 0 m, got {settings.height}")
+    return CameraModel(torch.as_tensor(K, dtype=torch.float64).reshape(3, 3), int(width), int(height_px), T,
+                       float(settings.height))
+
+
+def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
+    """The engine both the node and the offline tools run: one construction, one behaviour."""
+    import torch
+
+    from bevo_ros.core.dukf import DUKF
+    from bevo_ros.core.geometry import BevSpec
+    from bevo_ros.core.odometry import BevoOdometry
+
+    if config.filter.motion_model not in ("euler", "additive"):
+        raise ConfigError(f"filter.motion_model must be 'euler' or 'additive', got {config.filter.motion_model!r}")
+    device = config.device
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        device = "cpu"
+    dukf = DUKF(process_var=learned.process_noise_density, measurement_var=learned.measurement_noise_variance,
+                motion_model=config.filter.motion_model).double()
+    spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+    return BevoOdometry(
+        camera=camera if camera is not None else camera_model(config.camera),
+        spec=spec,
+        dukf=dukf,
+        road_tilt_time_constant=config.filter.road_tilt_time_constant,
+        max_imu_gap=config.filter.max_imu_gap,
+        device=device,
+    )

@@ -1,0 +1,270 @@
+"""The stateful BEVO engine that ``bevo_node`` and ``tools/run_bag.py`` share.
+
+Feed it IMU and image messages in any interleaving; it keeps the one ordering rule that makes
+online and offline results identical: an image is processed once every IMU sample with a stamp
+<= the image stamp has been fused (a later IMU sample arrives), or when ``flush()`` is called
+(the node's configurable wait; the end of a bag).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .bev import project_to_bev
+from .dukf import DUKF, DukfState
+from .geometry import BevSpec, CameraModel
+from .motion import vehicle_motion_from_registration
+from .phase_correlation import DpcConfig, prepare, register_prepared
+from .pose import compose_se2, propagate_covariance_se2
+from .road_tilt import RoadTiltFilter
+
+Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
+
+
+class OutOfOrderError(ValueError):
+    """A message's stamp is not after the previous one of its kind."""
+
+    def __init__(self, kind: str, stamp: float, last: float):
+        super().__init__(f"{kind} stamp {stamp:.9f} is not after the previous {kind} stamp {last:.9f}")
+        self.kind, self.stamp, self.last = kind, stamp, last
+
+    @property
+    def jump(self) -> float:
+        return self.last - self.stamp
+
+
+@dataclass
+class OdometryStep:
+    """The result for one image (ROS order for 6x6 covariances: x, y, z, roll, pitch, yaw)."""
+
+    stamp: float
+    motion: np.ndarray  # (3,) dx, dy, dyaw since the previous frame, base frame of that frame
+    dt: float  # seconds since the previous frame (0 for the first)
+    position: np.ndarray  # (3,) x, y, z in odom
+    rpy: np.ndarray  # (3,) roll, pitch, yaw in odom (roll/pitch gravity-referenced from the DUKF)
+    pose_covariance: np.ndarray  # (6, 6)
+    twist_linear: np.ndarray  # (3,) base-frame velocity, m/s
+    twist_angular: np.ndarray  # (3,) base-frame rates, rad/s
+    twist_covariance: np.ndarray  # (6, 6)
+    pitch_roll_road: np.ndarray  # (2,) attitude relative to the road used for the BEV
+    bev: np.ndarray  # (S, S) float32 in [0, 1]
+    bev_mask: np.ndarray  # (S, S) float32
+    peak_quality: float  # correlation peak quality in [0, 1]; nan for the first frame
+    first: bool = False
+
+
+@dataclass
+class Counters:
+    imu: int = 0
+    images: int = 0
+    frames_out: int = 0
+    imu_gaps: int = 0
+    dropped_no_imu: int = 0
+    dropped_pending_overflow: int = 0
+    resets: int = 0
+
+
+class BevoOdometry:
+    """DUKF on every IMU sample, BEV + DPC on every image, SE(2) composition into a 6-DoF pose.
+
+    Args:
+        camera: intrinsics, extrinsics (base = IMU frame), camera height.
+        spec: the BEV grid.
+        dukf: the filter (holds the learned O and Q).
+        dpc: phase-correlation settings.
+        road_tilt_time_constant: seconds; 0 disables road-tilt separation (gravity-referenced BEV).
+        max_imu_gap: longer IMU gaps re-initialise the filter from the accelerometer.
+        device: torch device for the vision part.
+        max_pending_images: images waiting for IMU beyond this are dropped (counted).
+    """
+
+    def __init__(
+        self,
+        camera: CameraModel,
+        spec: BevSpec,
+        dukf: DUKF,
+        dpc: DpcConfig | None = None,
+        road_tilt_time_constant: float = 10.0,
+        max_imu_gap: float = 0.5,
+        device: str | torch.device = "cpu",
+        max_pending_images: int = 20,
+    ) -> None:
+        self.device = torch.device(device)
+        self.dtype = torch.float32
+        self.camera = camera.to(self.device, self.dtype)
+        self.spec = spec
+        self.dukf = dukf
+        self.dpc = dpc or DpcConfig()
+        self.road_tilt_time_constant = road_tilt_time_constant
+        self.max_imu_gap = max_imu_gap
+        self.max_pending_images = max_pending_images
+        self.counters = Counters()
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget everything but the settings: the trajectory restarts at identity."""
+        self._state: DukfState | None = None
+        self._last_imu: float | None = None
+        self._last_image: float | None = None
+        self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
+        self._pitch_roll_road = torch.zeros(1, 2, dtype=torch.float64)
+        self._pending: list[tuple[float, np.ndarray]] = []
+        self._prev = None  # prepared BEV of the previous frame
+        self._prev_stamp: float | None = None
+        self._pose = torch.zeros(3, dtype=torch.float64)
+        self._pose_cov = torch.zeros(3, 3, dtype=torch.float64)
+        self.counters.resets += 1
+
+    def set_camera(self, camera: CameraModel) -> None:
+        """Replace the camera model (e.g. from the first CameraInfo); keeps the trajectory."""
+        self.camera = camera.to(self.device, self.dtype)
+
+    @property
+    def pitch_roll(self) -> np.ndarray | None:
+        """Current gravity-referenced (pitch, roll) from the DUKF, radians."""
+        return None if self._state is None else self._state.mean[0].detach().cpu().numpy().copy()
+
+    @property
+    def pending_images(self) -> int:
+        return len(self._pending)
+
+    # ------------------------------------------------------------------ inputs
+    def add_imu(self, stamp: float, gyro, accel) -> list[OdometryStep]:
+        """Fuse one IMU sample; returns the images it released (processed in stamp order).
+
+        Raises ValueError for non-finite data and OutOfOrderError for stamps not after the last.
+        """
+        gyro_t = torch.as_tensor(np.asarray(gyro, dtype=np.float64)).reshape(1, 3)
+        accel_t = torch.as_tensor(np.asarray(accel, dtype=np.float64)).reshape(1, 3)
+        if not (math.isfinite(stamp) and torch.isfinite(gyro_t).all() and torch.isfinite(accel_t).all()):
+            raise ValueError("IMU sample contains NaN or inf")
+        if float(accel_t.norm()) < 1e-6:
+            raise ValueError("IMU linear acceleration is zero: no gravity, no attitude")
+        if self._last_imu is not None and stamp <= self._last_imu:
+            raise OutOfOrderError("IMU", stamp, self._last_imu)
+        out = self._release(lambda s: s < stamp)
+        self.counters.imu += 1
+        if self._state is None or stamp - self._last_imu > self.max_imu_gap:
+            if self._state is not None:
+                self.counters.imu_gaps += 1
+            self._state = self.dukf.init_state(accel=accel_t)
+            dt = 0.0
+        else:
+            dt = stamp - self._last_imu
+            self._state = self.dukf.step(self._state, gyro_t, accel_t, torch.tensor([dt], dtype=torch.float64))
+        self._last_imu = stamp
+        self._pitch_roll_road = self._road_tilt.update(dt, self._state.mean.detach())
+        out += self._release(lambda s: s <= stamp)
+        return out
+
+    def add_image(self, stamp: float, image) -> list[OdometryStep]:
+        """Queue or process one image ``(H, W)`` uint8 or float in [0, 1].
+
+        Raises ValueError for a bad image and OutOfOrderError for stamps not after the last image.
+        """
+        img = np.asarray(image)
+        if img.ndim != 2:
+            raise ValueError(f"image must be (H, W) grayscale, got shape {img.shape}")
+        if (img.shape[1], img.shape[0]) != (self.camera.width, self.camera.height_px):
+            raise ValueError(
+                f"image size {img.shape[1]}x{img.shape[0]} does not match the calibration "
+                f"{self.camera.width}x{self.camera.height_px}"
+            )
+        if not math.isfinite(stamp):
+            raise ValueError("image stamp is not finite")
+        last = max([s for s, _ in self._pending] + ([self._last_image] if self._last_image is not None else []),
+                   default=None)
+        if last is not None and stamp <= last:
+            raise OutOfOrderError("image", stamp, last)
+        self.counters.images += 1
+        if self._last_imu is not None and self._last_imu >= stamp:
+            return [self._process(stamp, img)]
+        self._pending.append((stamp, img))
+        if len(self._pending) > self.max_pending_images:
+            self._pending.pop(0)
+            self.counters.dropped_pending_overflow += 1
+        return []
+
+    def flush(self) -> list[OdometryStep]:
+        """Process every waiting image with the IMU fused so far (drops them if there was none)."""
+        return self._release(lambda s: True)
+
+    # ------------------------------------------------------------------ internals
+    def _release(self, ready) -> list[OdometryStep]:
+        out = []
+        while self._pending and ready(self._pending[0][0]):
+            stamp, img = self._pending.pop(0)
+            if self._state is None:
+                self.counters.dropped_no_imu += 1
+                continue
+            out.append(self._process(stamp, img))
+        return out
+
+    @torch.no_grad()
+    def _process(self, stamp: float, img: np.ndarray) -> OdometryStep:
+        image = torch.as_tensor(img, device=self.device)
+        image = image.to(self.dtype) / 255.0 if image.dtype == torch.uint8 else image.to(self.dtype)
+        pr_road = self._pitch_roll_road.to(self.device, self.dtype)
+        bev, mask = project_to_bev(image[None, None], self.camera, pr_road[:, 0], pr_road[:, 1], self.spec)
+        curr = prepare(bev, mask, self.dpc)
+        first = self._prev is None
+        dt = 0.0 if first else stamp - self._prev_stamp
+        if first:
+            motion = np.zeros(3)
+            motion_cov = np.zeros((3, 3))
+            quality = float("nan")
+        else:
+            reg = register_prepared(self._prev, curr, self.dpc)
+            motion = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
+            motion_cov = self._motion_covariance(reg)
+            quality = float(reg.quality[0])
+        motion_t, motion_cov_t = torch.from_numpy(motion), torch.from_numpy(motion_cov)
+        self._pose_cov = propagate_covariance_se2(self._pose, self._pose_cov, motion_t, motion_cov_t)
+        self._pose = compose_se2(self._pose, motion_t)
+        self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
+        self.counters.frames_out += 1
+
+        pitch, roll = (float(v) for v in self._state.mean[0])
+        att_cov = self._state.cov[0].double().cpu().numpy()  # [pitch, roll]
+        pose_cov = np.zeros((6, 6))
+        pose_cov[np.ix_([0, 1, 5], [0, 1, 5])] = self._pose_cov.numpy()
+        pose_cov[2, 2] = Z_VARIANCE
+        pose_cov[3, 3], pose_cov[4, 4] = att_cov[1, 1], att_cov[0, 0]
+        pose_cov[3, 4] = pose_cov[4, 3] = att_cov[0, 1]
+        twist_cov = np.zeros((6, 6))
+        if dt > 0:
+            twist_cov[np.ix_([0, 1, 5], [0, 1, 5])] = motion_cov / dt**2
+            lin = np.array([motion[0] / dt, motion[1] / dt, 0.0])
+            ang = np.array([0.0, 0.0, motion[2] / dt])
+        else:
+            lin, ang = np.zeros(3), np.zeros(3)
+        twist_cov[2, 2] = twist_cov[3, 3] = twist_cov[4, 4] = Z_VARIANCE
+        return OdometryStep(
+            stamp=stamp,
+            motion=motion,
+            dt=dt,
+            position=np.array([float(self._pose[0]), float(self._pose[1]), 0.0]),
+            rpy=np.array([roll, pitch, float(self._pose[2])]),
+            pose_covariance=pose_cov,
+            twist_linear=lin,
+            twist_angular=ang,
+            twist_covariance=twist_cov,
+            pitch_roll_road=pr_road[0].double().cpu().numpy(),
+            bev=bev[0, 0].cpu().numpy(),
+            bev_mask=mask[0, 0].cpu().numpy(),
+            peak_quality=quality,
+            first=first,
+        )
+
+    def _motion_covariance(self, reg) -> np.ndarray:
+        """(dx, dy, dyaw) covariance from the correlation distributions' spread (first order)."""
+        from .motion import motion_covariance_from_registration
+
+        return motion_covariance_from_registration(reg, self.spec)[0].double().cpu().numpy()
+
+
+__all__ = ["BevoOdometry", "OdometryStep", "OutOfOrderError", "Counters", "Z_VARIANCE"]

@@ -1,0 +1,567 @@
+"""Differentiable phase correlation (DPC) of two BEV images: rotation first, then translation.
+
+Paper Section 2.3 (after Chen et al. 2020, "Deep Phase Correlation"), with the scale fixed at 1,
+so a plain polar (not log-polar) resampling of the Fourier magnitude is enough.
+
+Meaning of the result (pixel coordinates ``q = (row, col)``, BEV centre ``c = ((S-1)/2, (S-1)/2)``,
+``R(a) = [[cos a, -sin a], [sin a, cos a]]`` acting on ``(row, col)``)::
+
+    curr(q) = prev(c + R(-angle) (q - c) - shift)
+
+i.e. ``curr`` is ``prev`` first shifted by ``shift = (d_row, d_col)`` pixels and then rotated by
+``angle`` about the BEV centre. Positive ``angle`` turns the row axis towards the column axis,
+which is counter-clockwise on the displayed BEV (row 0 at the top) and counter-clockwise about
+the road's z axis (up). This order is what the pipeline measures: the Fourier magnitude gives
+``angle`` regardless of any shift, and ``rotate_about_centre(curr, -angle)`` is exactly ``prev``
+shifted by ``shift``. ``bevo_ros.core.motion`` turns it into vehicle motion.
+
+Pipeline (all differentiable, batched, no Python loops over the batch):
+
+1. :func:`prepare`: subtract the weighted mean, multiply by a smooth weight = (mask eroded and
+   blurred) x (radial Tukey window). The window is radially symmetric so that rotating a
+   weighted image equals weighting the rotated one, and the BEV's fixed footprint (identical
+   in every frame) cannot pull the correlation towards zero motion. Then the 2-D FFT and the
+   polar-resampled, compressed, per-radius-normalised magnitude spectrum.
+2. :func:`estimate_rotation`: 1-D phase correlation along the angle axis, cross-power spectra
+   summed over radii, phase-normalised, band-pass weighted (a Gaussian so the correlation peak
+   is a Gaussian, plus a low-cut that removes the fixed, slowly varying anisotropy of the BEV's
+   resolution), softmax with a temperature over ``A`` angle bins.
+3. :func:`rotate_about_centre` undoes the rotation of ``curr``; :func:`estimate_translation`
+   does a 2-D phase correlation with the same weighting, softmax over the ``(S, S)`` shifts.
+4. Sub-bin / sub-pixel estimates from the correlation surface around its peak (see
+   ``DpcConfig.subpixel``), still differentiable.
+
+Rotation ambiguity: the Fourier magnitude of a real image is point symmetric, so only the
+angle modulo 180 degrees is observable. We resolve it with the rule that a car turns far less
+than 90 degrees between consecutive frames: angles live in ``[-90, 90)`` degrees.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import torch
+import torch.nn.functional as F
+
+Tensor = torch.Tensor
+
+
+@dataclass(frozen=True)
+class DpcConfig:
+    """Phase-correlation settings (all hashable so derived grids can be cached).
+
+    Attributes:
+        angle_bins: ``A`` bins over 180 degrees for the rotation distribution.
+        radial_range: Fourier radii used for rotation, cycles per pixel (excludes the lowest
+            frequencies, dominated by shading, and the highest, aliased ones).
+        radial_samples: number of radii sampled in ``radial_range``.
+        compression: ``"log"`` or ``"sqrt"`` compression of the Fourier magnitude.
+        rotation_padding: the rotation stage zero-pads the BEV to ``padding * S`` before its FFT so
+            that the magnitude is sampled finely enough for bilinear polar resampling (the
+            interpolation error is fixed to the pixel grid and would bias angles towards 0).
+        window_alpha: radial Tukey window, fraction of the radius ``S/2`` that is tapered
+            (1 = radial Hann).
+        mask_erosion: pixels the valid mask is eroded by before blurring.
+        mask_blur: Gaussian sigma (pixels) that softens the mask's edge.
+        rotation_sigma: width (bins) of the Gaussian correlation peak for rotation.
+        rotation_lowcut: angular frequencies (cycles per 180 degrees) below ~this are suppressed.
+        translation_sigma: width (pixels) of the Gaussian correlation peak for translation.
+        translation_lowcut: spatial frequencies (cycles per pixel) below ~this are suppressed.
+        rotation_temperature, translation_temperature: softmax temperatures on correlations
+            normalised to 1 for a perfect match.
+        subpixel: ``"gaussian"``: log-parabola fit through the peak and its neighbours (exact for
+            the Gaussian-shaped peak the band-pass produces); ``"expectation"``: soft expectation
+            of the correlation raised to ``1 / refine_temperature`` in a local window.
+        refine_window: half-width of that local window (bins / pixels).
+        refine_temperature: see ``subpixel``.
+    """
+
+    angle_bins: int = 360
+    radial_range: tuple[float, float] = (0.05, 0.40)
+    radial_samples: int = 36
+    compression: str = "log"
+    rotation_padding: int = 2
+    window_alpha: float = 1.0
+    mask_erosion: int = 2
+    mask_blur: float = 2.0
+    rotation_sigma: float = 1.0
+    rotation_lowcut: float = 0.0
+    translation_sigma: float = 1.0
+    translation_lowcut: float = 0.0
+    rotation_temperature: float = 0.02
+    translation_temperature: float = 0.02
+    subpixel: str = "gaussian"
+    refine_window: int = 3
+    refine_temperature: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.angle_bins < 8 or self.angle_bins % 2:
+            raise ValueError(f"angle_bins must be an even number >= 8, got {self.angle_bins}")
+        lo, hi = self.radial_range
+        if not 0.0 < lo < hi <= 0.5:
+            raise ValueError(f"radial_range must satisfy 0 < lo < hi <= 0.5 cycles/pixel, got {self.radial_range}")
+        if self.rotation_padding < 1:
+            raise ValueError(f"rotation_padding must be >= 1, got {self.rotation_padding}")
+        if self.radial_samples < 1:
+            raise ValueError(f"radial_samples must be >= 1, got {self.radial_samples}")
+        if self.compression not in ("log", "sqrt"):
+            raise ValueError(f"compression must be 'log' or 'sqrt', got {self.compression!r}")
+        if self.subpixel not in ("gaussian", "expectation"):
+            raise ValueError(f"subpixel must be 'gaussian' or 'expectation', got {self.subpixel!r}")
+        for name in ("rotation_temperature", "translation_temperature", "refine_temperature",
+                     "rotation_sigma", "translation_sigma"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 < self.window_alpha <= 1.0:
+            raise ValueError(f"window_alpha must be in (0, 1], got {self.window_alpha}")
+        if self.mask_erosion < 0 or self.mask_blur < 0 or self.refine_window < 1:
+            raise ValueError("mask_erosion and mask_blur must be >= 0, refine_window >= 1")
+
+
+@dataclass
+class Prepared:
+    """One BEV made ready for correlation (each frame is prepared once, used twice).
+
+    Attributes:
+        image: ``(B, S, S)`` weighted, zero-mean BEV.
+        spectrum: ``(B, S, S)`` complex ``fft2(image)``.
+        polar: ``(B, R, A // 2 + 1)`` complex ``rfft`` along the angle of the polar magnitude.
+    """
+
+    image: Tensor
+    spectrum: Tensor
+    polar: Tensor
+
+    @property
+    def size(self) -> int:
+        return self.image.shape[-1]
+
+
+@dataclass
+class Registration:
+    """Result of :func:`register` (see the module docstring for what angle and shift mean).
+
+    Attributes:
+        angle: ``(B,)`` radians in ``[-pi/2, pi/2)``.
+        shift: ``(B, 2)`` pixels ``(d_row, d_col)``.
+        rotation_log_prob: ``(B, A)`` log-softmax over ``rotation_bins``.
+        rotation_bins: ``(A,)`` radians, ``(i - A/2) * pi / A``.
+        translation_log_prob: ``(B, S, S)`` log-softmax over ``translation_bins``.
+        translation_bins: ``(S, S, 2)`` the ``(d_row, d_col)`` of each cell, ``i - S // 2``.
+        rotation_corr, translation_corr: the raw correlations (1 = perfect match).
+        quality: ``(B,)`` translation peak height in [0, 1] (the normalised phase coherence).
+        rotation_quality: ``(B,)`` rotation peak height in [0, 1].
+        angle_std: ``(B,)`` radians, spread of the rotation distribution about ``angle``.
+        shift_cov: ``(B, 2, 2)`` pixels^2, spread of the translation distribution about ``shift``.
+    """
+
+    angle: Tensor
+    shift: Tensor
+    rotation_log_prob: Tensor
+    rotation_bins: Tensor
+    translation_log_prob: Tensor
+    translation_bins: Tensor
+    rotation_corr: Tensor
+    translation_corr: Tensor
+    quality: Tensor
+    rotation_quality: Tensor
+    angle_std: Tensor
+    shift_cov: Tensor
+
+    @property
+    def rotation_prob(self) -> Tensor:
+        """``(B, A)``."""
+        return self.rotation_log_prob.exp()
+
+    @property
+    def translation_prob(self) -> Tensor:
+        """``(B, S, S)``."""
+        return self.translation_log_prob.exp()
+
+
+# ------------------------------------------------------------------------------------------------
+# Cached grids (depend only on size, config, device, dtype)
+# ------------------------------------------------------------------------------------------------
+@lru_cache(maxsize=32)
+def _radial_window(size: int, alpha: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Radial Tukey window ``(S, S)``: 1 inside ``(1 - alpha) S/2``, cosine taper to 0 at ``S/2``."""
+    c = (size - 1) / 2.0
+    i = torch.arange(size, dtype=torch.float64) - c
+    r = torch.sqrt(i[:, None] ** 2 + i[None, :] ** 2) / (size / 2.0)
+    r0 = 1.0 - alpha
+    t = ((r - r0) / alpha).clamp(0.0, 1.0)
+    w = 0.5 * (1.0 + torch.cos(math.pi * t))
+    return w.to(dtype=dtype, device=device)
+
+
+@lru_cache(maxsize=32)
+def _gauss_kernel(sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    half = max(1, int(math.ceil(3.0 * sigma)))
+    x = torch.arange(-half, half + 1, dtype=torch.float64)
+    k = torch.exp(-0.5 * (x / sigma) ** 2)
+    return (k / k.sum()).to(dtype=dtype, device=device)
+
+
+@lru_cache(maxsize=32)
+def _polar_sampler(size: int, angle_bins: int, radial_range: tuple[float, float], radial_samples: int,
+                   device: torch.device) -> tuple[Tensor, Tensor]:
+    """Bilinear polar resampling of an (unshifted) ``fft2`` as 4 gathers.
+
+    Angles ``phi_j = j pi / A`` (``j < A``), measured from the row-frequency axis towards the
+    column-frequency axis; radii evenly spaced in ``radial_range`` (cycles/pixel).
+
+    Returns:
+        index ``(4, R * A)`` into the flattened ``(S * S)`` spectrum and weights ``(4, R * A)``
+        (float64; cast by the caller).
+    """
+    S = size
+    lo, hi = radial_range
+    radii = torch.linspace(lo * S, hi * S, radial_samples, dtype=torch.float64)  # frequency bins
+    phi = torch.arange(angle_bins, dtype=torch.float64) * math.pi / angle_bins
+    kr = radii[:, None] * torch.cos(phi)[None, :]  # (R, A)
+    kc = radii[:, None] * torch.sin(phi)[None, :]
+    r0, c0 = torch.floor(kr), torch.floor(kc)
+    fr, fc = kr - r0, kc - c0
+    r0, c0 = r0.long(), c0.long()
+    idx, wts = [], []
+    for dr, dc, w in ((0, 0, (1 - fr) * (1 - fc)), (1, 0, fr * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 1, fr * fc)):
+        idx.append(((r0 + dr) % S) * S + (c0 + dc) % S)
+        wts.append(w)
+    return torch.stack(idx).reshape(4, -1).to(device), torch.stack(wts).reshape(4, -1).to(device)
+
+
+@lru_cache(maxsize=32)
+def _rotation_band(angle_bins: int, sigma: float, lowcut: float, dtype: torch.dtype,
+                   device: torch.device) -> tuple[Tensor, float]:
+    """Weights ``(A // 2 + 1,)`` on the angular frequencies and the normaliser of ``irfft``.
+
+    The Gaussian makes the correlation peak a Gaussian of ``sigma`` bins; the low-cut removes
+    the slowly varying (in angle) common anisotropy of both spectra.
+    """
+    m = torch.arange(angle_bins // 2 + 1, dtype=torch.float64)
+    g = torch.exp(-2.0 * (math.pi * sigma * m / angle_bins) ** 2)
+    if lowcut > 0:
+        g = g * (1.0 - torch.exp(-0.5 * (m / lowcut) ** 2))
+    # irfft sums m and -m (except 0 and A/2): the peak of a perfect match is this / A.
+    total = g[0] + 2.0 * g[1:-1].sum() + g[-1]
+    return g.to(dtype=dtype, device=device), float(total) / angle_bins
+
+
+@lru_cache(maxsize=32)
+def _translation_band(size: int, sigma: float, lowcut: float, dtype: torch.dtype,
+                      device: torch.device) -> tuple[Tensor, float]:
+    """Weights ``(S, S)`` on the (unshifted) 2-D frequencies and the normaliser of ``ifft2``."""
+    k = torch.fft.fftfreq(size, dtype=torch.float64)  # cycles per pixel
+    k2 = k[:, None] ** 2 + k[None, :] ** 2
+    g = torch.exp(-2.0 * math.pi**2 * sigma**2 * k2)
+    if lowcut > 0:
+        g = g * (1.0 - torch.exp(-0.5 * k2 / lowcut**2))
+    return g.to(dtype=dtype, device=device), float(g.sum()) / size**2
+
+
+@lru_cache(maxsize=32)
+def _base_grid(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Pixel coordinates relative to the centre, ``(S, S, 2)`` as ``(row, col)``."""
+    i = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
+    rr, cc = torch.meshgrid(i, i, indexing="ij")
+    return torch.stack([rr, cc], dim=-1)
+
+
+def angle_bins(config: DpcConfig, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+    """``(A,)`` bin centres in radians, ``[-pi/2, pi/2)``."""
+    A = config.angle_bins
+    return (torch.arange(A, dtype=dtype, device=device) - A // 2) * (math.pi / A)
+
+
+def shift_bins(size: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+    """``(S, S, 2)`` the ``(d_row, d_col)`` of each cell of the (fftshifted) translation grid."""
+    i = torch.arange(size, dtype=dtype, device=device) - size // 2
+    rr, cc = torch.meshgrid(i, i, indexing="ij")
+    return torch.stack([rr, cc], dim=-1)
+
+
+# ------------------------------------------------------------------------------------------------
+# Building blocks
+# ------------------------------------------------------------------------------------------------
+def _check_pair(bev: Tensor, mask: Tensor) -> None:
+    if bev.ndim != 4 or bev.shape[1] != 1 or bev.shape[-1] != bev.shape[-2]:
+        raise ValueError(f"bev must be (B, 1, S, S), got {tuple(bev.shape)}")
+    if mask.shape != bev.shape:
+        raise ValueError(f"mask must have the bev's shape {tuple(bev.shape)}, got {tuple(mask.shape)}")
+    if not bev.is_floating_point():
+        raise ValueError(f"bev must be floating point, got {bev.dtype}")
+
+
+def soft_weight(mask: Tensor, config: DpcConfig) -> Tensor:
+    """Smooth weight ``(B, S, S)`` = (mask eroded, blurred) x radial window. ``mask (B, 1, S, S)``."""
+    m = mask.to(dtype=mask.dtype if mask.is_floating_point() else torch.float32)
+    if config.mask_erosion > 0:
+        e = config.mask_erosion
+        m = 1.0 - F.max_pool2d(1.0 - m, 2 * e + 1, stride=1, padding=e)
+    if config.mask_blur > 0:
+        k = _gauss_kernel(config.mask_blur, m.dtype, m.device)
+        p = k.numel() // 2
+        m = F.conv2d(m, k.view(1, 1, 1, -1), padding=(0, p))
+        m = F.conv2d(m, k.view(1, 1, -1, 1), padding=(p, 0))
+    S = mask.shape[-1]
+    return m[:, 0] * _radial_window(S, config.window_alpha, m.dtype, m.device)
+
+
+def _polar_spectrum(spectrum: Tensor, config: DpcConfig) -> Tensor:
+    """Compressed magnitude in polar coordinates, zero mean and unit RMS per radius. -> ``(B, R, A)``."""
+    B, S, _ = spectrum.shape  # S here is the padded size
+    mag = spectrum.abs().reshape(B, S * S)
+    mag = mag / (mag.mean(dim=1, keepdim=True) + 1e-12)  # brightness/contrast invariant
+    mag = torch.log1p(mag) if config.compression == "log" else torch.sqrt(mag + 1e-12)
+    idx, w = _polar_sampler(S, config.angle_bins, config.radial_range, config.radial_samples, spectrum.device)
+    w = w.to(mag.dtype)
+    polar = (mag[:, idx] * w).sum(dim=1).reshape(B, config.radial_samples, config.angle_bins)
+    polar = polar - polar.mean(dim=-1, keepdim=True)
+    return polar / (polar.pow(2).mean(dim=-1, keepdim=True).sqrt() + 1e-12)
+
+
+def prepare(bev: Tensor, mask: Tensor, config: DpcConfig) -> Prepared:
+    """Weight one batch of BEVs and compute the spectra both correlation stages need.
+
+    Args:
+        bev: ``(B, 1, S, S)`` float.
+        mask: ``(B, 1, S, S)`` validity (1 valid, 0 not), same dtype family.
+
+    Returns:
+        :class:`Prepared`.
+    """
+    _check_pair(bev, mask)
+    w = soft_weight(mask.to(bev.dtype), config)
+    x = bev[:, 0]
+    wsum = w.sum(dim=(-1, -2), keepdim=True)
+    if bool((wsum <= 1e-6).any()):
+        raise ValueError("a BEV has no valid pixels after eroding its mask (camera model or BEV spec wrong?)")
+    mean = (w * x).sum(dim=(-1, -2), keepdim=True) / wsum
+    image = w * (x - mean)
+    spectrum = torch.fft.fft2(image)
+    p = config.rotation_padding
+    padded = spectrum if p == 1 else torch.fft.fft2(image, s=(p * image.shape[-2], p * image.shape[-1]))
+    polar = torch.fft.rfft(_polar_spectrum(padded, config), dim=-1)
+    return Prepared(image, spectrum, polar)
+
+
+def rotate_about_centre(image: Tensor, angle: Tensor) -> Tensor:
+    """Rotate images about their centre. ``image (B, C, S, S)``, ``angle (B,)`` -> ``(B, C, S, S)``.
+
+    ``out(q) = image(c + R(-angle) (q - c))``: the content turns by ``+angle`` from the row axis
+    towards the column axis (counter-clockwise on screen). Bilinear, zeros outside.
+    """
+    if image.ndim != 4 or angle.ndim != 1 or angle.shape[0] != image.shape[0]:
+        raise ValueError(f"need image (B, C, H, W) and angle (B,), got {tuple(image.shape)} and {tuple(angle.shape)}")
+    H, W = image.shape[-2:]
+    if H != W:
+        raise ValueError(f"image must be square, got {H}x{W}")
+    q = _base_grid(H, image.dtype, image.device)  # (S, S, 2) (row, col) about the centre
+    a = angle.to(image.dtype)
+    c, s = torch.cos(a)[:, None, None], torch.sin(a)[:, None, None]
+    r, k = q[..., 0], q[..., 1]
+    # R(-a) = [[c, s], [-s, c]]
+    src_r = c * r + s * k
+    src_c = -s * r + c * k
+    half = (H - 1) / 2.0
+    grid = torch.stack([(2.0 * (src_c + half) + 1.0) / W - 1.0, (2.0 * (src_r + half) + 1.0) / H - 1.0], dim=-1)
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+
+
+def _gaussian_offset(cm: Tensor, c0: Tensor, cp: Tensor) -> Tensor:
+    """Sub-bin peak offset from three samples of a Gaussian-shaped peak (log-parabola vertex)."""
+    floor = 1e-6 * c0.abs().clamp_min(1e-12)
+    lm, l0, lp = (torch.log(torch.maximum(v, floor)) for v in (cm, c0, cp))
+    den = lm - 2.0 * l0 + lp
+    den = torch.where(den < -1e-9, den, torch.full_like(den, -1e-9))
+    return (0.5 * (lm - lp) / den).clamp(-0.5, 0.5)
+
+
+def estimate_rotation(prev: Prepared, curr: Prepared, config: DpcConfig) -> tuple[Tensor, Tensor, Tensor]:
+    """Rotation of ``curr`` relative to ``prev`` from the polar Fourier magnitudes.
+
+    Returns:
+        angle ``(B,)`` radians in ``[-pi/2, pi/2)``, correlation ``(B, A)`` over
+        :func:`angle_bins` (1 = perfect match), log-probabilities ``(B, A)``.
+    """
+    A = config.angle_bins
+    cross = (curr.polar * prev.polar.conj()).sum(dim=1)  # (B, A//2+1): pooled over radii
+    band, norm = _rotation_band(A, config.rotation_sigma, config.rotation_lowcut, prev.image.dtype, prev.image.device)
+    cross = cross / (cross.abs() + 1e-12) * band
+    corr = torch.fft.irfft(cross, n=A, dim=-1) / norm  # index j <-> angle j pi / A
+    corr = torch.roll(corr, A // 2, dims=-1)  # index i <-> (i - A/2) pi / A
+    log_prob = F.log_softmax(corr / config.rotation_temperature, dim=-1)
+    j = corr.argmax(dim=-1)
+    if config.subpixel == "gaussian":
+        cm = corr.gather(-1, ((j - 1) % A)[:, None])[:, 0]
+        c0 = corr.gather(-1, j[:, None])[:, 0]
+        cp = corr.gather(-1, ((j + 1) % A)[:, None])[:, 0]
+        offset = _gaussian_offset(cm, c0, cp)
+    else:
+        offset = _local_expectation_1d(corr, j, config)
+    angle = (j.to(corr.dtype) + offset - A // 2) * (math.pi / A)
+    angle = torch.remainder(angle + math.pi / 2, math.pi) - math.pi / 2
+    return angle, corr, log_prob
+
+
+def _local_expectation_1d(corr: Tensor, j: Tensor, config: DpcConfig) -> Tensor:
+    """Soft expectation of ``corr^(1/T)`` in a circular window around ``j``. -> offset ``(B,)``."""
+    A = corr.shape[-1]
+    h = config.refine_window
+    d = torch.arange(-h, h + 1, device=corr.device)
+    win = corr.gather(-1, (j[:, None] + d) % A)  # (B, 2h+1)
+    peak = win[:, h : h + 1].abs().clamp_min(1e-12)
+    logits = torch.log(torch.clamp(win / peak, min=1e-6)) / config.refine_temperature
+    p = torch.softmax(logits, dim=-1)
+    return (p * d.to(corr.dtype)).sum(dim=-1)
+
+
+def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcConfig) -> tuple[Tensor, Tensor, Tensor]:
+    """Shift of ``curr_image`` relative to the image whose ``fft2`` is ``prev_spectrum``.
+
+    ``curr(q) = prev(q - shift)``.
+
+    Args:
+        prev_spectrum: ``(B, S, S)`` complex.
+        curr_image: ``(B, S, S)`` weighted image (already rotated back).
+
+    Returns:
+        shift ``(B, 2)`` pixels ``(d_row, d_col)``, correlation ``(B, S, S)`` over
+        :func:`shift_bins` (fftshifted, 1 = perfect match), log-probabilities ``(B, S, S)``.
+    """
+    B, S, _ = curr_image.shape
+    cross = torch.fft.fft2(curr_image) * prev_spectrum.conj()
+    band, norm = _translation_band(S, config.translation_sigma, config.translation_lowcut, curr_image.dtype,
+                                   curr_image.device)
+    cross = cross / (cross.abs() + 1e-12) * band
+    corr = torch.fft.ifft2(cross).real / norm  # index n <-> shift n (mod S)
+    corr = torch.fft.fftshift(corr, dim=(-2, -1))  # index i <-> shift i - S//2
+    flat = corr.reshape(B, S * S)
+    log_prob = F.log_softmax(flat / config.translation_temperature, dim=-1).reshape(B, S, S)
+    j = flat.argmax(dim=-1)
+    jr, jc = j // S, j % S
+    if config.subpixel == "gaussian":
+        off = _quadratic_offset_2d(corr, jr, jc)
+    else:
+        off = _local_expectation_2d(corr, jr, jc, config)
+    shift = torch.stack([jr, jc], dim=-1).to(corr.dtype) - S // 2 + off
+    return shift, corr, log_prob
+
+
+def _window_2d(corr: Tensor, jr: Tensor, jc: Tensor, h: int) -> tuple[Tensor, Tensor]:
+    """Circular ``(2h+1)^2`` window around ``(jr, jc)``. -> values ``(B, 2h+1, 2h+1)``, offsets."""
+    B, S, _ = corr.shape
+    d = torch.arange(-h, h + 1, device=corr.device)
+    rows = (jr[:, None] + d) % S  # (B, n)
+    cols = (jc[:, None] + d) % S
+    flat = corr.reshape(B, S * S)
+    idx = rows[:, :, None] * S + cols[:, None, :]
+    return flat.gather(1, idx.reshape(B, -1)).reshape(B, 2 * h + 1, 2 * h + 1), d.to(corr.dtype)
+
+
+def _quadratic_offset_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> Tensor:
+    """Vertex of a least-squares 2-D quadratic fit to ``log corr`` on the 3x3 around the peak.
+
+    Exact for (possibly elongated, tilted) Gaussian peaks. -> ``(B, 2)`` offsets in [-1, 1].
+    """
+    win, d = _window_2d(corr, jr, jc, 1)  # (B, 3, 3)
+    peak = win[:, 1, 1].abs().clamp_min(1e-12)[:, None, None]
+    L = torch.log(torch.clamp(win / peak, min=1e-6))
+    # LS fit L = a + b r + c k + d r^2 + e k^2 + f r k on the 3x3 stencil (closed form).
+    r = d[:, None].expand(3, 3)
+    k = d[None, :].expand(3, 3)
+    b = (L * r).sum(dim=(1, 2)) / 6.0
+    c = (L * k).sum(dim=(1, 2)) / 6.0
+    dd = (L * (r**2 - 2.0 / 3.0)).sum(dim=(1, 2)) / 2.0
+    ee = (L * (k**2 - 2.0 / 3.0)).sum(dim=(1, 2)) / 2.0
+    ff = (L * r * k).sum(dim=(1, 2)) / 4.0
+    # Vertex: [2d f; f 2e] [r; k] = -[b; c]; the Hessian must be negative definite.
+    h11, h22, h12 = 2.0 * dd, 2.0 * ee, ff
+    h11 = torch.minimum(h11, torch.full_like(h11, -1e-6))
+    h22 = torch.minimum(h22, torch.full_like(h22, -1e-6))
+    det = h11 * h22 - h12**2
+    ok = det > 1e-9
+    det = torch.where(ok, det, torch.ones_like(det))
+    orow = torch.where(ok, (-b * h22 + c * h12) / det, -b / h11)
+    ocol = torch.where(ok, (-c * h11 + b * h12) / det, -c / h22)
+    return torch.stack([orow, ocol], dim=-1).clamp(-1.0, 1.0)
+
+
+def _local_expectation_2d(corr: Tensor, jr: Tensor, jc: Tensor, config: DpcConfig) -> Tensor:
+    h = config.refine_window
+    win, d = _window_2d(corr, jr, jc, h)
+    B = win.shape[0]
+    peak = win[:, h, h].abs().clamp_min(1e-12)[:, None, None]
+    logits = torch.log(torch.clamp(win / peak, min=1e-6)) / config.refine_temperature
+    p = torch.softmax(logits.reshape(B, -1), dim=-1).reshape(win.shape)
+    return torch.stack([(p.sum(dim=2) * d).sum(dim=1), (p.sum(dim=1) * d).sum(dim=1)], dim=-1)
+
+
+def _wrapped_spread(log_prob_a: Tensor, bins_a: Tensor, angle: Tensor) -> Tensor:
+    diff = torch.remainder(bins_a[None, :] - angle[:, None] + math.pi / 2, math.pi) - math.pi / 2
+    return (log_prob_a.exp() * diff**2).sum(dim=-1).sqrt()
+
+
+def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
+    S = log_prob_t.shape[-1]
+    p = log_prob_t.exp()[..., None]  # (B, S, S, 1)
+    diff = torch.remainder(bins_t[None] - shift[:, None, None, :] + S / 2, S) - S / 2  # (B, S, S, 2)
+    return (p[..., None] * diff[..., :, None] * diff[..., None, :]).sum(dim=(1, 2))
+
+
+def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig) -> Registration:
+    """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``)."""
+    if prev.image.shape != curr.image.shape:
+        raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")
+    angle, rcorr, rlog = estimate_rotation(prev, curr, config)
+    derotated = rotate_about_centre(curr.image[:, None], -angle)[:, 0]
+    shift, tcorr, tlog = estimate_translation(prev.spectrum, derotated, config)
+    dtype, device = rcorr.dtype, rcorr.device
+    abins = angle_bins(config, dtype, device)
+    tbins = shift_bins(prev.size, dtype, device)
+    return Registration(
+        angle=angle,
+        shift=shift,
+        rotation_log_prob=rlog,
+        rotation_bins=abins,
+        translation_log_prob=tlog,
+        translation_bins=tbins,
+        rotation_corr=rcorr,
+        translation_corr=tcorr,
+        quality=tcorr.amax(dim=(-1, -2)).clamp(0.0, 1.0),
+        rotation_quality=rcorr.amax(dim=-1).clamp(0.0, 1.0),
+        angle_std=_wrapped_spread(rlog, abins, angle),
+        shift_cov=_shift_cov(tlog, tbins, shift),
+    )
+
+
+def register(bev_prev: Tensor, bev_curr: Tensor, mask_prev: Tensor, mask_curr: Tensor,
+             config: DpcConfig | None = None) -> Registration:
+    """Rotation and translation of ``bev_curr`` relative to ``bev_prev`` (module docstring).
+
+    Args:
+        bev_prev, bev_curr: ``(B, 1, S, S)`` float.
+        mask_prev, mask_curr: ``(B, 1, S, S)`` validity masks.
+        config: :class:`DpcConfig` (defaults if None).
+    """
+    config = config or DpcConfig()
+    if bev_prev.shape != bev_curr.shape:
+        raise ValueError(f"bev_prev {tuple(bev_prev.shape)} and bev_curr {tuple(bev_curr.shape)} differ")
+    return register_prepared(prepare(bev_prev, mask_prev, config), prepare(bev_curr, mask_curr, config), config)
+
+
+__all__ = [
+    "DpcConfig",
+    "Prepared",
+    "Registration",
+    "angle_bins",
+    "shift_bins",
+    "soft_weight",
+    "prepare",
+    "rotate_about_centre",
+    "estimate_rotation",
+    "estimate_translation",
+    "register_prepared",
+    "register",
+]

@@ -1,0 +1,57 @@
+"""SE(2) odometry composition and 6-DoF pose matrices (z held constant)."""
+from __future__ import annotations
+
+import torch
+
+from .geometry import rotation_from_rpy, wrap_angle
+
+Tensor = torch.Tensor
+
+
+def compose_se2(pose: Tensor, motion: Tensor) -> Tensor:
+    """Apply a body-frame increment. ``pose (..., 3)`` x, y, yaw; ``motion (..., 3)`` dx, dy, dyaw."""
+    x, y, yaw = pose.unbind(-1)
+    dx, dy, dyaw = motion.unbind(-1)
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    return torch.stack([x + c * dx - s * dy, y + s * dx + c * dy, wrap_angle(yaw + dyaw)], dim=-1)
+
+
+def integrate_motions(motions: Tensor, start: Tensor | None = None) -> Tensor:
+    """Chain increments ``(T, 3)`` into poses ``(T + 1, 3)`` starting at ``start`` (identity)."""
+    pose = torch.zeros(3, dtype=motions.dtype, device=motions.device) if start is None else start
+    poses = [pose]
+    for m in motions:
+        pose = compose_se2(pose, m)
+        poses.append(pose)
+    return torch.stack(poses)
+
+
+def relative_se2(pose_a: Tensor, pose_b: Tensor) -> Tensor:
+    """The increment taking ``pose_a`` to ``pose_b`` in a's frame (inverse of compose). ``(..., 3)``."""
+    d = pose_b[..., :2] - pose_a[..., :2]
+    c, s = torch.cos(pose_a[..., 2]), torch.sin(pose_a[..., 2])
+    return torch.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
+                        wrap_angle(pose_b[..., 2] - pose_a[..., 2])], dim=-1)
+
+
+def propagate_covariance_se2(pose: Tensor, cov: Tensor, motion: Tensor, motion_cov: Tensor) -> Tensor:
+    """First-order covariance of ``compose_se2(pose, motion)``. ``(3,)``, ``(3, 3)`` -> ``(3, 3)``."""
+    yaw = pose[..., 2]
+    dx, dy = motion[..., 0], motion[..., 1]
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    one, zero = torch.ones_like(c), torch.zeros_like(c)
+    j_pose = torch.stack([one, zero, -s * dx - c * dy, zero, one, c * dx - s * dy, zero, zero, one], -1)
+    j_motion = torch.stack([c, -s, zero, s, c, zero, zero, zero, one], -1)
+    j_pose = j_pose.reshape(*yaw.shape, 3, 3)
+    j_motion = j_motion.reshape(*yaw.shape, 3, 3)
+    out = j_pose @ cov @ j_pose.transpose(-1, -2) + j_motion @ motion_cov @ j_motion.transpose(-1, -2)
+    return 0.5 * (out + out.transpose(-1, -2))
+
+
+def pose_matrix(position: Tensor, rpy: Tensor) -> Tensor:
+    """``(..., 3)`` position and roll/pitch/yaw -> homogeneous ``(..., 4, 4)``."""
+    rot = rotation_from_rpy(rpy[..., 0], rpy[..., 1], rpy[..., 2])
+    top = torch.cat([rot, position[..., :, None]], dim=-1)
+    bottom = torch.zeros(*position.shape[:-1], 1, 4, dtype=position.dtype, device=position.device)
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([top, bottom], dim=-2)

@@ -1,0 +1,482 @@
+"""KITTI readers: odometry and raw layouts, OXTS, calibration, ground-truth poses.
+
+Pure numpy (torch only for :func:`camera_model_from_kitti`). Every parse error names the file
+and the 1-based line number, because these files are edited and copied by hand.
+
+Frames (see ``bevo_ros/core/geometry.py``):
+
+* ``cam`` = the rectified camera-0 frame (optical axes), the frame of the odometry poses.
+  ``poses/NN.txt`` line ``i`` is ``T_world_cam_i`` (3x4, row-major) with ``world`` = ``cam_0``.
+* ``base`` = the OXTS IMU frame (x forward, y left, z up).
+* Raw calibration chain: ``p_velo = T_velo_imu p_imu``, ``p_cam00 = T_cam00_velo p_velo`` (the
+  unrectified camera 0), ``p_rect0 = R_rect_00 p_cam00``; for camera ``i`` the rectified frames
+  differ by the translation in ``P_rect_0i`` only.
+"""
+from __future__ import annotations
+
+import calendar
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+PathLike = str | Path
+
+# KITTI odometry devkit (readme.txt): sequence -> (raw drive, first raw frame, last raw frame).
+# Odometry frame i is raw synced frame start + i; the pose files have end - start + 1 lines.
+ODOMETRY_TO_RAW: dict[str, tuple[str, int, int]] = {
+    "00": ("2011_10_03_drive_0027", 0, 4540),
+    "01": ("2011_10_03_drive_0042", 0, 1100),
+    "02": ("2011_10_03_drive_0034", 0, 4660),
+    "03": ("2011_09_26_drive_0067", 0, 800),
+    "04": ("2011_09_30_drive_0016", 0, 270),
+    "05": ("2011_09_30_drive_0018", 0, 2760),
+    "06": ("2011_09_30_drive_0020", 0, 1100),
+    "07": ("2011_09_30_drive_0027", 0, 1100),
+    "08": ("2011_09_30_drive_0028", 1100, 5170),
+    "09": ("2011_09_30_drive_0033", 0, 1590),
+    "10": ("2011_09_30_drive_0034", 0, 1200),
+}
+
+# Column indices of the 30 OXTS fields (dataformat.txt).
+OXTS_FIELDS = (
+    "lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu",
+    "ax", "ay", "az", "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu",
+    "pos_accuracy", "vel_accuracy", "navstat", "numsats", "posmode", "velmode", "orimode",
+)
+OXTS_INDEX = {name: i for i, name in enumerate(OXTS_FIELDS)}
+
+_STAMP_RE = re.compile(r"^(\d{4})-(\d{2})-(\d{2}) (\d{2}):(\d{2}):(\d{2})(?:\.(\d{1,9}))?$")
+
+
+# ----------------------------------------------------------------------------------------------
+# Small parsing helpers
+# ----------------------------------------------------------------------------------------------
+def _require_file(path: PathLike, what: str) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: {what} not found")
+    return path
+
+
+def _require_dir(path: PathLike, what: str) -> Path:
+    path = Path(path)
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path}: {what} directory not found")
+    return path
+
+
+def _parse_floats(text: str, path: Path, lineno: int, count: int | None = None) -> np.ndarray:
+    """Whitespace-separated floats of one line; ``count`` checks their number."""
+    try:
+        values = np.array([float(tok) for tok in text.split()], dtype=np.float64)
+    except ValueError as exc:
+        raise ValueError(f"{path}:{lineno}: cannot parse numbers ({exc}): {text.strip()[:80]!r}") from None
+    if count is not None and values.size != count:
+        raise ValueError(f"{path}:{lineno}: expected {count} numbers, found {values.size}")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{path}:{lineno}: non-finite number: {text.strip()[:80]!r}")
+    return values
+
+
+def _content_lines(path: Path) -> Iterable[tuple[int, str]]:
+    """(1-based line number, text) of the non-blank lines."""
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        for lineno, line in enumerate(f, start=1):
+            if line.strip():
+                yield lineno, line
+
+
+def parse_timestamp_ns(text: str, path: PathLike = "<string>", lineno: int = 0) -> int:
+    """``'2011-09-30 12:08:26.521831936'`` -> integer nanoseconds since the epoch (read as UTC).
+
+    Integer arithmetic keeps the nanoseconds exact (a float64 of ~1.3e9 s resolves ~0.2 us).
+    """
+    m = _STAMP_RE.match(text.strip())
+    if m is None:
+        raise ValueError(f"{path}:{lineno}: cannot parse timestamp {text.strip()[:80]!r} "
+                         "(expected 'YYYY-MM-DD HH:MM:SS.fffffffff')")
+    year, month, day, hour, minute, second = (int(g) for g in m.groups()[:6])
+    frac = (m.group(7) or "").ljust(9, "0")
+    try:
+        seconds = calendar.timegm((year, month, day, hour, minute, second, 0, 0, 0))
+    except (ValueError, OverflowError) as exc:
+        raise ValueError(f"{path}:{lineno}: invalid date/time {text.strip()!r} ({exc})") from None
+    if not (1 <= month <= 12 and 1 <= day <= 31 and hour < 24 and minute < 60 and second < 61):
+        raise ValueError(f"{path}:{lineno}: invalid date/time {text.strip()!r}")
+    return seconds * 1_000_000_000 + int(frac)
+
+
+def read_timestamps_ns(path: PathLike) -> np.ndarray:
+    """A KITTI raw ``timestamps.txt`` -> ``(N,)`` int64 nanoseconds since the epoch.
+
+    Blank lines are rejected: in raw data they mark dropped frames, which cannot be aligned.
+    """
+    path = _require_file(path, "timestamps file")
+    stamps = []
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        for lineno, line in enumerate(f, start=1):
+            if not line.strip():
+                # A trailing newline at the end of the file is not a blank line; an empty one is.
+                raise ValueError(f"{path}:{lineno}: empty timestamp line (dropped frame?)")
+            stamps.append(parse_timestamp_ns(line, path, lineno))
+    if not stamps:
+        raise ValueError(f"{path}: no timestamps")
+    out = np.asarray(stamps, dtype=np.int64)
+    bad = np.nonzero(np.diff(out) <= 0)[0]
+    if bad.size:
+        raise ValueError(f"{path}:{bad[0] + 2}: timestamps not strictly increasing")
+    return out
+
+
+def read_timestamps(path: PathLike) -> np.ndarray:
+    """A KITTI raw ``timestamps.txt`` -> ``(N,)`` float64 seconds since the epoch."""
+    return ns_to_seconds(read_timestamps_ns(path))
+
+
+def ns_to_seconds(ns: np.ndarray) -> np.ndarray:
+    """int64 nanoseconds -> float64 seconds, splitting off whole seconds first to round once."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
+
+
+# ----------------------------------------------------------------------------------------------
+# OXTS
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class OxtsData:
+    """Synced OXTS records of one raw drive.
+
+    Attributes:
+        stamps_ns: ``(N,)`` int64 nanoseconds since the epoch (exact).
+        data: ``(N, 30)`` float64, the fields of ``OXTS_FIELDS``.
+        directory: the ``oxts`` directory read.
+    """
+
+    stamps_ns: np.ndarray
+    data: np.ndarray
+    directory: Path | None = None
+
+    def __len__(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """``(N,)`` float64 seconds since the epoch."""
+        return ns_to_seconds(self.stamps_ns)
+
+    def field(self, name: str) -> np.ndarray:
+        """One named column, ``(N,)``."""
+        return self.data[:, OXTS_INDEX[name]]
+
+    @property
+    def accel(self) -> np.ndarray:
+        """``(N, 3)`` ax, ay, az in the vehicle (base) frame, m/s^2, gravity included."""
+        return self.data[:, 11:14]
+
+    @property
+    def gyro(self) -> np.ndarray:
+        """``(N, 3)`` wx, wy, wz in the vehicle (base) frame, rad/s."""
+        return self.data[:, 17:20]
+
+    @property
+    def roll(self) -> np.ndarray:
+        return self.data[:, 3]
+
+    @property
+    def pitch(self) -> np.ndarray:
+        return self.data[:, 4]
+
+    @property
+    def yaw(self) -> np.ndarray:
+        return self.data[:, 5]
+
+    def slice(self, start: int, stop: int) -> "OxtsData":
+        """Records ``start:stop``."""
+        return OxtsData(self.stamps_ns[start:stop].copy(), self.data[start:stop].copy(), self.directory)
+
+
+def read_oxts(oxts_dir: PathLike) -> OxtsData:
+    """Read a raw ``<drive>_sync/oxts`` directory (``timestamps.txt`` + ``data/*.txt``).
+
+    Raises:
+        FileNotFoundError: missing directory or files.
+        ValueError: unparseable line (file and line named), count mismatch.
+    """
+    oxts_dir = _require_dir(oxts_dir, "OXTS")
+    stamps_ns = read_timestamps_ns(oxts_dir / "timestamps.txt")
+    data_dir = _require_dir(oxts_dir / "data", "OXTS data")
+    files = sorted(p for p in data_dir.iterdir() if p.suffix == ".txt")
+    if len(files) != len(stamps_ns):
+        raise ValueError(f"{data_dir}: {len(files)} OXTS data files but {len(stamps_ns)} lines in "
+                         f"{oxts_dir / 'timestamps.txt'}")
+    data = np.empty((len(files), len(OXTS_FIELDS)), dtype=np.float64)
+    for i, path in enumerate(files):
+        lines = list(_content_lines(path))
+        if len(lines) != 1:
+            raise ValueError(f"{path}: expected one line of {len(OXTS_FIELDS)} numbers, found {len(lines)} lines")
+        lineno, text = lines[0]
+        data[i] = _parse_floats(text, path, lineno, count=len(OXTS_FIELDS))
+    return OxtsData(stamps_ns, data, oxts_dir)
+
+
+# ----------------------------------------------------------------------------------------------
+# Calibration
+# ----------------------------------------------------------------------------------------------
+def _read_key_values(path: PathLike, what: str) -> dict[str, tuple[int, str]]:
+    """``key: values`` lines -> {key: (line number, value text)}."""
+    path = _require_file(path, what)
+    out: dict[str, tuple[int, str]] = {}
+    for lineno, line in _content_lines(path):
+        key, sep, value = line.partition(":")
+        if not sep or not key.strip() or " " in key.strip():
+            raise ValueError(f"{path}:{lineno}: expected 'KEY: numbers', got {line.strip()[:80]!r}")
+        out[key.strip()] = (lineno, value)
+    return out
+
+
+def read_odometry_calib(calib_txt: PathLike) -> dict[str, np.ndarray]:
+    """Odometry ``sequences/NN/calib.txt`` -> {``P0``..``P3``, ``Tr``: ``(3, 4)``} (those present).
+
+    ``P0`` is required (it holds the camera-0 intrinsics).
+    """
+    path = Path(calib_txt)
+    out = {}
+    for key, (lineno, value) in _read_key_values(path, "odometry calibration").items():
+        out[key] = _parse_floats(value, path, lineno, count=12).reshape(3, 4)
+    if "P0" not in out:
+        raise ValueError(f"{path}: no 'P0:' line")
+    return out
+
+
+# Keys of the raw calibration files that are not numeric matrices.
+_RAW_TEXT_KEYS = {"calib_time"}
+
+
+def read_raw_calib(path: PathLike) -> dict[str, np.ndarray]:
+    """A raw ``calib_*.txt`` -> {key: float64 array} (``calib_time`` skipped).
+
+    Shapes as stored (flat); use :func:`raw_rigid_transform` for ``R``/``T`` pairs.
+    """
+    path = Path(path)
+    out = {}
+    for key, (lineno, value) in _read_key_values(path, "raw calibration").items():
+        if key in _RAW_TEXT_KEYS:
+            continue
+        out[key] = _parse_floats(value, path, lineno)
+    return out
+
+
+def _matrix(calib: dict[str, np.ndarray], key: str, shape: tuple[int, int], path: PathLike) -> np.ndarray:
+    if key not in calib:
+        raise ValueError(f"{path}: missing '{key}:' line")
+    value = calib[key]
+    if value.size != shape[0] * shape[1]:
+        raise ValueError(f"{path}: '{key}' has {value.size} numbers, expected {shape[0] * shape[1]}")
+    return value.reshape(shape)
+
+
+def raw_rigid_transform(path: PathLike) -> np.ndarray:
+    """``R`` (3x3) and ``T`` (3,) of a raw ``calib_*_to_*.txt`` -> ``(4, 4)`` (maps *from* -> *to*)."""
+    calib = read_raw_calib(path)
+    T = np.eye(4)
+    T[:3, :3] = _matrix(calib, "R", (3, 3), path)
+    T[:3, 3] = _matrix(calib, "T", (3, 1), path)[:, 0]
+    return T
+
+
+def find_raw_calib_dir(start: PathLike, date: str | None = None) -> Path | None:
+    """Search ``start`` and its parents for a directory holding ``calib_imu_to_velo.txt``.
+
+    Looks in ``X``, ``X/<date>`` and ``X/<any date>`` for ``X`` = ``start`` and each parent (the
+    sample's 2011_09_30 drives have no calibration; the 2011_09_26 files describe the same rig).
+    Prefers ``date``, then the newest other date. Returns None when nothing is found.
+    """
+    start = Path(start).resolve()
+    for base in [start, *start.parents]:
+        candidates = [base]
+        if date:
+            candidates.append(base / date)
+        for root in (base, base / "raw"):
+            if root.is_dir():
+                try:
+                    dated = sorted((p for p in root.iterdir() if p.is_dir() and re.fullmatch(r"\d{4}_\d{2}_\d{2}", p.name)),
+                                   key=lambda p: (p.name != date, [-ord(c) for c in p.name]))
+                except OSError:
+                    dated = []
+                candidates.extend(dated)
+        for cand in candidates:
+            if (cand / "calib_imu_to_velo.txt").is_file() and (cand / "calib_velo_to_cam.txt").is_file() \
+                    and (cand / "calib_cam_to_cam.txt").is_file():
+                return cand
+    return None
+
+
+def imu_to_camera_extrinsics(raw_calib_dir: PathLike, cam: int = 0) -> np.ndarray:
+    """``T_cam_imu (4, 4)``: IMU points -> rectified camera ``cam`` frame.
+
+    ``T_rect0_imu = R_rect_00 @ T_cam00_velo @ T_velo_imu``; for ``cam > 0`` the rectified
+    cameras share ``R_rect_00`` and are offset by ``P_rect_0i``'s translation
+    (``t = K^-1 P[:, 3]``). Camera 0 is the frame of the odometry poses.
+    ``T_base_cam = inv(T_cam_imu)`` (base = IMU).
+    """
+    d = _require_dir(raw_calib_dir, "raw calibration")
+    T_velo_imu = raw_rigid_transform(d / "calib_imu_to_velo.txt")
+    T_cam00_velo = raw_rigid_transform(d / "calib_velo_to_cam.txt")
+    cam_path = d / "calib_cam_to_cam.txt"
+    cam_calib = read_raw_calib(cam_path)
+    R_rect = np.eye(4)
+    R_rect[:3, :3] = _matrix(cam_calib, "R_rect_00", (3, 3), cam_path)
+    T = R_rect @ T_cam00_velo @ T_velo_imu
+    if cam != 0:
+        P = _matrix(cam_calib, f"P_rect_{cam:02d}", (3, 4), cam_path)
+        shift = np.eye(4)
+        shift[:3, 3] = np.linalg.solve(P[:, :3], P[:, 3])
+        T = shift @ T
+    return T
+
+
+def invert_rigid(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms ``(..., 4, 4)``, exact for orthonormal R."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ t[..., None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def camera_model_from_kitti(odometry_calib_txt: PathLike, raw_calib_dir: PathLike, image_size: tuple[int, int],
+                            height: float = 1.65, cam: int = 0, dtype=None):
+    """Build a :class:`bevo_ros.core.geometry.CameraModel` for camera ``cam`` of a sequence.
+
+    Args:
+        odometry_calib_txt: ``sequences/NN/calib.txt`` (``P{cam}`` gives K for the odometry images).
+        raw_calib_dir: directory with the raw ``calib_*.txt`` of the same rig (extrinsics).
+        image_size: ``(W, H)`` of the images in pixels.
+        height: camera centre height above the road, metres (KITTI: 1.65).
+        dtype: torch dtype of the tensors (default float32).
+    """
+    import torch
+
+    from bevo_ros.core.geometry import CameraModel
+
+    dtype = dtype or torch.float32
+    calib = read_odometry_calib(odometry_calib_txt)
+    key = f"P{cam}"
+    if key not in calib:
+        raise ValueError(f"{odometry_calib_txt}: no '{key}:' line")
+    K = calib[key][:, :3]
+    T_base_cam = invert_rigid(imu_to_camera_extrinsics(raw_calib_dir, cam))
+    width, height_px = (int(v) for v in image_size)
+    return CameraModel(torch.as_tensor(K, dtype=dtype), width, height_px,
+                       torch.as_tensor(T_base_cam, dtype=dtype), float(height))
+
+
+# ----------------------------------------------------------------------------------------------
+# Poses and times
+# ----------------------------------------------------------------------------------------------
+def read_poses(poses_txt: PathLike) -> np.ndarray:
+    """KITTI pose file (3x4 row-major per line) -> ``(F, 4, 4)`` float64 (camera-0 poses)."""
+    path = _require_file(poses_txt, "pose file")
+    poses = []
+    for lineno, line in _content_lines(path):
+        T = np.eye(4)
+        T[:3, :] = _parse_floats(line, path, lineno, count=12).reshape(3, 4)
+        poses.append(T)
+    if not poses:
+        raise ValueError(f"{path}: no poses")
+    return np.stack(poses)
+
+
+def write_poses(path: PathLike, poses: np.ndarray) -> None:
+    """``(F, 4, 4)`` or ``(F, 3, 4)`` -> KITTI pose file, atomically (temp file + os.replace)."""
+    import os
+    import tempfile
+
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] not in ((4, 4), (3, 4)):
+        raise ValueError(f"poses must be (F, 4, 4) or (F, 3, 4), got {poses.shape}")
+    path = Path(path)
+    text = "".join(" ".join(f"{v:.9e}" for v in T[:3, :].ravel()) + "\n" for T in poses)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_times(times_txt: PathLike) -> np.ndarray:
+    """Odometry ``times.txt`` (seconds since the sequence start, one per line) -> ``(F,)`` float64."""
+    path = _require_file(times_txt, "times file")
+    times = [float(_parse_floats(line, path, lineno, count=1)[0]) for lineno, line in _content_lines(path)]
+    if not times:
+        raise ValueError(f"{path}: no times")
+    return np.asarray(times, dtype=np.float64)
+
+
+def base_poses(camera_poses: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:
+    """Camera-0 poses -> base (IMU) poses in the ``odom`` frame = the base frame at frame 0.
+
+    ``T_world_base_i = T_world_cam_i @ T_cam_base``; re-anchored so that the first pose is the
+    identity: ``T_odom_base_i = inv(T_world_base_0) @ T_world_base_i`` (z up, x forward at start).
+
+    Args:
+        camera_poses: ``(F, 4, 4)`` ``T_world_cam_i``.
+        T_base_cam: ``(4, 4)`` camera pose in the base frame.
+
+    Returns:
+        ``(F, 4, 4)``.
+    """
+    camera_poses = np.asarray(camera_poses, dtype=np.float64)
+    T_cam_base = invert_rigid(np.asarray(T_base_cam, dtype=np.float64))
+    world_base = camera_poses @ T_cam_base
+    return invert_rigid(world_base[0]) @ world_base
+
+
+def relative_poses(poses: np.ndarray) -> np.ndarray:
+    """``(F, 4, 4)`` -> ``(F-1, 4, 4)`` with ``inv(T_{i-1}) @ T_i``."""
+    return invert_rigid(poses[:-1]) @ poses[1:]
+
+
+def base_relative_motion(camera_poses: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:
+    """Planar motion of the base between consecutive frames, in the base frame at frame i-1.
+
+    Args:
+        camera_poses: ``(F, 4, 4)`` ``T_world_cam_i``.
+        T_base_cam: ``(4, 4)``.
+
+    Returns:
+        ``(F-1, 3)`` ``(dx, dy, dyaw)`` (metres, radians, REP-103) of
+        ``inv(T_base_{i-1}) @ T_base_i``; ``dyaw = atan2(R[1, 0], R[0, 0])``.
+    """
+    rel = relative_poses(base_poses(camera_poses, T_base_cam))
+    return np.stack([rel[:, 0, 3], rel[:, 1, 3], np.arctan2(rel[:, 1, 0], rel[:, 0, 0])], axis=-1)
+
+
+# ----------------------------------------------------------------------------------------------
+# Layout helpers
+# ----------------------------------------------------------------------------------------------
+def raw_drive_for_sequence(sequence: str | int) -> tuple[str, str, int, int]:
+    """``'06'`` -> ``(date, drive, start, end)`` e.g. ``('2011_09_30', '2011_09_30_drive_0020', 0, 1100)``."""
+    key = f"{int(sequence):02d}" if str(sequence).isdigit() else str(sequence)
+    if key not in ODOMETRY_TO_RAW:
+        raise ValueError(f"sequence {sequence!r} has no raw drive (only 00..10 do)")
+    drive, start, end = ODOMETRY_TO_RAW[key]
+    return drive[:10], drive, start, end
+
+
+def list_images(image_dir: PathLike) -> list[Path]:
+    """Sorted ``*.png`` of an image directory (raises when missing or empty)."""
+    image_dir = _require_dir(image_dir, "image")
+    files = sorted(p for p in image_dir.iterdir() if p.suffix.lower() == ".png")
+    if not files:
+        raise FileNotFoundError(f"{image_dir}: no .png images")
+    return files

@@ -1,0 +1,222 @@
+"""ROS message <-> numpy helpers for ``bevo_node`` (rclpy message classes, no node state).
+
+Stamps: ``builtin_interfaces/Time`` -> float seconds as ``sec + nanosec * 1e-9`` (the formula of
+``bevo_ros.bag.ns_to_seconds``, so the node and the offline tools feed the engine identical
+floats). Outgoing headers copy the input header's ``Time`` object, never a float round trip.
+"""
+from __future__ import annotations
+
+import array
+import math
+from typing import Any
+
+import numpy as np
+
+# Image encodings the node accepts: name -> (channels, bytes per channel). Everything else is
+# rejected with the reason (the engine works on one grey channel).
+IMAGE_ENCODINGS = {
+    "mono8": (1, 1), "8UC1": (1, 1),
+    "mono16": (1, 2), "16UC1": (1, 2),
+    "rgb8": (3, 1), "bgr8": (3, 1),
+    "rgba8": (4, 1), "bgra8": (4, 1),
+}
+
+
+class ImageConversionError(ValueError):
+    """An image the node cannot use; ``reason`` is the drop-counter key."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+def stamp_to_sec(stamp: Any) -> float:
+    """``builtin_interfaces/Time`` -> float seconds (same formula as ``bag.ns_to_seconds``)."""
+    return float(int(stamp.sec)) + float(int(stamp.nanosec)) * 1e-9
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def sec_to_stamp(t: float, msg_type=None):
+    """Float seconds -> ``builtin_interfaces/Time`` (nanosecond rounding; for tests and tools)."""
+    from builtin_interfaces.msg import Time
+
+    whole = math.floor(t)
+    ns = int(round((t - whole) * 1e9))
+    if ns >= 1_000_000_000:
+        whole, ns = whole + 1, ns - 1_000_000_000
+    return (msg_type or Time)(sec=int(whole), nanosec=ns)
+
+
+# ----------------------------------------------------------------------------------------- inputs
+def imu_to_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """sensor_msgs/Imu -> ``gyro (3,)`` rad/s, ``accel (3,)`` m/s^2 (float64, unchecked)."""
+    w, a = msg.angular_velocity, msg.linear_acceleration
+    return np.array([w.x, w.y, w.z], dtype=np.float64), np.array([a.x, a.y, a.z], dtype=np.float64)
+
+
+def image_to_gray(msg: Any) -> np.ndarray:
+    """sensor_msgs/Image -> ``(H, W)`` uint8 grey.
+
+    mono8/8UC1 are used as they are (zero-copy view when the rows are unpadded); rgb8/bgr8 (and
+    rgba8/bgra8) are converted with the ITU-R BT.601 luma weights (as ``bag.decode_image`` and
+    OpenCV do); mono16/16UC1 are scaled to 8 bits by /257 (65535 -> 255).
+
+    Raises:
+        ImageConversionError: unsupported encoding (reason ``bad_encoding``) or a data/step size
+            inconsistent with width x height (reason ``bad_image``).
+    """
+    enc = msg.encoding
+    if enc not in IMAGE_ENCODINGS:
+        raise ImageConversionError(
+            "bad_encoding",
+            f"unsupported image encoding '{enc}' (supported: {', '.join(IMAGE_ENCODINGS)})")
+    channels, depth = IMAGE_ENCODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise ImageConversionError("bad_image", f"empty image {w}x{h}")
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    row = w * channels * depth
+    if step < row or data.size < step * h:
+        raise ImageConversionError(
+            "bad_image", f"image {w}x{h} {enc}: step {step} and data size {data.size} do not match "
+                         f"(need step >= {row} and size >= {step * h})")
+    rows = data[: step * h].reshape(h, step)[:, :row]
+    if depth == 2:
+        dt = np.dtype(">u2" if msg.is_bigendian else "<u2")
+        img16 = np.ascontiguousarray(rows).view(dt).reshape(h, w)
+        return np.round(img16.astype(np.float32) / 257.0).astype(np.uint8)
+    if channels == 1:
+        return rows if rows.flags.c_contiguous else np.ascontiguousarray(rows)
+    img = rows.reshape(h, w, channels).astype(np.float32)
+    if enc.startswith("rgb"):
+        r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    else:
+        b, g, r = img[..., 0], img[..., 1], img[..., 2]
+    gray = 0.299 * r + 0.587 * g + 0.114 * b
+    return np.clip(np.round(gray), 0, 255).astype(np.uint8)
+
+
+def gray_to_image_msg(img: np.ndarray, header: Any = None, encoding: str = "mono8"):
+    """``(H, W)`` uint8 (or ``(H, W, 3)`` for rgb8/bgr8) -> sensor_msgs/Image."""
+    from sensor_msgs.msg import Image
+
+    img = np.ascontiguousarray(img)
+    msg = Image()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = int(img.shape[0]), int(img.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = 0
+    msg.step = int(img.strides[0])
+    msg.data = array.array("B", img.tobytes())
+    return msg
+
+
+def camera_info_intrinsics(msg: Any, use_p: bool = True) -> tuple[np.ndarray, int, int]:
+    """sensor_msgs/CameraInfo -> ``(K (3, 3), width, height)``.
+
+    ``use_p``: take the rectified camera matrix ``P[:3, :3]`` (right for rectified images, as the
+    engine expects) when P is set; otherwise ``K``.
+    """
+    P = np.asarray(msg.p, dtype=np.float64).reshape(3, 4)
+    K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
+    M = P[:, :3] if use_p and P[0, 0] > 0 and P[1, 1] > 0 else K
+    if not (np.all(np.isfinite(M)) and M[0, 0] > 0 and M[1, 1] > 0):
+        raise ValueError("CameraInfo has no valid camera matrix (fx, fy must be > 0)")
+    if int(msg.width) <= 0 or int(msg.height) <= 0:
+        raise ValueError(f"CameraInfo has an invalid image size {msg.width}x{msg.height}")
+    return M.copy(), int(msg.width), int(msg.height)
+
+
+# ---------------------------------------------------------------------------------------- outputs
+def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """``R = Rz(yaw) Ry(pitch) Rx(roll)`` -> ``(x, y, z, w)``."""
+    cr, sr = math.cos(roll * 0.5), math.sin(roll * 0.5)
+    cp, sp = math.cos(pitch * 0.5), math.sin(pitch * 0.5)
+    cy, sy = math.cos(yaw * 0.5), math.sin(yaw * 0.5)
+    return (sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
+
+
+def rpy_from_quaternion(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:
+    """Inverse of :func:`quaternion_from_rpy` (for tests)."""
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def odometry_msg(step: Any, stamp: Any, frame_id: str, child_frame_id: str):
+    """engine ``OdometryStep`` -> nav_msgs/Odometry with the given header stamp (a Time)."""
+    from nav_msgs.msg import Odometry
+
+    msg = Odometry()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    p = msg.pose.pose.position
+    p.x, p.y, p.z = (float(v) for v in step.position)
+    q = msg.pose.pose.orientation
+    q.x, q.y, q.z, q.w = quaternion_from_rpy(*(float(v) for v in step.rpy))
+    msg.pose.covariance = np.ascontiguousarray(step.pose_covariance, dtype=np.float64).reshape(36)
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    lin.x, lin.y, lin.z = (float(v) for v in step.twist_linear)
+    ang.x, ang.y, ang.z = (float(v) for v in step.twist_angular)
+    msg.twist.covariance = np.ascontiguousarray(step.twist_covariance, dtype=np.float64).reshape(36)
+    return msg
+
+
+def pose_stamped_from_odometry(odom: Any):
+    from geometry_msgs.msg import PoseStamped
+
+    ps = PoseStamped()
+    ps.header = odom.header
+    ps.pose = odom.pose.pose
+    return ps
+
+
+def transform_from_odometry(odom: Any):
+    """nav_msgs/Odometry -> geometry_msgs/TransformStamped ``frame_id -> child_frame_id``."""
+    from geometry_msgs.msg import TransformStamped
+
+    t = TransformStamped()
+    t.header = odom.header
+    t.child_frame_id = odom.child_frame_id
+    p, q = odom.pose.pose.position, odom.pose.pose.orientation
+    t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = p.x, p.y, p.z
+    t.transform.rotation = q
+    return t
+
+
+def bev_to_mono8(bev: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """BEV float ``(S, S)`` in [0, 1] -> uint8; pixels outside ``mask`` are black."""
+    img = np.nan_to_num(np.asarray(bev, dtype=np.float32), nan=0.0)
+    if mask is not None:
+        img = img * (np.asarray(mask, dtype=np.float32) > 0.5)
+    return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+
+
+def heatmap_to_mono8(heat: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A correlation surface (any real values) -> uint8 ``size`` (rows, cols), normalised to its
+    max (nearest-neighbour resampling, so the peak stays one visible block)."""
+    h = np.nan_to_num(np.asarray(heat, dtype=np.float32), nan=0.0)
+    h = h - h.min()
+    peak = float(h.max())
+    if peak > 0:
+        h = h / peak
+    rows = (np.arange(size[0]) * h.shape[0] // size[0]).clip(0, h.shape[0] - 1)
+    cols = (np.arange(size[1]) * h.shape[1] // size[1]).clip(0, h.shape[1] - 1)
+    return np.round(h[np.ix_(rows, cols)] * 255.0).astype(np.uint8)
+
+
+__all__ = [
+    "IMAGE_ENCODINGS", "ImageConversionError", "stamp_to_sec", "stamp_to_ns", "sec_to_stamp",
+    "imu_to_arrays", "image_to_gray", "gray_to_image_msg", "camera_info_intrinsics",
+    "quaternion_from_rpy", "rpy_from_quaternion", "odometry_msg", "pose_stamped_from_odometry",
+    "transform_from_odometry", "bev_to_mono8", "heatmap_to_mono8",
+]

@@ -1,0 +1,238 @@
+"""tools/kitti_to_bag.py on the real KITTI sample: round trip through both storages, error cases."""
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from bevo_ros import bag, kitti
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tools"))
+import kitti_to_bag  # noqa: E402
+
+pytestmark = pytest.mark.kitti
+DRIVE = "2011_09_30_drive_0020"
+N_FRAMES = 51
+
+
+def convert(*args: str) -> int:
+    return kitti_to_bag.main([*map(str, args), "--quiet"])
+
+
+@pytest.fixture(scope="module")
+def bags(kitti_root, tmp_path_factory):
+    """The whole sample converted once per storage."""
+    out = tmp_path_factory.mktemp("bags")
+    paths = {}
+    for storage in bag.STORAGES:
+        paths[storage] = out / f"seq06_{storage}"
+        assert convert("--odometry", kitti_root / "odometry", "--sequence", "06", "-o", paths[storage],
+                       "--storage", storage) == 0
+    return paths
+
+
+@pytest.fixture()
+def layout(kitti_root, tmp_path):
+    """A writable copy of the sample layout with 5 images (symlinked PNGs, copied OXTS)."""
+    root = tmp_path / "kitti"
+    seq = root / "odometry" / "sequences" / "06"
+    (seq / "image_0").mkdir(parents=True)
+    src_seq = kitti_root / "odometry" / "sequences" / "06"
+    for i in range(5):
+        os.symlink(src_seq / "image_0" / f"{i:06d}.png", seq / "image_0" / f"{i:06d}.png")
+    shutil.copy(src_seq / "calib.txt", seq / "calib.txt")
+    (root / "odometry" / "poses").mkdir()
+    shutil.copy(kitti_root / "odometry" / "poses" / "06.txt", root / "odometry" / "poses" / "06.txt")
+    shutil.copytree(kitti_root / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts",
+                    root / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts")
+    shutil.copytree(kitti_root / "raw" / "2011_09_26", root / "raw" / "2011_09_26")
+    return root
+
+
+def test_help_mentions_the_10_hz_imu(capsys):
+    with pytest.raises(SystemExit) as exc:
+        kitti_to_bag.main(["--help"])
+    text = capsys.readouterr().out
+    assert exc.value.code == 0 and "10 Hz" in text and "--raw-calib" in text
+
+
+def test_roundtrip_is_exact(bags, kitti_root, capsys):
+    oxts = kitti.read_oxts(kitti_root / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts").slice(0, N_FRAMES)
+    poses = kitti.read_poses(kitti_root / "odometry" / "poses" / "06.txt")[:N_FRAMES]
+    T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(kitti_root / "raw" / "2011_09_26"))
+    gt_base = kitti.base_poses(poses, T_base_cam)
+    P0 = kitti.read_odometry_calib(kitti_root / "odometry" / "sequences" / "06" / "calib.txt")["P0"]
+    pngs = kitti.list_images(kitti_root / "odometry" / "sequences" / "06" / "image_0")
+    for storage, path in bags.items():
+        rec = bag.read_recording(path)
+        counts = {t: c for t, (_, c) in rec.topics.items()}
+        size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+        print(f"{storage}: {counts}, {size / 1e6:.2f} MB")
+        assert counts == {bag.IMU_TOPIC: N_FRAMES, bag.IMAGE_TOPIC: N_FRAMES, bag.CAMERA_INFO_TOPIC: N_FRAMES,
+                          bag.GT_ODOMETRY_TOPIC: N_FRAMES, bag.GT_IMU_TOPIC: N_FRAMES}
+        # IMU: exact values and exact nanosecond stamps.
+        assert np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns)
+        assert np.array_equal(rec.gyro, oxts.gyro) and np.array_equal(rec.accel, oxts.accel)
+        # Frames: no times.txt in the sample -> the OXTS stamps; images byte-exact.
+        assert np.array_equal(rec.frame_stamps_ns, oxts.stamps_ns)
+        assert rec.images.shape == (N_FRAMES, 370, 1226) and rec.image_encoding == "mono8"
+        for i in (0, 17, N_FRAMES - 1):
+            assert np.array_equal(rec.images[i], cv2.imread(str(pngs[i]), cv2.IMREAD_UNCHANGED))
+        assert all(np.array_equal(rec.images[i], cv2.imread(str(p), cv2.IMREAD_UNCHANGED)) for i, p in enumerate(pngs))
+        # Camera info: rectified, K/P from calib.txt.
+        ci = rec.camera_info
+        assert np.array_equal(ci.K, P0[:, :3]) and np.array_equal(ci.P, P0)
+        assert (ci.width, ci.height, ci.distortion_model) == (1226, 370, "plumb_bob") and not ci.D.any()
+        # Ground truth: base poses in odom, first = identity; OXTS attitude.
+        pose_err = np.abs(rec.gt_poses - gt_base).max()
+        att_err = max(np.abs(rec.gt_roll - oxts.roll).max(), np.abs(rec.gt_pitch - oxts.pitch).max())
+        print(f"{storage}: GT pose max abs err {pose_err:.2e}, attitude max err {att_err:.2e} rad")
+        # A quaternion is exactly orthonormal; KITTI's 7-digit rotations are not (~1e-7 off).
+        assert pose_err < 1e-6 and att_err < 1e-9
+        assert np.allclose(rec.gt_poses[0], np.eye(4), atol=1e-9)
+        assert (rec.gt_frame_id, rec.gt_child_frame_id, rec.imu_frame_id) == ("odom", "base_link", "imu_link")
+
+
+def test_sensor_imu_carries_no_orientation(bags):
+    msgs = [m for _, _, m in bag.iter_messages(bags["sqlite3"], [bag.IMU_TOPIC])]
+    assert len(msgs) == N_FRAMES
+    assert all(m.orientation_covariance[0] == -1.0 for m in msgs)
+    assert all(m.angular_velocity_covariance[0] > 0 and m.linear_acceleration_covariance[0] > 0 for m in msgs)
+    gt = [m for _, _, m in bag.iter_messages(bags["sqlite3"], [bag.GT_IMU_TOPIC])]
+    assert all(m.orientation_covariance[0] > 0 for m in gt)
+
+
+def test_both_storages_hold_identical_messages(bags):
+    a = list(bag.iter_raw_messages(bags["sqlite3"]))
+    b = list(bag.iter_raw_messages(bags["mcap"]))
+    print(f"{len(a)} messages per storage; first: {a[0].topic} at {a[0].stamp_ns}")
+    assert len(a) == len(b) == 5 * N_FRAMES
+    assert [(m.topic, m.stamp_ns, m.data) for m in a] == [(m.topic, m.stamp_ns, m.data) for m in b]
+    stamps = [m.stamp_ns for m in a]
+    assert stamps == sorted(stamps)
+    # At equal stamps the IMU sample precedes the image of the same frame.
+    order = [m.topic for m in a if m.topic in (bag.IMU_TOPIC, bag.IMAGE_TOPIC)]
+    assert order[:4] == [bag.IMU_TOPIC, bag.IMAGE_TOPIC, bag.IMU_TOPIC, bag.IMAGE_TOPIC]
+
+
+def test_first_and_count(kitti_root, tmp_path, capsys):
+    out = tmp_path / "short"
+    assert kitti_to_bag.main(["--odometry", str(kitti_root / "odometry"), "-o", str(out), "--first", "10",
+                              "--count", "5", "--storage", "mcap", "-q"]) == 0
+    print(capsys.readouterr().out)
+    rec = bag.read_recording(out)
+    oxts = kitti.read_oxts(kitti_root / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts")
+    assert len(rec.frame_stamps_ns) == 5 and np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns[10:15])
+    assert np.allclose(rec.gt_poses[0], np.eye(4), atol=1e-9)  # odom = base at the first written frame
+    assert rec.gt_poses[-1][0, 3] > 4.0  # ~12 m/s over 0.4 s, along base x
+
+
+def _expect_error(capsys, argv, *fragments) -> str:
+    rc = kitti_to_bag.main([*map(str, argv), "-q"])
+    err = capsys.readouterr().err
+    print(err.strip())
+    assert rc == 2, err
+    for f in fragments:
+        assert f in err, err
+    assert "Traceback" not in err
+    return err
+
+
+def _no_partial(out: Path) -> bool:
+    return not list(out.parent.glob(f".{out.name}.partial-*"))
+
+
+def test_missing_directory(tmp_path, capsys):
+    _expect_error(capsys, ["--odometry", tmp_path / "nope", "-o", tmp_path / "o"], "nope/sequences/06",
+                  "not found")
+    _expect_error(capsys, ["--raw", tmp_path / "nodrive", "-o", tmp_path / "o"], "nodrive", "not found")
+    assert not (tmp_path / "o").exists()
+
+
+def test_corrupt_oxts_line(layout, tmp_path, capsys):
+    bad = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts" / "data" / "0000000003.txt"
+    bad.write_text(bad.read_text().replace(" ", " x", 1))
+    out = tmp_path / "o"
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", out], "0000000003.txt:1", "cannot parse")
+    assert not out.exists() and _no_partial(out)
+
+
+def test_count_mismatches(layout, tmp_path, capsys):
+    seq = layout / "odometry" / "sequences" / "06"
+    (seq / "times.txt").write_text("0.0\n0.1\n0.2\n0.3\n")
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", tmp_path / "o"], "times.txt", "4 times but 5 images")
+    (seq / "times.txt").unlink()
+    (seq / "image_0" / "000002.png").unlink()
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", tmp_path / "o"], "000003.png",
+                  "expected frame 2")
+    assert not (tmp_path / "o").exists()
+
+
+def test_times_txt_is_used_when_present(layout, tmp_path):
+    seq = layout / "odometry" / "sequences" / "06"
+    (seq / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(5)))
+    out = tmp_path / "o"
+    assert convert("--odometry", layout / "odometry", "-o", out) == 0
+    rec = bag.read_recording(out)
+    dt = np.diff(rec.frame_stamps_ns)
+    assert np.all(dt == 100_000_000) and rec.frame_stamps_ns[0] == rec.imu_stamps_ns[0]
+
+
+def test_existing_output_and_failed_overwrite_keep_the_old_bag(layout, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert convert("--odometry", layout / "odometry", "-o", out, "--count", "2") == 0
+    before = sorted((p.name, p.stat().st_size) for p in out.iterdir())
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", out], "exists", "--overwrite")
+    # A failure half way (an unreadable image) with --overwrite: the old bag stays, nothing partial.
+    img = layout / "odometry" / "sequences" / "06" / "image_0" / "000003.png"
+    img.unlink()
+    img.write_bytes(b"not a png")
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", out, "--overwrite"], "000003.png",
+                  "cannot read image")
+    assert sorted((p.name, p.stat().st_size) for p in out.iterdir()) == before
+    assert _no_partial(out)
+    # Without an old bag the same failure leaves nothing behind.
+    out2 = tmp_path / "fresh"
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", out2], "000003.png")
+    assert not out2.exists() and _no_partial(out2)
+    # --overwrite replaces a good bag.
+    assert convert("--odometry", layout / "odometry", "-o", out, "--overwrite", "--count", "3") == 0
+    assert bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 3
+
+
+def test_raw_layout(layout, kitti_root, tmp_path, capsys):
+    """A raw ``<date>/<drive>_sync`` directory (built from the sample: image_00 + timestamps)."""
+    drive = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync"
+    cam = drive / "image_00"
+    (cam / "data").mkdir(parents=True)
+    for i in range(5):
+        os.symlink(layout / "odometry" / "sequences" / "06" / "image_0" / f"{i:06d}.png", cam / "data" / f"{i:010d}.png")
+    # Synced raw data pairs OXTS and images one to one: keep 5 OXTS records.
+    oxts = drive / "oxts"
+    lines = (oxts / "timestamps.txt").read_text().splitlines()
+    (oxts / "timestamps.txt").write_text("\n".join(lines[:5]) + "\n")
+    for p in sorted((oxts / "data").iterdir())[5:]:
+        p.unlink()
+    # Camera stamps 5 ms after the OXTS ones.
+    stamps = kitti.read_timestamps_ns(oxts / "timestamps.txt") + 5_000_000
+    (cam / "timestamps.txt").write_text("".join(
+        f"2011-09-30 12:08:{(s // 10**9) % 60:02d}.{s % 10**9:09d}\n" for s in stamps))
+    out = tmp_path / "raw_bag"
+    rc = kitti_to_bag.main(["--raw", str(drive), "-o", str(out), "--poses",
+                            str(layout / "odometry" / "poses" / "06.txt")])
+    print(capsys.readouterr().out)
+    assert rc == 0
+    rec = bag.read_recording(out)
+    assert np.array_equal(rec.frame_stamps_ns, stamps) and len(rec.imu_stamps_ns) == 5
+    assert rec.camera_info.K[0, 0] == pytest.approx(721.5377)  # P_rect_00 of the raw calibration
+    assert rec.gt_poses.shape == (5, 4, 4)
+    # One timestamp short: a clear count error.
+    (cam / "timestamps.txt").write_text("".join((cam / "timestamps.txt").read_text().splitlines(True)[:4]))
+    _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "o2"], "image_00/timestamps.txt",
+                  "4 timestamps but 5 images")

@@ -1,0 +1,206 @@
+#!/usr/bin/env python3
+"""Replay a rosbag2 (sqlite3 or mcap) into ROS 2 topics through rclpy.
+
+Messages are read with rosbags and published as their stored CDR bytes (no re-serialisation,
+so they arrive bit-exact), in bag-time order, paced by their bag times (scaled by --rate).
+/clock (rosgraph_msgs/Clock) carries the bag time for nodes run with use_sim_time:=true.
+Publishers are reliable with a deep queue (--qos-depth) so a subscriber that keeps up loses
+nothing. On a full ROS 2 install `ros2 bag play` reads the same bags.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+import time
+from pathlib import Path
+
+try:
+    import bevo_ros  # noqa: F401
+except ImportError:  # running from a source checkout without installing
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bevo_ros import bag
+
+EPILOG = """\
+examples:
+  play_bag.py seq06_bag                          # real time, with /clock
+  play_bag.py seq06_bag --rate 2 --start 1.5     # twice as fast, from 1.5 s into the bag
+  play_bag.py seq06_bag --topics /imu/data /camera/image_raw --wait-for-subscribers 10
+DDS discovery follows ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE (use LOCALHOST on shared
+networks). Ctrl-C stops cleanly (exit code 130).
+"""
+
+
+class UserError(Exception):
+    """Expected bad input: reported on stderr with exit code 2."""
+
+
+def message_class(msgtype: str):
+    """``'sensor_msgs/msg/Imu'`` -> the rclpy message class."""
+    parts = msgtype.split("/")
+    if len(parts) != 3:
+        raise UserError(f"cannot map message type {msgtype!r} to a Python class")
+    try:
+        return getattr(importlib.import_module(f"{parts[0]}.{parts[1]}"), parts[2])
+    except (ImportError, AttributeError):
+        raise UserError(f"message type {msgtype} is not installed for rclpy (package {parts[0]})") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="play_bag.py", description=__doc__, epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", help="rosbag2 directory (or its .db3 / .mcap file)")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0 = as fast as possible (default 1)")
+    p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds of the bag")
+    p.add_argument("--topics", nargs="+", metavar="TOPIC", help="play only these topics (default: all)")
+    p.add_argument("--qos-depth", type=int, default=1000, help="reliable keep-last depth of the publishers (default 1000)")
+    p.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SEC",
+                   help="before playing, wait up to SEC seconds until every topic has a subscriber")
+    p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    p.add_argument("--clock-topic", default="/clock")
+    p.add_argument("--clock-rate", type=float, default=100.0, metavar="HZ",
+                   help="/clock rate while waiting between messages (default 100; it is also published "
+                        "with every message's bag time)")
+    p.add_argument("--quiet", "-q", action="store_true", help="only print the final counts")
+    return p
+
+
+class Player:
+    """Publishers for a bag's topics plus /clock."""
+
+    def __init__(self, node, topics: dict[str, str], args):
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.qos_depth,
+                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+        self.node = node
+        self.publishers = {t: node.create_publisher(message_class(mt), t, qos) for t, mt in topics.items()}
+        self.clock_pub = None
+        if not args.no_clock:
+            from rosgraph_msgs.msg import Clock
+
+            self.Clock = Clock
+            self.clock_pub = node.create_publisher(Clock, args.clock_topic, QoSProfile(
+                depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE))
+        self.counts = {t: 0 for t in topics}
+        self.clock_count = 0
+
+    def publish_clock(self, stamp_ns: int) -> None:
+        if self.clock_pub is None:
+            return
+        msg = self.Clock()
+        msg.clock.sec, msg.clock.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        self.clock_pub.publish(msg)
+        self.clock_count += 1
+
+    def wait_for_subscribers(self, timeout: float) -> list[str]:
+        """Topics still without a subscriber after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while True:
+            missing = [t for t, p in self.publishers.items() if p.get_subscription_count() == 0]
+            if not missing or time.monotonic() >= deadline:
+                return missing
+            time.sleep(0.02)
+
+    def wait_for_acks(self, timeout: float = 5.0) -> None:
+        """Let reliable samples reach the subscribers before the publishers go away."""
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + timeout
+        for p in [*self.publishers.values(), *([self.clock_pub] if self.clock_pub else [])]:
+            left = max(0.0, deadline - time.monotonic())
+            p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+
+
+def play(player: Player, args, start_ns: int | None) -> None:
+    """Publish every message at its bag time (scaled by ``args.rate``), with /clock."""
+    wall0 = bag0 = None
+    clock_period = 1.0 / args.clock_rate if args.clock_rate > 0 else None
+    for msg in bag.iter_raw_messages(args.bag, args.topics, start_ns=start_ns):
+        if wall0 is None:
+            wall0, bag0 = time.monotonic(), msg.stamp_ns
+        if args.rate > 0:
+            target = wall0 + (msg.stamp_ns - bag0) * 1e-9 / args.rate
+            while True:
+                now = time.monotonic()
+                if now >= target:
+                    break
+                if clock_period is not None:
+                    # Interpolated bag time while waiting, like `ros2 bag play --clock`.
+                    player.publish_clock(bag0 + int((now - wall0) * args.rate * 1e9))
+                    time.sleep(min(clock_period, target - now))
+                else:
+                    time.sleep(target - now)
+        player.publish_clock(msg.stamp_ns)
+        player.publishers[msg.topic].publish(msg.data)
+        player.counts[msg.topic] += 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.rate < 0 or args.qos_depth < 1 or args.start < 0:
+        print("play_bag: error: --rate and --start must be >= 0, --qos-depth >= 1", file=sys.stderr)
+        return 2
+    try:
+        topics = {t: mt for t, (mt, _) in bag.bag_topics(args.bag).items()}
+        if args.topics:
+            missing = [t for t in args.topics if t not in topics]
+            if missing:
+                raise UserError(f"{args.bag}: no topic {', '.join(missing)} (the bag has: {', '.join(sorted(topics))})")
+            topics = {t: topics[t] for t in args.topics}
+        for mt in topics.values():
+            message_class(mt)
+        if not any(count for t, (_, count) in bag.bag_topics(args.bag).items() if t in topics):
+            raise UserError(f"{args.bag}: no messages to play")
+        first_ns, _ = bag.bag_time_range(args.bag)
+    except (UserError, FileNotFoundError, ValueError) as exc:
+        print(f"play_bag: error: {exc}", file=sys.stderr)
+        return 2
+    # --start counts from the bag's first message (as `ros2 bag play --start-offset`).
+    start_ns = first_ns + int(round(args.start * 1e9)) if args.start > 0 else None
+
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    # Python's own SIGINT handling (KeyboardInterrupt) is all we need: no spinning here.
+    rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("bag_player", start_parameter_services=False)
+    player = None
+    rc = 0
+    try:
+        player = Player(node, topics, args)
+        if args.wait_for_subscribers > 0:
+            missing = player.wait_for_subscribers(args.wait_for_subscribers)
+            if missing and not args.quiet:
+                print(f"play_bag: no subscriber after {args.wait_for_subscribers:g} s on: {', '.join(missing)}",
+                      file=sys.stderr)
+        if not args.quiet:
+            print(f"playing {args.bag} ({len(topics)} topics, rate {args.rate:g}, domain "
+                  f"{os.environ.get('ROS_DOMAIN_ID', '0')})", file=sys.stderr)
+        play(player, args, start_ns)
+        player.wait_for_acks()
+    except KeyboardInterrupt:
+        print("play_bag: interrupted", file=sys.stderr)
+        rc = 130
+    except (UserError, ValueError) as exc:
+        print(f"play_bag: error: {exc}", file=sys.stderr)
+        rc = 2
+    finally:
+        if player is not None:
+            for topic, count in sorted(player.counts.items()):
+                print(f"  {topic}: {count} msgs")
+            if player.clock_pub is not None:
+                print(f"  {args.clock_topic}: {player.clock_count} msgs")
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return rc
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # a Ctrl-C during start-up or shutdown
+        print("play_bag: interrupted", file=sys.stderr)
+        sys.exit(130)
