@@ -116,11 +116,14 @@ def read_timestamps_ns(path: PathLike) -> np.ndarray:
     """
     path = _require_file(path, "timestamps file")
     stamps = []
+    blank = None
     with open(path, "r", encoding="utf-8", errors="replace") as f:
         for lineno, line in enumerate(f, start=1):
             if not line.strip():
-                # A trailing newline at the end of the file is not a blank line; an empty one is.
-                raise ValueError(f"{path}:{lineno}: empty timestamp line (dropped frame?)")
+                blank = blank or lineno  # fine at the end of the file, an error before a stamp
+                continue
+            if blank is not None:
+                raise ValueError(f"{path}:{blank}: empty timestamp line (dropped frame?)")
             stamps.append(parse_timestamp_ns(line, path, lineno))
     if not stamps:
         raise ValueError(f"{path}: no timestamps")

@@ -433,19 +433,17 @@ class BevoNode(Node):
 
     def _engine_call(self, kind: str, t: float, call: Callable[[], list]) -> list | None:
         """Run an engine call. Returns its steps, or None when the input was dropped (counted)."""
-        from bevo_ros.core.odometry import OutOfOrderError
-
         try:
             steps = call()
-        except OutOfOrderError as exc:
-            try:
-                steps = self._out_of_order(kind, exc, t, call)
-            except ValueError as exc2:
-                self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc2}")
-                steps = None
         except ValueError as exc:
-            self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc}")
             steps = None
+            if hasattr(exc, "jump") and hasattr(exc, "last"):  # core.odometry.OutOfOrderError
+                try:
+                    steps = self._out_of_order(kind, exc, t, call)
+                except ValueError as exc2:
+                    self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc2}")
+            else:
+                self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc}")
         self._check_engine_counters()
         return steps
 

@@ -39,7 +39,7 @@ def stamp_to_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def sec_to_stamp(t: float, msg_type=None):
+def sec_to_stamp(t: float):
     """Float seconds -> ``builtin_interfaces/Time`` (nanosecond rounding; for tests and tools)."""
     from builtin_interfaces.msg import Time
 
@@ -47,7 +47,7 @@ def sec_to_stamp(t: float, msg_type=None):
     ns = int(round((t - whole) * 1e9))
     if ns >= 1_000_000_000:
         whole, ns = whole + 1, ns - 1_000_000_000
-    return (msg_type or Time)(sec=int(whole), nanosec=ns)
+    return Time(sec=int(whole), nanosec=ns)
 
 
 # ----------------------------------------------------------------------------------------- inputs

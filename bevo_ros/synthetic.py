@@ -96,19 +96,22 @@ def _periodic_noise(gen: torch.Generator, n: int, res: float, scale_min: float, 
 
     Amplitude spectrum ~ ``f^-beta`` between the wavelengths ``scale_min`` and ``scale_max`` metres.
     """
-    fy = torch.fft.fftfreq(n, d=res, dtype=torch.float32)[:, None]
-    fx = torch.fft.rfftfreq(n, d=res, dtype=torch.float32)[None, :]
+    fy = torch.fft.fftfreq(n, d=res, dtype=torch.float64)[:, None]
+    fx = torch.fft.rfftfreq(n, d=res, dtype=torch.float64)[None, :]
     lo, hi = 1.0 / scale_max, 1.0 / scale_min
-    f2 = fx * fx + fy * fy  # in-place below: peak memory ~3 spectra, not ~8
-    amp = torch.exp(f2 * (-1.0 / hi**2))
-    amp *= 1.0 - torch.exp(f2 * (-1.0 / lo**2))
-    amp *= f2.clamp_min_(0.25 * lo * lo).pow_(-0.5 * beta)
-    del f2
-    spec = torch.complex(torch.randn(amp.shape, generator=gen), torch.randn(amp.shape, generator=gen))
-    spec *= amp
-    del amp
-    out = torch.fft.irfft2(spec, s=(n, n))
-    del spec
+    spec = torch.randn((n, n // 2 + 1), dtype=torch.complex64, generator=gen)
+    spec_ri = torch.view_as_real(spec)
+    for r0 in range(0, n, 256):  # shaped in row blocks, in place: peak memory ~2 spectra
+        f2 = fx * fx + fy[r0:r0 + 256] ** 2
+        amp = torch.exp(-f2 / hi**2) * (1.0 - torch.exp(-f2 / lo**2)) * f2.clamp_min(0.25 * lo * lo) ** (-0.5 * beta)
+        spec_ri[r0:r0 + 256] *= amp.to(torch.float32)[..., None]
+    # irfft2 in blocks (columns, then rows): torch's irfft2 would need 3 spectra of scratch.
+    for c0 in range(0, spec.shape[1], 256):
+        spec[:, c0:c0 + 256] = torch.fft.ifft(spec[:, c0:c0 + 256], dim=0)
+    out = torch.empty((n, n), dtype=torch.float32)
+    for r0 in range(0, n, 256):
+        out[r0:r0 + 256] = torch.fft.irfft(spec[r0:r0 + 256], n=n, dim=1)
+    del spec, spec_ri
     out -= out.mean()
     out /= out.std().clamp_min(1e-12)
     return out
@@ -181,12 +184,14 @@ def _textures(seed: int) -> tuple[Tensor, Tensor]:
     fine = _periodic_noise(gen, n, _FINE_RES, 0.05, 5.0, 1.0).numpy()
     # Aggregate stones of 5-15 cm: the saturated high-pass of the same field (no second FFT).
     m = 8  # wrap margin > 3 sigma keeps the tile seamless
-    hp = fine - cv2.GaussianBlur(np.pad(fine, m, mode="wrap"), (0, 0), 2.0)[m:-m, m:-m]
-    stones = np.tanh(hp * (2.0 / max(float(hp.std()), 1e-12)))
-    del hp
+    hp = cv2.GaussianBlur(np.pad(fine, m, mode="wrap"), (0, 0), 2.0)[m:-m, m:-m]
+    np.subtract(fine, hp, out=hp)
+    hp *= 2.0 / max(float(hp.std()), 1e-12)
+    np.tanh(hp, out=hp)
+    hp *= 0.04
     fine *= 0.055
-    fine += 0.04 * stones
-    del stones
+    fine += hp
+    del hp
     _draw_features(fine, rng, _FINE_RES)
     coarse = _periodic_noise(gen, _COARSE_SIZE, _COARSE_RES, 2.0, 120.0, 1.0).numpy() * 0.05
     return _wrap_pad(fine), _wrap_pad(coarse)
@@ -259,8 +264,8 @@ class RoadGround:
         # Cell size: 0.25 m (bilinear error ~1 mm) unless the box is huge; cap the grid at ~4 M cells.
         cell = max(0.25, math.sqrt(float(np.prod(hi - lo)) / 4.0e6))
         nx, ny = int(math.ceil((hi[0] - lo[0]) / cell)) + 1, int(math.ceil((hi[1] - lo[1]) / cell)) + 1
-        best = np.full((ny, nx), np.inf)
-        idx = np.zeros((ny, nx), np.int64)
+        best = np.full((ny, nx), np.inf, np.float32)
+        idx = np.zeros((ny, nx), np.int32)
         chunk = 48
         for k0 in range(0, len(pts), chunk):
             p = pts[k0:k0 + chunk]
@@ -275,13 +280,18 @@ class RoadGround:
             better = dmin < best[win]
             best[win] = np.where(better, dmin, best[win])
             idx[win] = np.where(better, k + k0, idx[win])
-        gx, gy = np.meshgrid(lo[0] + np.arange(nx) * cell, lo[1] + np.arange(ny) * cell)
-        qx, qy = gx - pts[idx, 0], gy - pts[idx, 1]
-        tx, ty = tan[idx, 0], tan[idx, 1]
-        s_grid = s[idx] + qx * tx + qy * ty
-        d_grid = tx * qy - ty * qx
-        d_grid = np.where(best <= tube * tube, d_grid, 1.0e4)  # outside the tube: no markings
-        self._lane_grid = torch.from_numpy(np.stack([s_grid, d_grid]).astype(np.float32))[None]
+        grid = np.empty((2, ny, nx), np.float32)
+        grid[0] = 0.0
+        grid[1] = 1.0e4  # outside the tube: no markings
+        iy, ix = np.nonzero(best <= tube * tube)
+        del best
+        k = idx[iy, ix]
+        del idx
+        qx, qy = lo[0] + ix * cell - pts[k, 0], lo[1] + iy * cell - pts[k, 1]
+        tx, ty = tan[k, 0], tan[k, 1]
+        grid[0, iy, ix] = s[k] + qx * tx + qy * ty  # foot of the perpendicular on the tangent
+        grid[1, iy, ix] = tx * qy - ty * qx
+        self._lane_grid = torch.from_numpy(grid)[None]
         self._lane_origin = (float(lo[0]), float(lo[1]))
         self._lane_cell = cell
         self.path = pts
@@ -420,6 +430,16 @@ class _Sines:
         return (self.a / w * (np.cos(self.p) - np.cos(w * t[..., None] + self.p))).sum(-1)
 
 
+def _window(t: np.ndarray, lo: float, hi: float) -> slice | np.ndarray:
+    """Indices of ``t`` in ``[lo, hi]``: a slice for sorted 1-D ``t`` (cheap), else a mask."""
+    if t.ndim == 1 and (len(t) < 2 or t[-1] >= t[0]):
+        return slice(int(np.searchsorted(t, lo)), int(np.searchsorted(t, hi, side="right")))
+    return (t >= lo) & (t <= hi)
+
+
+_SUPPORT = 9.0  # events are evaluated within +-9 sigma (exp(-40) ~ 4e-18: exact in float64)
+
+
 @dataclass
 class _Gaussians:
     """``sum a_k exp(-(t - c_k)^2 / (2 s_k^2))`` with its exact integral (curves of the yaw rate)."""
@@ -429,17 +449,23 @@ class _Gaussians:
     s: np.ndarray
 
     def __call__(self, t: np.ndarray) -> np.ndarray:
-        out = np.zeros(np.shape(t))
+        t = np.asarray(t, dtype=np.float64)
+        out = np.zeros(t.shape)
         for a, c, s in zip(self.a, self.c, self.s):
-            out += a * np.exp(-0.5 * ((t - c) / s) ** 2)
+            w = _window(t, c - _SUPPORT * s, c + _SUPPORT * s)
+            out[w] += a * np.exp(-0.5 * ((t[w] - c) / s) ** 2)
         return out
 
     def integral(self, t: np.ndarray) -> np.ndarray:
         """Integral from 0 to t."""
-        out = np.zeros(np.shape(t))
+        t = np.asarray(t, dtype=np.float64)
+        out = np.zeros(t.shape)
         for a, c, s in zip(self.a, self.c, self.s):
             k = s * math.sqrt(2.0)
-            out += a * s * math.sqrt(math.pi / 2) * (_erf((t - c) / k) - math.erf(-c / k))
+            e = np.where(t < c, -1.0, 1.0)  # erf outside the support
+            w = _window(t, c - _SUPPORT * s, c + _SUPPORT * s)
+            e[w] = _erf((t[w] - c) / k)
+            out += a * s * math.sqrt(math.pi / 2) * (e - math.erf(-c / k))
         return out
 
 
@@ -454,10 +480,12 @@ class _Gabors:
     p: np.ndarray
 
     def __call__(self, t: np.ndarray) -> np.ndarray:
-        out = np.zeros(np.shape(t))
+        t = np.asarray(t, dtype=np.float64)
+        out = np.zeros(t.shape)
         for a, c, s, f, p in zip(self.a, self.c, self.s, self.f, self.p):
-            dt = t - c
-            out += a * np.exp(-0.5 * (dt / s) ** 2) * np.sin(2 * math.pi * f * dt + p)
+            w = _window(t, c - _SUPPORT * s, c + _SUPPORT * s)
+            dt = t[w] - c
+            out[w] += a * np.exp(-0.5 * (dt / s) ** 2) * np.sin(2 * math.pi * f * dt + p)
         return out
 
 
@@ -894,26 +922,6 @@ def _lane_path(xy_dense: np.ndarray, yaw_dense: np.ndarray, extend: float = 120.
 # Rendering
 # ---------------------------------------------------------------------------------------------
 
-_RAY_CACHE: dict = {}
-
-
-def _camera_rays(camera: CameraModel, supersample: int) -> Tensor:
-    """Unnormalised camera-frame rays through every (sub-)pixel, ``(H*ss, W*ss, 3)`` float64."""
-    K = camera.K.detach().cpu().double()
-    key = (tuple(K.flatten().tolist()), camera.width, camera.height_px, supersample)
-    rays = _RAY_CACHE.get(key)
-    if rays is None:
-        off = (torch.arange(supersample, dtype=torch.float64) + 0.5) / supersample - 0.5
-        u = (torch.arange(camera.width, dtype=torch.float64)[:, None] + off).reshape(-1)
-        v = (torch.arange(camera.height_px, dtype=torch.float64)[:, None] + off).reshape(-1)
-        vv, uu = torch.meshgrid(v, u, indexing="ij")
-        pix = torch.stack([uu, vv, torch.ones_like(uu)], -1)
-        rays = pix @ torch.linalg.inv(K).T
-        _RAY_CACHE.clear()  # one camera at a time: 45 MB each
-        _RAY_CACHE[key] = rays
-    return rays
-
-
 def camera_pose_world(camera: CameraModel, pose_xy_yaw, pitch_roll_road) -> tuple[Tensor, Tensor]:
     """World pose of the camera: ``R_world_cam (3, 3)``, ``t_world_cam (3,)`` float64.
 
@@ -938,9 +946,12 @@ def render_view(
 ) -> np.ndarray:
     """Render the camera image at a vehicle pose. -> ``(H, W)`` uint8.
 
+    Every (sub-)pixel ray is intersected with the road plane ``z = 0``; the pixel shows the ground
+    intensity there (bilinear texture), the sky for rays that do not hit the ground.
+
     Args:
         ground: the road surface.
-        camera: pinhole camera (integer pixel coordinates are pixel centres).
+        camera: pinhole camera; integer pixel coordinates are pixel centres (KITTI/OpenCV).
         pose_xy_yaw: world ``(x, y, yaw)`` of the base.
         pitch_roll_road: ``(pitch, roll)`` of the base relative to the road, radians.
         options: renderer settings; image noise is drawn from ``noise_seed``.
@@ -949,41 +960,47 @@ def render_view(
     ss = int(options.supersample)
     if ss < 1:
         raise ValueError(f"supersample must be >= 1, got {options.supersample}")
+    if not 0 < options.haze_start < options.haze_end:
+        raise ValueError(f"need 0 < haze_start < haze_end, got {options.haze_start}, {options.haze_end}")
     r_wc, t_wc = camera_pose_world(camera, pose_xy_yaw, pitch_roll_road)
-    rays = _camera_rays(camera, ss)
-    hh, ww = rays.shape[:2]
-    rw = rays.reshape(-1, 3) @ r_wc.T  # world ray directions
-    rz = rw[:, 2]
-    horiz = torch.sqrt(rw[:, 0] ** 2 + rw[:, 1] ** 2)
-    # Sky: brighter with elevation; no texture.
-    elev = torch.atan2(rz, horiz)
-    out = options.sky_horizon + (options.sky_zenith - options.sky_horizon) * (elev / 0.35).clamp(0.0, 1.0)
-    out = out.to(torch.float32)
-    down = rz < -1e-12
-    lam = torch.where(down, -t_wc[2] / torch.where(down, rz, -torch.ones_like(rz)), torch.full_like(rz, math.inf))
-    dist = lam * horiz  # horizontal range to the ground point
-    w_haze = ((dist - options.haze_start) / (options.haze_end - options.haze_start)).clamp(0.0, 1.0)
-    w_haze = w_haze * w_haze * (3 - 2 * w_haze)
-    out = torch.where(down, torch.full_like(out, options.haze_value), out)
-    near = down & (dist < options.haze_end)
-    idx = near.nonzero()[:, 0]
-    if idx.numel():
-        gx = t_wc[0] + lam[idx] * rw[idx, 0]
-        gy = t_wc[1] + lam[idx] * rw[idx, 1]
-        val = ground._intensity_torch(gx, gy)
-        wh = w_haze[idx].to(torch.float32)
-        out[idx] = val * (1 - wh) + options.haze_value * wh
-    img = out.reshape(camera.height_px, ss, camera.width, ss).mean(dim=(1, 3)) if ss > 1 else out.reshape(hh, ww)
+    # World direction of the ray through sub-pixel (u, v): M @ [u, v, 1].
+    m = r_wc @ torch.linalg.inv(camera.K.detach().cpu().double())
+    w, h = camera.width, camera.height_px
+    off = (torch.arange(ss, dtype=torch.float64) + 0.5) / ss - 0.5
+    us = (torch.arange(w, dtype=torch.float64)[:, None] + off).reshape(-1)  # (W*ss,)
+    vs = (torch.arange(h, dtype=torch.float64)[:, None] + off).reshape(-1)  # (H*ss,)
+    img = torch.empty(h, w, dtype=torch.float32)
+    rows = max(1, 96 // ss)  # image rows per block: bounded memory (~30 MB) whatever the size
+    for r0 in range(0, h, rows):
+        v = vs[r0 * ss:(r0 + rows) * ss]
+        # Ray directions (n_v, W*ss, 3): column-wise affine in u and v.
+        d = m[:, 0] * us[None, :, None] + (m[:, 1] * v[:, None, None] + m[:, 2])
+        rz = d[..., 2]
+        horiz = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        sin_elev = rz / torch.sqrt(horiz * horiz + rz * rz)  # sky: brighter with elevation, no texture
+        out = options.sky_horizon + (options.sky_zenith - options.sky_horizon) * (sin_elev / 0.35).clamp(0.0, 1.0)
+        down = rz < -1e-12
+        out = torch.where(down, options.haze_value, out)
+        lam = -t_wc[2] / torch.where(down, rz, -1.0)
+        dist = lam * horiz  # horizontal range of the ground point
+        near = down & (dist < options.haze_end)
+        if near.any():
+            lam, dn, dist = lam[near], d[near], dist[near]
+            val = ground._intensity_torch(t_wc[0] + lam * dn[:, 0], t_wc[1] + lam * dn[:, 1]).double()
+            # Far ground fades into haze (hides texture aliasing near the horizon).
+            wh = ((dist - options.haze_start) / (options.haze_end - options.haze_start)).clamp(0.0, 1.0)
+            wh = wh * wh * (3 - 2 * wh)
+            out[near] = val * (1 - wh) + options.haze_value * wh
+        n_r = out.shape[0] // ss
+        img[r0:r0 + n_r] = F.avg_pool2d(out.float()[None, None], ss)[0, 0] if ss > 1 else out.float()
     if options.vignette:
-        v = torch.arange(camera.height_px, dtype=torch.float32)[:, None] - (camera.height_px - 1) / 2
-        u = torch.arange(camera.width, dtype=torch.float32)[None, :] - (camera.width - 1) / 2
-        rr = (u * u + v * v) / ((camera.width / 2) ** 2 + (camera.height_px / 2) ** 2)
-        img = img * (1.0 - options.vignette * rr)
-    img = img.numpy() * 255.0
+        vv = torch.arange(h, dtype=torch.float32)[:, None] - (h - 1) / 2
+        uu = torch.arange(w, dtype=torch.float32)[None, :] - (w - 1) / 2
+        img *= 1.0 - options.vignette * (uu * uu + vv * vv) / ((w / 2) ** 2 + (h / 2) ** 2)
+    out_np = img.numpy() * 255.0
     if options.noise_std:
-        rng = np.random.default_rng(noise_seed)
-        img = img + rng.normal(0.0, options.noise_std, img.shape).astype(np.float32)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        out_np += np.random.default_rng(noise_seed).normal(0.0, options.noise_std, out_np.shape).astype(np.float32)
+    return np.clip(np.rint(out_np), 0, 255).astype(np.uint8)
 
 
 def render_frame(drive: SyntheticDrive, index: int, options: RenderOptions | None = None) -> np.ndarray:

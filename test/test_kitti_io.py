@@ -159,6 +159,9 @@ def test_corrupt_oxts_line_names_file_and_line(kitti_root, tmp_path):
     bad.write_text("1 2 3\n")
     with pytest.raises(ValueError, match=r"0000000003\.txt:1: expected 30 numbers, found 3"):
         kitti.read_oxts(d)
+    (d / "timestamps.txt").write_text("2011-09-30 12:08:26.5\n\n2011-09-30 12:08:26.6\n")
+    with pytest.raises(ValueError, match=r"timestamps\.txt:2: empty timestamp line"):
+        kitti.read_oxts(d)
     (d / "timestamps.txt").write_text("2011-09-30 12:08:26.5\nnot a time\n")
     with pytest.raises(ValueError, match=r"timestamps\.txt:2: cannot parse timestamp"):
         kitti.read_oxts(d)

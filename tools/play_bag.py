@@ -63,6 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clock-rate", type=float, default=100.0, metavar="HZ",
                    help="/clock rate while waiting between messages (default 100; it is also published "
                         "with every message's bag time)")
+    p.add_argument("--linger", type=float, default=0.5, metavar="SEC",
+                   help="at the end, wait up to SEC seconds for reliable deliveries to be acknowledged (default 0.5)")
     p.add_argument("--quiet", "-q", action="store_true", help="only print the final counts")
     return p
 
@@ -104,8 +106,12 @@ class Player:
                 return missing
             time.sleep(0.02)
 
-    def wait_for_acks(self, timeout: float = 5.0) -> None:
-        """Let reliable samples reach the subscribers before the publishers go away."""
+    def wait_for_acks(self, timeout: float) -> None:
+        """Let reliable samples reach the subscribers before the publishers go away.
+
+        Bounded: DDS acknowledges on its heartbeat period (seconds), usually long after the
+        samples themselves arrived.
+        """
         from rclpy.duration import Duration
 
         deadline = time.monotonic() + timeout
@@ -180,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"playing {args.bag} ({len(topics)} topics, rate {args.rate:g}, domain "
                   f"{os.environ.get('ROS_DOMAIN_ID', '0')})", file=sys.stderr)
         play(player, args, start_ns)
-        player.wait_for_acks()
+        player.wait_for_acks(args.linger)
     except KeyboardInterrupt:
         print("play_bag: interrupted", file=sys.stderr)
         rc = 130

@@ -322,15 +322,17 @@ class DUKF(nn.Module):
             mean = torch.zeros(batch_size, 2, dtype=p.dtype, device=p.device)
             if var is None:
                 var = 0.01
+        b = mean.shape[0]
         if var is None:
-            v = self.measurement_var.to(mean.dtype).expand(mean.shape[0], 2)
+            v = self.measurement_var.to(mean).expand(b, 2)
         else:
             v = torch.as_tensor(var, dtype=mean.dtype, device=mean.device)
-            if v.numel() == 1:
-                v = v.reshape(1, 1)
-            v = v.expand(mean.shape[0], 2) if v.dim() <= 2 and v.shape[-1] in (1, 2) else v
-            if v.shape != (mean.shape[0], 2) or not bool(torch.isfinite(v).all() & (v > 0).all()):
-                raise ValueError(f"var must be finite, > 0 and broadcast to ({mean.shape[0]}, 2), got {var!r}")
+            try:
+                v = torch.broadcast_to(v, (b, 2))
+            except RuntimeError:
+                v = None
+            if v is None or not bool((torch.isfinite(v) & (v > 0)).all()):
+                raise ValueError(f"var must be finite, > 0 and broadcast to ({b}, 2), got {var!r}")
         return DukfState(mean, torch.diag_embed(v))
 
     # ------------------------------------------------------------------------------ validation
@@ -472,7 +474,7 @@ class DUKF(nn.Module):
         d = x - mu
         p = torch.bmm(d.transpose(1, 2), wc * d)
         # O is a density: the noise of one message grows with its own dt (rate independence).
-        o = self.log_process_var.exp().to(mean.dtype) * eye
+        o = self.log_process_var.exp().to(mean) * eye
         p = p + o * dt.view(b, 1, 1)
         return DukfState(mu.squeeze(1), 0.5 * (p + p.transpose(1, 2)) + jit)
 
@@ -485,7 +487,7 @@ class DUKF(nn.Module):
         # identity is exact: M = mu, Sigma = P + Q, Sigma_XZ = P. These closed forms save a
         # Cholesky and ~15 kernel launches per step; the tests check them against filterpy's
         # full sigma-point update to 1e-9.
-        s = p + self.log_measurement_var.exp().to(mu.dtype) * eye
+        s = p + self.log_measurement_var.exp().to(mu) * eye
         # K = Sigma_XZ S^-1 with S and Sigma_XZ = P symmetric, so K^T = solve(S, P).
         kt = torch.linalg.solve(s, p)
         mean = mu + torch.bmm((z - mu).unsqueeze(1), kt).squeeze(1)  # mu + K (z - M), row vectors

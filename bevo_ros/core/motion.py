@@ -1,0 +1,107 @@
+"""BEV registration <-> planar vehicle motion (SE(2), metres) and its covariance.
+
+A registration (``bevo_ros.core.phase_correlation``) says ``curr(q) = prev(c + R(-angle)(q - c) -
+shift)`` in BEV pixels. In road-frame metres about the BEV centre ``C = spec.centre`` (the road
+frame x forward, y left; BEV row = -x, column = -y, so the same rotation matrix applies):
+
+* the vehicle yaws by ``dyaw``; a fixed ground point ``p`` (base frame at t-1) is seen at
+  ``R(-dyaw)(p - d)`` at t, with ``d = (dx, dy)`` the base translation in the base frame at t-1;
+* hence ``curr(u) = prev(R(dyaw) u + d)`` for base-frame points ``u``, i.e. in BEV-centred
+  coordinates ``v = u - C``: ``curr(v) = prev(R(dyaw) v + R(dyaw) C + d - C)``;
+* matching with ``prev(R(-angle) v - s)`` (``s`` the shift in metres, ``s = -mpp * shift``)
+  gives ``dyaw = -angle`` and ``d = C - R(dyaw) C + mpp * shift``.
+
+The image rotates about the BEV centre, several metres in front of the vehicle, so a pure yaw
+of the vehicle also shows up as a sideways shift of the BEV; ``C - R(dyaw) C`` accounts for it.
+"""
+from __future__ import annotations
+
+import torch
+
+from .geometry import BevSpec
+
+Tensor = torch.Tensor
+
+
+def _centre(spec: BevSpec, like: Tensor) -> Tensor:
+    return torch.tensor(spec.centre, dtype=like.dtype, device=like.device)
+
+
+def _rotate(angle: Tensor, v: Tensor) -> Tensor:
+    """``R(angle) v`` for ``angle (B,)`` and ``v (B, 2)`` or ``(2,)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    v = v.expand(angle.shape[0], 2)
+    return torch.stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]], dim=-1)
+
+
+def vehicle_motion_from_registration(angle: Tensor, shift: Tensor, spec: BevSpec) -> Tensor:
+    """Motion of the base from frame t-1 to t, in the base frame at t-1.
+
+    Args:
+        angle: ``(B,)`` BEV rotation, radians (see ``phase_correlation``).
+        shift: ``(B, 2)`` BEV shift ``(d_row, d_col)``, pixels.
+        spec: the BEV grid (centre, metres per pixel).
+
+    Returns:
+        ``(B, 3)`` ``(dx, dy, dyaw)``: metres, metres, radians (REP-103: x forward, y left, yaw CCW).
+    """
+    if angle.ndim != 1 or shift.shape != (angle.shape[0], 2):
+        raise ValueError(f"need angle (B,) and shift (B, 2), got {tuple(angle.shape)} and {tuple(shift.shape)}")
+    dyaw = -angle
+    C = _centre(spec, shift)
+    d = C - _rotate(dyaw, C) + spec.metres_per_pixel * shift
+    return torch.cat([d, dyaw[:, None]], dim=-1)
+
+
+def registration_from_vehicle_motion(motion: Tensor, spec: BevSpec) -> tuple[Tensor, Tensor]:
+    """Exact inverse of :func:`vehicle_motion_from_registration` (training targets).
+
+    Args:
+        motion: ``(B, 3)`` ``(dx, dy, dyaw)``.
+
+    Returns:
+        angle ``(B,)`` radians and shift ``(B, 2)`` pixels ``(d_row, d_col)``.
+    """
+    if motion.ndim != 2 or motion.shape[-1] != 3:
+        raise ValueError(f"motion must be (B, 3), got {tuple(motion.shape)}")
+    dyaw = motion[:, 2]
+    C = _centre(spec, motion)
+    shift = (motion[:, :2] - C + _rotate(dyaw, C)) / spec.metres_per_pixel
+    return -dyaw, shift
+
+
+def motion_jacobian(angle: Tensor, spec: BevSpec) -> Tensor:
+    """``d(dx, dy, dyaw) / d(angle, d_row, d_col)``. ``angle (B,)`` -> ``(B, 3, 3)``."""
+    B = angle.shape[0]
+    C = _centre(spec, angle)
+    dyaw = -angle
+    c, s = torch.cos(dyaw), torch.sin(dyaw)
+    # d/d(angle) of -R(dyaw) C = +dR/d(dyaw) C
+    dR_C = torch.stack([-s * C[0] - c * C[1], c * C[0] - s * C[1]], dim=-1)  # (B, 2)
+    J = torch.zeros(B, 3, 3, dtype=angle.dtype, device=angle.device)
+    J[:, :2, 0] = dR_C
+    J[:, 0, 1] = spec.metres_per_pixel
+    J[:, 1, 2] = spec.metres_per_pixel
+    J[:, 2, 0] = -1.0
+    return J
+
+
+def motion_covariance_from_registration(registration, spec: BevSpec) -> Tensor:
+    """First-order covariance ``(B, 3, 3)`` of ``(dx, dy, dyaw)`` from the spread of the
+    correlation distributions (``angle_std``, ``shift_cov``), angle and shift taken independent.
+    """
+    angle = registration.angle
+    B = angle.shape[0]
+    cov_in = torch.zeros(B, 3, 3, dtype=angle.dtype, device=angle.device)
+    cov_in[:, 0, 0] = registration.angle_std.to(angle.dtype) ** 2
+    cov_in[:, 1:, 1:] = registration.shift_cov.to(angle.dtype)
+    J = motion_jacobian(angle, spec)
+    return J @ cov_in @ J.transpose(-1, -2)
+
+
+__all__ = [
+    "vehicle_motion_from_registration",
+    "registration_from_vehicle_motion",
+    "motion_jacobian",
+    "motion_covariance_from_registration",
+]

@@ -1,0 +1,206 @@
+"""Separate the slowly varying road tilt (camber, slope) from the vehicle's own attitude.
+
+The DUKF's pitch/roll are relative to *gravity*: an accelerometer cannot tell vehicle roll from
+road camber. The BEV projection needs the attitude relative to the *road plane* (see
+``geometry.camera_pose_on_road``); on KITTI the gravity-referenced roll holds ~2.6 deg of camber,
+which projected into the BEV biases every yaw estimate by ~1 deg.
+
+Road tilt changes slowly (time constants of many seconds at road speed); the attitude the paper
+filters (suspension, bumps, braking) changes within a second or two. So the road tilt is
+estimated by a first-order low-pass of the filtered gravity-referenced attitude and the
+road-relative attitude is what remains:
+
+    alpha_t = 1 - exp(-dt_t / tau)            (per-sample dt: any IMU/camera rate, gaps included)
+    tilt_t  = tilt_{t-1} + alpha_t (x_t - tilt_{t-1}),   tilt_0 = x_0
+    road_relative_t = x_t - tilt_t
+
+Trade-offs of ``tau``: attitude changes lasting longer than ~tau (a long lean in a steady bend, a
+long hill's start) are progressively absorbed into the tilt, and a change of camber/slope shows
+up in the road-relative attitude until it decays with tau. Tens of seconds suit cars.
+
+``time_constant <= 0``, ``inf`` or ``None`` disables the low-pass: the attitude is returned
+unchanged, minus ``static_offset`` if one is given (a fixed, known mounting/road tilt). With the
+low-pass enabled a static offset would have no effect (the low-pass removes any constant), so
+the two are exclusive.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+
+Tensor = torch.Tensor
+
+__all__ = ["RoadTiltFilter", "road_relative_attitude", "lowpass_gain", "is_enabled"]
+
+
+def is_enabled(time_constant: float | None) -> bool:
+    """True if ``time_constant`` (s) switches the low-pass on: finite and > 0."""
+    return time_constant is not None and math.isfinite(float(time_constant)) and float(time_constant) > 0
+
+
+def lowpass_gain(dt: Tensor, time_constant: float | Tensor) -> Tensor:
+    """``alpha = 1 - exp(-dt / tau)`` (via expm1: exact for dt << tau). ``(...,)`` -> ``(...,)``."""
+    return -torch.expm1(-dt / time_constant)
+
+
+def _check_time_constant(time_constant: float | Tensor | None) -> float | Tensor | None:
+    if time_constant is None:
+        return None
+    if isinstance(time_constant, Tensor):
+        if time_constant.numel() != 1:
+            raise ValueError(f"time_constant must be a scalar, got shape {tuple(time_constant.shape)}")
+        value = float(time_constant.detach())
+    else:
+        value = float(time_constant)
+    if math.isnan(value):
+        raise ValueError("time_constant is NaN (use <= 0, inf or None to disable the road-tilt low-pass)")
+    return time_constant if is_enabled(value) else None
+
+
+def _offset_tensor(static_offset: Sequence[float] | Tensor | None, like: Tensor) -> Tensor | None:
+    if static_offset is None:
+        return None
+    off = torch.as_tensor(static_offset, dtype=like.dtype, device=like.device)
+    if off.shape != (2,) or not bool(torch.isfinite(off).all()):
+        raise ValueError(f"static_offset must be 2 finite values (pitch, roll) in rad, got {static_offset!r}")
+    return off
+
+
+def _check_attitude(x: Tensor, shape: tuple[int | str, ...], name: str) -> None:
+    """ValueError unless ``x`` is a finite tensor of ``shape`` (a str entry = any size, named)."""
+    if not isinstance(x, Tensor) or x.dim() != len(shape) or any(isinstance(s, int) and s != xs for s, xs in zip(shape, x.shape)):
+        got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        want = "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+        raise ValueError(f"{name} must be a tensor of shape {want}, got {got}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name} contains non-finite values (NaN or inf)")
+
+
+def road_relative_attitude(
+    pitch_roll: Tensor,
+    dt: Tensor,
+    time_constant: float | Tensor | None,
+    static_offset: Sequence[float] | Tensor | None = None,
+) -> Tensor:
+    """Road-relative attitude of whole sequences (batched, differentiable).
+
+    Args:
+        pitch_roll: ``(B, T, 2)`` gravity-referenced ``[pitch, roll]`` (e.g. DUKF means), rad.
+        dt: ``(B, T)`` seconds since the previous sample, >= 0; ``dt[:, 0]`` is unused (sample 0
+            initialises the low-pass, so the output starts at 0).
+        time_constant: tau in seconds; <= 0, inf or None disables the low-pass.
+        static_offset: ``(2,)`` constant tilt to subtract, only with the low-pass disabled.
+
+    Returns:
+        ``(B, T, 2)`` attitude relative to the road plane; identical to feeding the samples one by
+        one to :class:`RoadTiltFilter`.
+    """
+    _check_attitude(pitch_roll, ("B", "T", 2), "pitch_roll")
+    b, t = pitch_roll.shape[:2]
+    if not isinstance(dt, Tensor) or dt.shape != (b, t):
+        raise ValueError(f"dt must be a tensor of shape ({b}, {t}), got {getattr(dt, 'shape', type(dt).__name__)}")
+    tau = _check_time_constant(time_constant)
+    offset = _offset_tensor(static_offset, pitch_roll)
+    if tau is None:
+        return pitch_roll if offset is None else pitch_roll - offset
+    if offset is not None:
+        raise ValueError("static_offset has no effect with the low-pass enabled; disable one of them")
+    if t > 1:
+        _check_attitude(dt[:, 1:], (b, t - 1), "dt[:, 1:]")
+        if bool((dt[:, 1:] < 0).any()):
+            raise ValueError("dt must be >= 0 (time must not run backwards)")
+    alpha = lowpass_gain(dt, tau).unsqueeze(-1)  # (B, T, 1)
+    tilt = pitch_roll[:, 0]
+    tilts = [tilt]
+    for i in range(1, t):
+        tilt = tilt + alpha[:, i] * (pitch_roll[:, i] - tilt)
+        tilts.append(tilt)
+    return pitch_roll - torch.stack(tilts, dim=1)
+
+
+class RoadTiltFilter:
+    """Stateful road-tilt separation for streaming use (the node, the odometry engine).
+
+    Args:
+        time_constant: tau in seconds; <= 0, inf or None disables the low-pass (see module doc).
+        static_offset: ``(2,)`` constant [pitch, roll] tilt (rad) to subtract, only with the
+            low-pass disabled.
+
+    Differentiable: the stored tilt keeps the autograd graph of its inputs; call :meth:`detach`
+    between training windows (or use :func:`road_relative_attitude`).
+    """
+
+    def __init__(
+        self, time_constant: float | Tensor | None, static_offset: Sequence[float] | Tensor | None = None
+    ) -> None:
+        self.time_constant = _check_time_constant(time_constant)
+        if self.time_constant is not None and static_offset is not None:
+            raise ValueError("static_offset has no effect with the low-pass enabled; disable one of them")
+        self.static_offset = static_offset
+        if static_offset is not None:
+            _offset_tensor(static_offset, torch.zeros(2, dtype=torch.float64))  # validate early
+        self._tilt: Tensor | None = None
+        self._stamp: Tensor | None = None
+
+    @property
+    def enabled(self) -> bool:
+        """True if the low-pass is on."""
+        return self.time_constant is not None
+
+    @property
+    def tilt(self) -> Tensor | None:
+        """Current road tilt estimate ``(B, 2)`` [pitch, roll] (rad); None before the first sample."""
+        return self._tilt
+
+    def reset(self) -> None:
+        """Forget the tilt; the next sample re-initialises it."""
+        self._tilt = None
+        self._stamp = None
+
+    def detach(self) -> None:
+        """Cut the autograd graph held by the stored tilt."""
+        if self._tilt is not None:
+            self._tilt = self._tilt.detach()
+
+    def update(self, stamp_or_dt: float | Tensor, pitch_roll: Tensor, *, is_dt: bool = False) -> Tensor:
+        """Feed one sample.
+
+        Args:
+            stamp_or_dt: the sample's time stamp in seconds (default), or with ``is_dt=True`` the
+                seconds since the previous sample; a float or ``(B,)``. >= 0 steps only.
+            pitch_roll: ``(B, 2)`` gravity-referenced [pitch, roll], rad.
+
+        Returns:
+            ``(B, 2)`` attitude relative to the road plane.
+        """
+        _check_attitude(pitch_roll, ("B", 2), "pitch_roll")
+        b = pitch_roll.shape[0]
+        t = torch.as_tensor(stamp_or_dt, dtype=torch.float64, device=pitch_roll.device)
+        if t.dim() > 1 or t.numel() not in (1, b) or not bool(torch.isfinite(t).all()):
+            raise ValueError(f"stamp_or_dt must be a finite float or ({b},) tensor, got {stamp_or_dt!r}")
+        t = t.expand(b)
+        if not self.enabled:
+            offset = _offset_tensor(self.static_offset, pitch_roll)
+            self._tilt = torch.zeros_like(pitch_roll) if offset is None else offset.expand(b, 2)
+            return pitch_roll - self._tilt
+        if self._tilt is not None and self._tilt.shape != pitch_roll.shape:
+            raise ValueError(f"batch size changed from {self._tilt.shape[0]} to {b}; call reset() first")
+        if self._tilt is None:
+            self._tilt = pitch_roll
+            self._stamp = None if is_dt else t
+            return pitch_roll - self._tilt
+        if is_dt:
+            dt = t
+            self._stamp = None  # mixing: a later stamp has no reference
+        elif self._stamp is None:
+            raise ValueError("the filter was started with dt; keep passing dt (is_dt=True) or reset()")
+        else:
+            dt = t - self._stamp
+            self._stamp = t
+        if bool((dt < 0).any()):
+            raise ValueError(f"time ran backwards (dt = {dt.min().item():.6f} s); call reset() after a jump")
+        alpha = lowpass_gain(dt.to(pitch_roll.dtype), self.time_constant).unsqueeze(-1)
+        self._tilt = self._tilt + alpha * (pitch_roll - self._tilt)
+        return pitch_roll - self._tilt

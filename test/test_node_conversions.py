@@ -1,0 +1,137 @@
+"""Message <-> numpy helpers of bevo_node (no DDS: message classes only)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
+
+from bevo_ros import ros_conversions as rc  # noqa: E402
+
+
+def _image(arr: np.ndarray, encoding: str, pad: int = 0, bigendian: bool = False) -> Image:
+    arr = np.ascontiguousarray(arr)
+    h, w = arr.shape[:2]
+    row = arr.reshape(h, -1).view(np.uint8).reshape(h, -1)
+    if pad:
+        row = np.hstack([row, np.full((h, pad), 7, np.uint8)])
+    msg = Image(height=h, width=w, encoding=encoding, is_bigendian=int(bigendian), step=row.shape[1])
+    msg.data = row.tobytes()
+    return msg
+
+
+def test_stamps_round_trip_and_match_bag_formula():
+    from bevo_ros.bag import ns_to_seconds
+
+    t = Time(sec=1317388800, nanosec=123456789)
+    assert rc.stamp_to_ns(t) == 1317388800123456789
+    assert rc.stamp_to_sec(t) == float(ns_to_seconds([rc.stamp_to_ns(t)])[0])
+    back = rc.sec_to_stamp(1000.25)
+    assert (back.sec, back.nanosec) == (1000, 250000000)
+    edge = rc.sec_to_stamp(1.9999999999)
+    assert (edge.sec, edge.nanosec) == (2, 0)
+
+
+def test_mono8_with_row_padding_is_exact():
+    img = np.arange(6 * 5, dtype=np.uint8).reshape(6, 5)
+    out = rc.image_to_gray(_image(img, "mono8", pad=3))
+    assert out.dtype == np.uint8 and np.array_equal(out, img)
+    assert np.array_equal(rc.image_to_gray(_image(img, "8UC1")), img)
+
+
+@pytest.mark.parametrize("enc", ["rgb8", "bgr8", "rgba8", "bgra8"])
+def test_colour_is_converted_with_bt601(enc):
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (4, 7, 3), dtype=np.uint8)
+    expected = np.clip(np.round(0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]), 0, 255)
+    arr = rgb if enc.startswith("rgb") else rgb[..., ::-1]
+    if enc.endswith("a8"):
+        arr = np.concatenate([arr, np.full((4, 7, 1), 255, np.uint8)], -1)
+    out = rc.image_to_gray(_image(arr, enc))
+    assert np.abs(out.astype(int) - expected.astype(int)).max() <= 1
+
+
+@pytest.mark.parametrize("bigendian", [False, True])
+def test_mono16_is_scaled_to_8_bits(bigendian):
+    img = np.array([[0, 257, 65535], [1000, 30000, 65534]], dtype=">u2" if bigendian else "<u2")
+    out = rc.image_to_gray(_image(img, "mono16", bigendian=bigendian))
+    assert out.tolist() == [[0, 1, 255], [4, 117, 255]]
+
+
+def test_unsupported_encoding_and_bad_sizes_name_the_reason():
+    msg = _image(np.zeros((2, 2, 2), np.uint8), "yuv422")
+    with pytest.raises(rc.ImageConversionError, match="unsupported image encoding 'yuv422'") as err:
+        rc.image_to_gray(msg)
+    assert err.value.reason == "bad_encoding"
+    short = _image(np.zeros((4, 4), np.uint8), "mono8")
+    short.data = bytes(5)
+    with pytest.raises(rc.ImageConversionError, match="data size") as err:
+        rc.image_to_gray(short)
+    assert err.value.reason == "bad_image"
+
+
+def test_quaternion_matches_rz_ry_rx():
+    roll, pitch, yaw = 0.1, -0.2, 2.5
+    x, y, z, w = rc.quaternion_from_rpy(roll, pitch, yaw)
+    R_q = np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    assert np.allclose(R_q, Rz @ Ry @ Rx, atol=1e-12)
+    assert np.allclose(rc.rpy_from_quaternion(x, y, z, w), (roll, pitch, yaw), atol=1e-12)
+
+
+def test_odometry_message_carries_step_and_stamp():
+    from types import SimpleNamespace
+
+    cov = np.arange(36, dtype=float).reshape(6, 6)
+    step = SimpleNamespace(position=np.array([1.0, 2.0, 0.0]), rpy=np.array([0.01, -0.02, 0.3]),
+                           pose_covariance=cov, twist_linear=np.array([5.0, 0.1, 0.0]),
+                           twist_angular=np.array([0.0, 0.0, 0.2]), twist_covariance=cov.T)
+    stamp = Time(sec=12, nanosec=34)
+    msg = rc.odometry_msg(step, stamp, "odom", "base_link")
+    assert msg.header.stamp == stamp and msg.header.frame_id == "odom" and msg.child_frame_id == "base_link"
+    assert (msg.pose.pose.position.x, msg.pose.pose.position.y) == (1.0, 2.0)
+    q = msg.pose.pose.orientation
+    assert np.allclose(rc.rpy_from_quaternion(q.x, q.y, q.z, q.w), step.rpy)
+    assert np.array_equal(np.asarray(msg.pose.covariance).reshape(6, 6), cov)
+    assert np.array_equal(np.asarray(msg.twist.covariance).reshape(6, 6), cov.T)
+    assert msg.twist.twist.linear.x == 5.0 and msg.twist.twist.angular.z == 0.2
+    tf = rc.transform_from_odometry(msg)
+    assert tf.header.frame_id == "odom" and tf.child_frame_id == "base_link"
+    assert tf.transform.translation.y == 2.0 and tf.transform.rotation == msg.pose.pose.orientation
+
+
+def test_camera_info_prefers_p_for_rectified_images():
+    info = CameraInfo(width=640, height=480)
+    info.k = [500.0, 0.0, 320.0, 0.0, 501.0, 240.0, 0.0, 0.0, 1.0]
+    info.p = [400.0, 0.0, 300.0, 0.0, 0.0, 401.0, 200.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    K, w, h = rc.camera_info_intrinsics(info, use_p=True)
+    assert (w, h) == (640, 480) and K[0, 0] == 400.0 and K[1, 2] == 200.0
+    K, _, _ = rc.camera_info_intrinsics(info, use_p=False)
+    assert K[0, 0] == 500.0
+    with pytest.raises(ValueError, match="camera matrix"):
+        rc.camera_info_intrinsics(CameraInfo(width=640, height=480))
+
+
+def test_bev_and_heatmap_images():
+    bev = np.linspace(0, 1, 16, dtype=np.float32).reshape(4, 4)
+    mask = np.ones((4, 4), np.float32)
+    mask[0] = 0
+    img = rc.bev_to_mono8(bev, mask)
+    assert img.dtype == np.uint8 and img[0].max() == 0 and img[-1, -1] == 255
+    heat = rc.heatmap_to_mono8(np.array([[0.0, 1.0], [0.5, 0.0]]), (4, 6))
+    assert heat.shape == (4, 6) and heat.max() == 255
+    msg = rc.gray_to_image_msg(img)
+    assert (msg.width, msg.height, msg.step, msg.encoding) == (4, 4, 4, "mono8")
+    assert np.array_equal(rc.image_to_gray(msg), img)

@@ -1,0 +1,417 @@
+"""bevo_node in-process: an executor, synthetic messages in through DDS (localhost), odometry out.
+
+* The node's odometry on a synthetic drive equals the offline core's (``build_odometry`` fed the
+  same messages in stamp order) within 1e-6; stamps are copied from the image headers.
+* Every kind of bad input is dropped, counted and logged with its reason; the node survives.
+* ``~/reset``, TF (tf2_msgs fallback, or disabled with one clear message), CameraInfo, the
+  image wait, use_sim_time with a /clock jump, path/BEV/diagnostics outputs.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_node_support import (camera_overrides, drive_messages, image_msg, imu_msg, offline_steps,  # noqa: E402
+                               small_drive, spin_until)
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from nav_msgs.msg import Odometry, Path as PathMsg  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, Imu  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from bevo_ros.config import ConfigError  # noqa: E402
+from bevo_ros.ros_conversions import rpy_from_quaternion, stamp_to_sec  # noqa: E402
+
+DOMAIN_ID = 71
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture(scope="module")
+def context():
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    yield ctx
+    rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return small_drive()
+
+
+def base_overrides(drive, **extra):
+    ov = camera_overrides(drive.camera)
+    ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, log_throttle_period=0.0,
+              diagnostics_period=0.2)
+    ov.update(extra)
+    return ov
+
+
+class Harness:
+    """The node under test plus a tester node (publishers, subscribers) on one executor."""
+
+    def __init__(self, context, overrides: dict, topics_prefix: str = "", subscribe_outputs: bool = True,
+                 engine_factory=None, node_name: str = "bevo_node"):
+        from bevo_ros.node import BevoNode
+
+        self.ns = topics_prefix
+        ov = dict(overrides)
+        for key, default in (("imu_topic", "/imu/data"), ("image_topic", "/camera/image_raw"),
+                             ("camera_info_topic", "/camera/camera_info"), ("odometry_topic", "/bevo/odometry"),
+                             ("path_topic", "/bevo/path"), ("bev_image_topic", "/bevo/bev_image")):
+            ov.setdefault(key, topics_prefix + default)
+        self.topics = ov
+        params = [Parameter(k, value=v) for k, v in ov.items()]
+        self.node = BevoNode(context=context, parameter_overrides=params, engine_factory=engine_factory,
+                             node_name=node_name)
+        self.tester = rclpy.create_node("tester" + topics_prefix.replace("/", "_"), context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.tester)
+        t = self.tester
+        self.imu_pub = t.create_publisher(Imu, ov["imu_topic"], RELIABLE)
+        self.image_pub = t.create_publisher(Image, ov["image_topic"], RELIABLE)
+        self.info_pub = t.create_publisher(CameraInfo, ov["camera_info_topic"], RELIABLE)
+        self.odom, self.tf, self.diag, self.paths, self.bevs = [], [], [], [], []
+        t.create_subscription(Odometry, ov["odometry_topic"], self.odom.append, RELIABLE)
+        t.create_subscription(DiagnosticArray, "/diagnostics", self.diag.append, 10)
+        if subscribe_outputs:
+            try:
+                from tf2_msgs.msg import TFMessage
+
+                t.create_subscription(TFMessage, "/tf", self.tf.append, QoSProfile(depth=100))
+            except ImportError:
+                pass
+            t.create_subscription(PathMsg, ov["path_topic"], self.paths.append, 10)
+            t.create_subscription(Image, ov["bev_image_topic"], self.bevs.append, 10)
+        wanted = [self.imu_pub, self.image_pub] + ([self.info_pub] if ov.get("use_camera_info") else [])
+        assert spin_until(self.executor, lambda: all(p.get_subscription_count() > 0 for p in wanted), 10), \
+            "the node's subscriptions were not discovered"
+        assert spin_until(self.executor, lambda: self.node.odom_pub.get_subscription_count() > 0, 10)
+        if subscribe_outputs:
+            spin_until(self.executor, lambda: self.node.bev_pub.get_subscription_count() > 0, 10)
+
+    def send(self, kind: str, msg, timeout: float = 10.0) -> None:
+        """Publish one message and spin until the node has taken it (lock-step, deterministic)."""
+        key = {"imu": "imu_in", "image": "images_in", "info": "camera_info_in"}[kind]
+        before = self.node.counts[key]
+        {"imu": self.imu_pub, "image": self.image_pub, "info": self.info_pub}[kind].publish(msg)
+        assert spin_until(self.executor, lambda: self.node.counts[key] > before, timeout), f"{kind} not received"
+
+    def send_all(self, messages) -> None:
+        for kind, msg in messages:
+            self.send(kind, msg)
+
+    def settle(self, timeout: float = 5.0) -> None:
+        """Spin until every published odometry message has been received."""
+        spin_until(self.executor, lambda: len(self.odom) >= self.node.counts["odometry_out"], timeout)
+        self.executor.spin_once(timeout_sec=0.02)
+
+    def logged(self, reason: str) -> list[str]:
+        return [text for key, text in self.node.log_history if key == reason]
+
+    def close(self) -> None:
+        self.executor.remove_node(self.node)
+        self.executor.remove_node(self.tester)
+        self.node.destroy_node()
+        self.tester.destroy_node()
+        self.executor.shutdown()
+
+
+@pytest.fixture
+def harness_factory(context):
+    made = []
+
+    def make(overrides, **kw):
+        h = Harness(context, overrides, **kw)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+
+
+def _odom_arrays(msg: Odometry):
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    tw = msg.twist.twist
+    return (np.array([p.x, p.y, p.z]), np.array(rpy_from_quaternion(q.x, q.y, q.z, q.w)),
+            np.asarray(msg.pose.covariance).reshape(6, 6), np.array([tw.linear.x, tw.linear.y, tw.linear.z]),
+            np.array([tw.angular.x, tw.angular.y, tw.angular.z]), np.asarray(msg.twist.covariance).reshape(6, 6))
+
+
+# ------------------------------------------------------------------------------------ behaviour
+def test_odometry_equals_offline_core(harness_factory, drive):
+    ov = base_overrides(drive, path_max_length=5)
+    messages = drive_messages(drive)
+    expected = offline_steps(messages, ov)
+    assert len(expected) == drive.num_frames
+    h = harness_factory(ov)
+    h.send_all(messages)
+    h.settle()
+    assert len(h.odom) == len(expected), (len(h.odom), len(expected), dict(h.node.drops))
+    images = [m for k, m in messages if k == "image"]
+    for msg, step, img in zip(h.odom, expected, images):
+        assert msg.header.stamp == img.header.stamp  # copied, never now()
+        assert (msg.header.frame_id, msg.child_frame_id) == ("odom", "base_link")
+        pos, rpy, pcov, lin, ang, tcov = _odom_arrays(msg)
+        assert np.allclose(pos, step.position, atol=1e-6, rtol=0)
+        assert np.allclose(np.angle(np.exp(1j * (rpy - step.rpy))), 0, atol=1e-6)
+        assert np.allclose(pcov, step.pose_covariance, atol=1e-6, rtol=1e-9)
+        assert np.allclose(lin, step.twist_linear, atol=1e-6, rtol=0)
+        assert np.allclose(ang, step.twist_angular, atol=1e-6, rtol=0)
+        assert np.allclose(tcov, step.twist_covariance, atol=1e-6, rtol=1e-9)
+    assert sum(h.node.drops.values()) == 0, dict(h.node.drops)
+    # the drive moves: the odometry is not a constant
+    assert np.linalg.norm(_odom_arrays(h.odom[-1])[0]) > 1.0
+
+    # TF through the locally built tf2_msgs (or tf2_ros), one transform per odometry message
+    if h.node.tf_backend != "none":
+        assert spin_until(h.executor, lambda: len(h.tf) >= len(h.odom), 5)
+        tf = h.tf[-1].transforms[0]
+        assert (tf.header.frame_id, tf.child_frame_id) == ("odom", "base_link")
+        assert tf.header.stamp == h.odom[-1].header.stamp
+        assert tf.transform.translation.x == h.odom[-1].pose.pose.position.x
+    # bounded path, BEV image (subscribed), diagnostics with rates and latency
+    assert spin_until(h.executor, lambda: len(h.paths) >= len(h.odom), 5)
+    assert len(h.paths[-1].poses) == 5 and h.paths[-1].poses[-1].header.stamp == h.odom[-1].header.stamp
+    assert spin_until(h.executor, lambda: len(h.bevs) >= len(h.odom), 5)
+    bev = h.bevs[-1]
+    assert bev.encoding == "mono8" and bev.height == 100 and bev.width >= 100
+    assert bev.header.stamp == h.odom[-1].header.stamp
+    assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
+    values = {kv.key: kv.value for kv in h.diag[-1].status[0].values}
+    for key in ("imu_rate_hz", "image_rate_hz", "odometry_rate_hz", "latency_p50_ms", "latency_p99_ms",
+                "peak_quality_mean", "drops_total"):
+        assert key in values, values
+    assert values["drops_total"] == "0" and int(values["odometry_published"]) == len(expected)
+    assert 0.0 <= float(values["peak_quality_mean"]) <= 1.0
+    p50, p99, _ = h.node.latency_percentiles()
+    assert 0 < p50 <= p99 < 1.0
+
+
+def test_reset_service_restarts_at_identity(harness_factory, drive):
+    h = harness_factory(base_overrides(drive), subscribe_outputs=False)
+    messages = drive_messages(drive)
+    h.send_all(messages[: len(messages) // 2])
+    h.settle()
+    assert np.linalg.norm(_odom_arrays(h.odom[-1])[0]) > 0.5
+    client = h.tester.create_client(Trigger, "/bevo_node/reset")
+    assert client.wait_for_service(timeout_sec=5)
+    future = client.call_async(Trigger.Request())
+    assert spin_until(h.executor, future.done, 5)
+    assert future.result().success and "identity" in future.result().message
+    n = len(h.odom)
+    h.send_all(messages[len(messages) // 2:])
+    h.settle()
+    assert len(h.odom) > n
+    first_after = _odom_arrays(h.odom[n])
+    assert np.allclose(first_after[0], 0.0) and abs(first_after[1][2]) < 1e-12
+    assert h.node.events["reset"] >= 1
+
+
+def test_time_jump_back_resets_and_small_steps_back_are_dropped(harness_factory, drive):
+    h = harness_factory(base_overrides(drive), subscribe_outputs=False)
+    messages = drive_messages(drive)
+    h.send_all(messages[:60])
+    h.settle()
+    # duplicate and slightly out-of-order IMU and image stamps: dropped, counted, logged
+    last_imu = [m for k, m in messages[:60] if k == "imu"][-1]
+    h.send("imu", last_imu)
+    t_last = stamp_to_sec(last_imu.header.stamp)
+    h.send("imu", imu_msg(t_last - 0.005, [0, 0, 0], [0, 0, 9.8]))
+    last_img = [m for k, m in messages[:60] if k == "image"][-1]
+    h.send("image", last_img)
+    assert h.node.drops["imu_duplicate"] == 1 and h.node.drops["imu_out_of_order"] == 1
+    assert h.node.drops["image_duplicate"] == 1
+    assert "is not after the previous IMU stamp" in h.logged("imu_out_of_order")[0]
+    n = len(h.odom)
+    # the bag restarts: stamps jump back by the whole drive -> clean reset, odometry restarts
+    h.send_all(messages)
+    h.settle()
+    assert h.node.events["time_jump_reset"] == 1
+    assert len(h.odom) - n == drive.num_frames
+    assert np.allclose(_odom_arrays(h.odom[n])[0], 0.0)
+    assert h.odom[n].header.stamp == messages[1][1].header.stamp
+
+
+def test_bad_inputs_are_dropped_counted_and_logged(harness_factory, drive):
+    h = harness_factory(base_overrides(drive, **{"filter.max_imu_gap": 0.3}), subscribe_outputs=False)
+    messages = drive_messages(drive)
+    imgs = [(k, m) for k, m in messages if k == "image"]
+    # frames before any IMU: queued, then dropped when the first IMU comes after them
+    h.send("image", imgs[0][1])
+    h.send_all(messages[2:40])
+    assert h.node.drops["no_imu"] == 1
+    assert "frames before any IMU" in h.logged("no_imu")[0]
+    t = stamp_to_sec(messages[39][1].header.stamp)
+    w, hh = drive.camera.width, drive.camera.height_px
+    frame = drive.images[5]
+
+    def img_at(dt, arr=frame, enc="mono8"):
+        return image_msg(t + dt, arr, enc)
+
+    # unsupported encoding
+    bad = img_at(0.001)
+    bad.encoding = "yuv422"
+    h.send("image", bad)
+    assert h.node.drops["bad_encoding"] == 1
+    assert "unsupported image encoding 'yuv422'" in h.logged("bad_encoding")[0]
+    # wrong size
+    h.send("image", img_at(0.002, np.zeros((hh // 2, w // 2), np.uint8)))
+    assert h.node.drops["bad_image_size"] == 1
+    assert f"does not match" in h.logged("bad_image_size")[0] or "calibration" in h.logged("bad_image_size")[0]
+    # NaN / inf IMU, zero acceleration
+    h.send("imu", imu_msg(t + 0.003, [float("nan"), 0, 0], [0, 0, 9.8]))
+    h.send("imu", imu_msg(t + 0.004, [0, 0, 0], [0, float("inf"), 9.8]))
+    assert h.node.drops["imu_nonfinite"] == 2 and "NaN/inf" in h.logged("imu_nonfinite")[0]
+    h.send("imu", imu_msg(t + 0.005, [0, 0, 0], [0, 0, 0]))
+    assert h.node.drops["imu_invalid"] == 1
+    # converted encodings are used, not dropped: rgb8 / bgr8 / mono16
+    n_out = h.node.counts["odometry_out"]
+    rgb = np.repeat(frame[..., None], 3, axis=2)
+    h.send("image", img_at(0.010, rgb, "rgb8"))
+    h.send("imu", imu_msg(t + 0.011, drive.gyro[40], drive.accel[40]))
+    h.send("image", img_at(0.020, rgb, "bgr8"))
+    h.send("imu", imu_msg(t + 0.021, drive.gyro[40], drive.accel[40]))
+    h.send("image", img_at(0.030, frame.astype(np.uint16) * 257, "mono16"))
+    h.send("imu", imu_msg(t + 0.031, drive.gyro[40], drive.accel[40]))
+    assert h.node.counts["odometry_out"] == n_out + 3
+    # an IMU gap longer than filter.max_imu_gap: the filter re-initialises, and says so
+    h.send("imu", imu_msg(t + 1.0, drive.gyro[41], drive.accel[41]))
+    assert h.node.events["imu_gap"] == 1
+    assert "re-initialised" in h.logged("imu_gap")[0]
+    # an unexpected exception inside a callback: logged and counted, the node carries on
+    real_add_imu = h.node.engine.add_imu
+
+    def boom(*a, **k):
+        raise RuntimeError("injected failure")
+
+    h.node.engine.add_imu = boom
+    h.send("imu", imu_msg(t + 1.01, drive.gyro[42], drive.accel[42]))
+    h.node.engine.add_imu = real_add_imu
+    assert h.node.drops["callback_error"] == 1
+    assert "RuntimeError" in h.logged("callback_error")[0] and "injected failure" in h.logged("callback_error")[0]
+    h.send("image", img_at(1.02))
+    h.send("imu", imu_msg(t + 1.03, drive.gyro[43], drive.accel[43]))
+    assert h.node.counts["odometry_out"] == n_out + 4
+    # everything is visible in /diagnostics
+    h.diag.clear()
+    assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
+    values = {kv.key: kv.value for kv in h.diag[-1].status[0].values}
+    for reason, n in (("no_imu", 1), ("bad_encoding", 1), ("bad_image_size", 1), ("imu_nonfinite", 2),
+                      ("imu_invalid", 1), ("callback_error", 1)):
+        assert values.get(f"drop.{reason}") == str(n), values
+    assert values.get("event.imu_gap") == "1"
+
+
+def test_image_wait_processes_an_image_whose_imu_never_comes(harness_factory, drive):
+    h = harness_factory(base_overrides(drive, image_wait=0.1), subscribe_outputs=False)
+    messages = drive_messages(drive)
+    h.send_all(messages[:25])  # ends with IMU 19 -> frame 2 (IMU 20) not yet sent
+    n = h.node.counts["odometry_out"]
+    img = next(m for k, m in messages[25:] if k == "image")
+    h.send("image", img)
+    assert h.node.engine.pending_images == 1 and h.node.counts["odometry_out"] == n
+    assert spin_until(h.executor, lambda: h.node.counts["odometry_out"] == n + 1, 3)
+    assert h.node.events["flushed_images"] == 1 and h.node.engine.pending_images == 0
+    h.settle()
+    assert h.odom[-1].header.stamp == img.header.stamp
+
+
+def test_camera_info_supplies_the_intrinsics(harness_factory, drive):
+    ov = base_overrides(drive, use_camera_info=True)
+    for k in ("camera.fx", "camera.fy", "camera.cx", "camera.cy"):
+        ov[k] = 0.0
+    ov["camera.width"] = ov["camera.height_px"] = 0
+    h = harness_factory(ov, subscribe_outputs=False)
+    assert h.node.engine is None
+    messages = drive_messages(drive)
+    h.send("image", messages[1][1])
+    assert h.node.drops["no_camera_info"] == 1 and "waiting for CameraInfo" in h.logged("no_camera_info")[0]
+    K = drive.camera.K.double().numpy()
+    info = CameraInfo(width=drive.camera.width, height=drive.camera.height_px)
+    info.k = K.reshape(-1).tolist()
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    info.p = P.reshape(-1).tolist()
+    h.send("info", info)
+    assert h.node.engine is not None and h.node.camera.width == drive.camera.width
+    h.send_all(messages[2:60])
+    h.settle()
+    assert len(h.odom) >= 4
+
+
+def test_use_sim_time_clock_jump_resets(harness_factory, drive):
+    from rosgraph_msgs.msg import Clock
+
+    h = harness_factory(base_overrides(drive, use_sim_time=True), subscribe_outputs=False)
+    clock_pub = h.tester.create_publisher(Clock, "/clock", 10)
+    assert spin_until(h.executor, lambda: clock_pub.get_subscription_count() > 0, 5)
+    messages = drive_messages(drive)
+
+    def clock(stamp):
+        clock_pub.publish(Clock(clock=stamp))
+        target = stamp_to_sec(stamp)
+        assert spin_until(h.executor, lambda: abs(h.node.get_clock().now().nanoseconds * 1e-9 - target) < 1e-6, 5)
+
+    clock(messages[-1][1].header.stamp)
+    h.send_all(messages[:40])
+    h.settle()
+    assert h.odom and h.odom[-1].header.stamp == [m for k, m in messages[:40] if k == "image"][-1].header.stamp
+    clock(messages[0][1].header.stamp)  # the bag restarted: /clock jumps back by 2 s
+    assert h.node.events["clock_jump_reset"] == 1
+    n = len(h.odom)
+    h.send_all(messages[:40])
+    h.settle()
+    assert h.node.events["time_jump_reset"] == 0  # the clock handler already reset
+    assert np.allclose(_odom_arrays(h.odom[n])[0], 0.0)
+
+
+def test_tf_disabled_is_said_once(harness_factory, drive, monkeypatch):
+    monkeypatch.setitem(sys.modules, "tf2_ros", None)
+    monkeypatch.setitem(sys.modules, "tf2_msgs", None)
+    monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)
+    h = harness_factory(base_overrides(drive), subscribe_outputs=False)
+    assert h.node.tf_backend == "none"
+    h.send_all(drive_messages(drive)[:40])
+    h.settle()
+    assert len(h.odom) >= 3
+    said = [text for key, text in h.node.log_history if key == "tf_unavailable"]
+    assert len(said) == 1 and "TF is DISABLED" in said[0] and "tf2_msgs" in said[0]
+
+
+def test_missing_or_malformed_learned_file_refuses_to_start(context, drive, tmp_path):
+    from bevo_ros.node import BevoNode
+
+    missing = tmp_path / "nope.yaml"
+    ov = base_overrides(drive, learned_params_file=str(missing))
+    with pytest.raises(ConfigError, match=f"not found: {missing}"):
+        BevoNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in ov.items()])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: bevo_learned_params/1\nprocess_noise_density: {pitch: -1, roll: 1}\n")
+    ov["learned_params_file"] = str(bad)
+    with pytest.raises(ConfigError, match=r"bad.yaml.*process_noise_density.pitch"):
+        BevoNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in ov.items()])
+
+
+def test_bad_parameters_refuse_to_start_with_the_name(context, drive):
+    from bevo_ros.node import BevoNode
+
+    for key, value, pattern in (("input_qos", "fast", "input_qos"), ("camera.width", "wide", "camera.width"),
+                                ("image_wait", -1.0, "image_wait")):
+        ov = base_overrides(drive, **{key: value})
+        with pytest.raises(ConfigError, match=pattern):
+            BevoNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in ov.items()])

@@ -1,0 +1,189 @@
+"""Shared helpers of the bevo_node tests (no tests here): a small synthetic drive as ROS
+messages, the offline reference run, parameters files and a node subprocess.
+
+Every DDS participant of these tests stays on localhost (ROS_AUTOMATIC_DISCOVERY_RANGE) and
+each test module uses its own ROS_DOMAIN_ID.
+"""
+from __future__ import annotations
+
+import functools
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+KITTI_PARAMS = REPO / "params" / "kitti.yaml"
+VENV_BIN = Path(sys.executable).parent
+
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+# ------------------------------------------------------------------------------ synthetic data
+def small_camera():
+    """The KITTI-like camera at a quarter of the resolution (fast to render and project)."""
+    from bevo_ros.core.geometry import CameraModel
+    from bevo_ros.synthetic import kitti_like_camera
+
+    cam = kitti_like_camera()
+    K = cam.K.clone()
+    K[:2] *= 0.25  # 1241x376 -> ~310x94; a 320x96 image keeps the principal point inside
+    return CameraModel(K, 320, 96, cam.T_base_cam.clone(), cam.height)
+
+
+@functools.lru_cache(maxsize=8)
+def small_drive(seed: int = 3, duration: float = 2.0, frame_rate: float = 10.0, imu_rate: float = 100.0):
+    from bevo_ros.synthetic import make_drive
+
+    return make_drive(seed=seed, duration=duration, frame_rate=frame_rate, imu_rate=imu_rate,
+                      camera=small_camera(), render=True)
+
+
+def camera_overrides(camera) -> dict[str, Any]:
+    K = camera.K.detach().cpu().double().numpy()
+    return {
+        "camera.fx": float(K[0, 0]), "camera.fy": float(K[1, 1]),
+        "camera.cx": float(K[0, 2]), "camera.cy": float(K[1, 2]),
+        "camera.width": int(camera.width), "camera.height_px": int(camera.height_px),
+        "camera.height": float(camera.height),
+        "camera.base_T_camera": [float(v) for v in camera.T_base_cam.detach().cpu().double().reshape(-1)],
+    }
+
+
+def imu_msg(t: float, gyro, accel, frame_id: str = "imu_link"):
+    from sensor_msgs.msg import Imu
+
+    from bevo_ros.ros_conversions import sec_to_stamp
+
+    m = Imu()
+    m.header.stamp = sec_to_stamp(t)
+    m.header.frame_id = frame_id
+    m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z = (float(v) for v in gyro)
+    m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = (float(v) for v in accel)
+    return m
+
+
+def image_msg(t: float, img: np.ndarray, encoding: str = "mono8", frame_id: str = "camera"):
+    from bevo_ros.ros_conversions import gray_to_image_msg, sec_to_stamp
+
+    m = gray_to_image_msg(img, encoding=encoding)
+    m.header.stamp = sec_to_stamp(t)
+    m.header.frame_id = frame_id
+    return m
+
+
+def drive_messages(drive, start: int = 0, stop: int | None = None) -> list[tuple[str, Any]]:
+    """``[("imu"|"image", msg)]`` in stamp order (an image after the IMU sample of its stamp)."""
+    frames = {int(i): k for k, i in enumerate(drive.frame_imu_index)}
+    out = []
+    for i in range(start, len(drive.imu_stamps) if stop is None else stop):
+        t = float(drive.imu_stamps[i])
+        out.append(("imu", imu_msg(t, drive.gyro[i], drive.accel[i])))
+        if i in frames:
+            out.append(("image", image_msg(t, drive.images[frames[i]])))
+    return out
+
+
+def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) -> list:
+    """The offline core (``build_odometry``) fed the same messages in order, plus a final flush."""
+    from bevo_ros.config import BevoConfig, build_odometry, camera_model, load_learned_params, resolve_path
+    from bevo_ros.ros_conversions import image_to_gray, imu_to_arrays, stamp_to_sec
+
+    config = BevoConfig.from_flat(overrides)
+    learned = load_learned_params(resolve_path(config.learned_params_file))
+    odo = build_odometry(config, learned, camera_model(config.camera))
+    steps = []
+    for kind, msg in messages:
+        t = stamp_to_sec(msg.header.stamp)
+        if kind == "imu":
+            steps += odo.add_imu(t, *imu_to_arrays(msg))
+        else:
+            steps += odo.add_image(t, image_to_gray(msg))
+    return steps
+
+
+# ------------------------------------------------------------------------------ parameters files
+def write_params(path: Path, overrides: dict[str, Any], base: Path = KITTI_PARAMS) -> Path:
+    """``base`` (a bevo_node parameters file) with ``overrides`` applied, written to ``path``."""
+    doc = yaml.safe_load(base.read_text())
+    params = doc["bevo_node"]["ros__parameters"]
+    for k, v in overrides.items():
+        params[k] = v
+    if not Path(str(params.get("learned_params_file", ""))).is_absolute():
+        params["learned_params_file"] = str(REPO / params["learned_params_file"])
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+# ------------------------------------------------------------------------------ node subprocess
+class NodeProcess:
+    """``bevo_node --ros-args --params-file ...`` as a subprocess; output collected in ``lines``."""
+
+    def __init__(self, params_file: Path, domain_id: str, extra_args: list[str] | None = None,
+                 executable: Path | None = None, env: dict[str, str] | None = None):
+        exe = executable or (VENV_BIN / "bevo_node")
+        self.cmd = [str(exe), "--ros-args", "--params-file", str(params_file)] + list(extra_args or [])
+        self.env = dict(os.environ, ROS_DOMAIN_ID=domain_id, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                        PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0", **(env or {}))
+        self.lines: list[str] = []
+        self.proc: subprocess.Popen | None = None
+        self._reader: threading.Thread | None = None
+
+    def start(self) -> "NodeProcess":
+        self.proc = subprocess.Popen(self.cmd, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, cwd=REPO)
+
+        def read() -> None:
+            for line in self.proc.stdout:
+                self.lines.append(line)
+
+        self._reader = threading.Thread(target=read, daemon=True)
+        self._reader.start()
+        return self
+
+    @property
+    def output(self) -> str:
+        return "".join(self.lines)
+
+    def wait_for(self, text: str, timeout: float = 60.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if text in self.output:
+                return True
+            if self.proc.poll() is not None:
+                time.sleep(0.2)
+                return text in self.output
+            time.sleep(0.05)
+        return False
+
+    def wait_exit(self, timeout: float = 60.0) -> int:
+        rc = self.proc.wait(timeout=timeout)
+        if self._reader:
+            self._reader.join(timeout=5)
+        return rc
+
+    def interrupt(self, timeout: float = 20.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        return self.wait_exit(timeout)
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+def spin_until(executor, cond: Callable[[], bool], timeout: float = 10.0, step: float = 0.005) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        executor.spin_once(timeout_sec=step)
+    return cond()

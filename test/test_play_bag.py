@@ -1,0 +1,156 @@
+"""tools/play_bag.py: a small bag played into an rclpy subscriber (localhost DDS, domain 61)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bevo_ros import bag
+
+pytestmark = pytest.mark.ros
+
+REPO = Path(__file__).resolve().parents[1]
+PLAY = REPO / "tools" / "play_bag.py"
+DOMAIN_ID = 61
+N_IMU, N_FRAMES = 40, 8
+T0 = 1_700_000_000_000_000_000  # ns
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    return env
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory) -> Path:
+    """2 s of data: 20 Hz IMU, 4 Hz images (16x24 mono8), camera info and odometry."""
+    path = tmp_path_factory.mktemp("play") / "small"
+    rng = np.random.default_rng(0)
+    with bag.BagWriter(path, storage="mcap") as w:
+        for i in range(N_IMU):
+            w.write_imu(T0 + i * 50_000_000, [0.01 * i, -0.02, 0.03], [0.1, 0.2, 9.81 + 0.001 * i])
+        for k in range(N_FRAMES):
+            t = T0 + k * 250_000_000 + 1_000_000
+            w.write_image(t, rng.integers(0, 256, size=(16, 24), dtype=np.uint8))
+            w.write_camera_info(t, np.array([[20.0, 0, 12], [0, 20, 8], [0, 0, 1]]), 24, 16)
+            T = np.eye(4)
+            T[0, 3] = 0.5 * k
+            w.write_odometry(t, T)
+    return path
+
+
+class Listener:
+    """An rclpy node in its own context (domain 61) counting what arrives."""
+
+    def __init__(self):
+        import rclpy
+        from nav_msgs.msg import Odometry
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import CameraInfo, Image, Imu
+
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=DOMAIN_ID)
+        self.node = rclpy.create_node("play_bag_test_listener", context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.msgs: dict[str, list] = {}
+        for topic, cls in ((bag.IMU_TOPIC, Imu), (bag.IMAGE_TOPIC, Image), (bag.CAMERA_INFO_TOPIC, CameraInfo),
+                           (bag.GT_ODOMETRY_TOPIC, Odometry), ("/clock", Clock)):
+            self.msgs[topic] = []
+            self.node.create_subscription(cls, topic, lambda m, t=topic: self.msgs[t].append(m), qos)
+
+    def spin_while(self, proc: subprocess.Popen, extra: float = 1.0, until=None) -> None:
+        """Spin until ``proc`` exits (then ``extra`` seconds more) or ``until()`` is true."""
+        end = None
+        while True:
+            self.executor.spin_once(timeout_sec=0.02)
+            if until is not None and until():
+                return
+            if proc.poll() is not None:
+                end = end or time.monotonic() + extra
+                if time.monotonic() > end:
+                    return
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()
+
+
+@pytest.fixture()
+def listener():
+    lis = Listener()
+    yield lis
+    lis.close()
+
+
+def _play(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(PLAY), *args], env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_play_delivers_every_message_and_clock(small_bag, listener):
+    t0 = time.monotonic()
+    proc = _play(str(small_bag), "--rate", "4", "--wait-for-subscribers", "20")
+    listener.spin_while(proc, extra=1.0)
+    out, err = proc.communicate(timeout=30)
+    got = {t: len(v) for t, v in listener.msgs.items()}
+    print(f"play_bag rc {proc.returncode} in {time.monotonic() - t0:.1f} s; received {got}\n{out}{err}")
+    assert proc.returncode == 0, err
+    assert got[bag.IMU_TOPIC] == N_IMU and got[bag.IMAGE_TOPIC] == N_FRAMES
+    assert got[bag.CAMERA_INFO_TOPIC] == N_FRAMES and got[bag.GT_ODOMETRY_TOPIC] == N_FRAMES
+    assert f"{bag.IMU_TOPIC}: {N_IMU} msgs" in out
+    # Contents arrive bit-exact, in order.
+    imu = listener.msgs[bag.IMU_TOPIC]
+    assert [m.angular_velocity.x for m in imu] == [0.01 * i for i in range(N_IMU)]
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in imu]
+    assert stamps == [T0 + i * 50_000_000 for i in range(N_IMU)]
+    expected_images = [m.data.tobytes() for _, _, m in bag.iter_messages(small_bag, [bag.IMAGE_TOPIC])]
+    assert [bytes(m.data) for m in listener.msgs[bag.IMAGE_TOPIC]] == expected_images
+    # /clock carries bag time and ends at the last message.
+    clock = [m.clock.sec * 10**9 + m.clock.nanosec for m in listener.msgs["/clock"]]
+    last = max(stamps[-1], T0 + (N_FRAMES - 1) * 250_000_000 + 1_000_000)
+    print(f"/clock: {len(clock)} msgs, {(clock[0] - T0) * 1e-9:.3f} .. {(clock[-1] - T0) * 1e-9:.3f} s")
+    assert len(clock) >= N_IMU and clock[-1] == last and clock == sorted(clock)
+
+
+def test_topics_and_start(small_bag, listener):
+    proc = _play(str(small_bag), "--rate", "0", "--topics", bag.IMU_TOPIC, "--start", "1.0",
+                 "--wait-for-subscribers", "20", "--no-clock", "-q")
+    listener.spin_while(proc, extra=1.0)
+    out, err = proc.communicate(timeout=30)
+    got = {t: len(v) for t, v in listener.msgs.items()}
+    print(f"--topics /imu/data --start 1.0: received {got}")
+    assert proc.returncode == 0, err
+    assert got[bag.IMU_TOPIC] == N_IMU // 2 and got[bag.IMAGE_TOPIC] == 0 and got["/clock"] == 0
+    first = listener.msgs[bag.IMU_TOPIC][0].header.stamp
+    assert first.sec * 10**9 + first.nanosec == T0 + 1_000_000_000
+
+
+def test_ctrl_c_exits_130_without_traceback(small_bag, listener):
+    proc = _play(str(small_bag), "--rate", "0.05", "--wait-for-subscribers", "20")
+    listener.spin_while(proc, until=lambda: len(listener.msgs[bag.IMU_TOPIC]) >= 1)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    print(f"rc {proc.returncode}; stderr: {err.strip()}")
+    assert proc.returncode == 130
+    assert "interrupted" in err and "Traceback" not in err
+
+
+def test_bad_input_exit_2(tmp_path):
+    proc = subprocess.run([sys.executable, str(PLAY), str(tmp_path / "missing")], env=_env(),
+                          capture_output=True, text=True, timeout=60)
+    print(proc.stderr.strip())
+    assert proc.returncode == 2 and "missing: bag not found" in proc.stderr and "Traceback" not in proc.stderr
