@@ -177,10 +177,17 @@ class BevoNode(Node):
 
     def __init__(self, params_file: str | None = None, engine_factory: Callable | None = None,
                  node_name: str = NODE_NAME, **node_kwargs) -> None:
+        super().__init__(node_name, **node_kwargs)
+        try:
+            self._setup(params_file, engine_factory, node_name)
+        except BaseException:
+            self.destroy_node()  # a node that refuses to start leaves nothing behind in the context
+            raise
+
+    def _setup(self, params_file: str | None, engine_factory: Callable | None, node_name: str) -> None:
         from rcl_interfaces.msg import ParameterDescriptor
         from rclpy.clock import Clock, ClockType
 
-        super().__init__(node_name, **node_kwargs)
         self._t_start = time.monotonic()
         self._engine_factory = engine_factory or build_odometry
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -254,10 +261,11 @@ class BevoNode(Node):
         self.tf_backend, self._send_tf = ("disabled", None)
         if s.publish_tf:
             self.tf_backend, self._send_tf = _tf_backend(self)
-            if self._send_tf is None:
-                self.get_logger().warning(
-                    "publish_tf is true but neither tf2_ros nor tf2_msgs is available: TF is DISABLED "
-                    "(odometry is still published; run `make setup` to build tf2_msgs, or install ROS 2 tf2_ros)")
+            if self._send_tf is None:  # said once, here
+                self._log("tf_unavailable",
+                          "publish_tf is true but neither tf2_ros nor tf2_msgs is available: TF is DISABLED "
+                          "(odometry is still published; run `make setup` to build tf2_msgs, or install "
+                          "ROS 2 tf2_ros)")
         self.create_subscription(Imu, s.imu_topic, self._guard("imu", self._on_imu), in_qos(s.imu_qos_depth))
         self.create_subscription(Image, s.image_topic, self._guard("image", self._on_image),
                                  in_qos(s.image_qos_depth))
@@ -308,7 +316,14 @@ class BevoNode(Node):
         if state[1]:
             text += f" ({state[1]} more since the last report)"
         state[0], state[1] = now, 0
-        getattr(self.get_logger(), level)(text)
+        logger = self.get_logger()
+        # rclpy pins one severity per call site: one call per level.
+        if level == "error":
+            logger.error(text)
+        elif level == "info":
+            logger.info(text)
+        else:
+            logger.warning(text)
 
     def _drop(self, reason: str, text: str, level: str = "warning") -> None:
         self.drops[reason] += 1
@@ -359,13 +374,14 @@ class BevoNode(Node):
         if jump > self.settings.max_time_jump_back:
             self.events["time_jump_reset"] += 1
             self.get_logger().warning(
-                f"{kind} stamp {stamp:.6f} is {jump:.3f} s before the previous one (> max_time_jump_back="
+                f"{'IMU' if kind == 'imu' else kind} stamp {stamp:.6f} is {jump:.3f} s before the previous one (> max_time_jump_back="
                 f"{self.settings.max_time_jump_back} s): time jumped back (bag restarted?) - resetting the "
                 "odometry; the trajectory restarts at identity")
             self._reset()
             return retry()
         reason = f"{kind}_duplicate" if jump == 0 else f"{kind}_out_of_order"
-        self._drop(reason, f"{kind} stamp {stamp:.9f} is not after the previous {kind} stamp "
+        label = "IMU" if kind == "imu" else kind
+        self._drop(reason, f"{label} stamp {stamp:.9f} is not after the previous {label} stamp "
                            f"{float(getattr(exc, 'last', stamp)):.9f} ({jump * 1e3:.3f} ms back)")
         return None
 
@@ -441,9 +457,9 @@ class BevoNode(Node):
                 try:
                     steps = self._out_of_order(kind, exc, t, call)
                 except ValueError as exc2:
-                    self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc2}")
+                    self._drop(f"{kind}_invalid", f"{'IMU' if kind == 'imu' else kind} at {t:.6f}: {exc2}")
             else:
-                self._drop(f"{kind}_invalid", f"{kind} at {t:.6f}: {exc}")
+                self._drop(f"{kind}_invalid", f"{'IMU' if kind == 'imu' else kind} at {t:.6f}: {exc}")
         self._check_engine_counters()
         return steps
 

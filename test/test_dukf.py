@@ -3,8 +3,6 @@ from __future__ import annotations
 
 import math
 import time
-from datetime import datetime
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -230,7 +228,10 @@ def test_euler_beats_additive_when_turning_with_roll():
         with torch.no_grad():
             mean, _, _ = dukf.filter(d["gyro"], d["accel"], d["dt"])
         errs[model] = rmse_deg(mean[0, 200:], d["truth"][0, 200:])
-    print(f"\n[turning, roll 4 deg, 0.3 rad/s] RMSE pitch/roll deg: euler {errs['euler'].round(3)}, additive {errs['additive'].round(3)}")
+    print(
+        f"\n[turning, roll 4 deg, 0.3 rad/s] RMSE pitch/roll deg: "
+        f"euler {errs['euler'].round(3)}, additive {errs['additive'].round(3)}"
+    )
     assert errs["euler"][0] * 1.5 < errs["additive"][0]
     assert errs["euler"][1] <= errs["additive"][1] * 1.05
 
@@ -241,8 +242,9 @@ def test_process_noise_is_rate_independent():
     got = []
     for rate in (10, 100, 400):
         state = dukf.init_state(pitch_roll=torch.zeros(1, 2, dtype=torch.float64), var=1e-4)
+        gyro, dt = torch.zeros(1, 3, dtype=torch.float64), torch.full((1,), 1.0 / rate, dtype=torch.float64)
         for _ in range(rate):
-            state = dukf.predict(state, torch.zeros(1, 3, dtype=torch.float64), torch.full((1,), 1.0 / rate, dtype=torch.float64))
+            state = dukf.predict(state, gyro, dt)
         got.append(torch.diagonal(state.cov[0]).tolist())
     print(f"\n[rate independence] variance after 1 s at 10/100/400 Hz: {got}")
     want = (1e-4 + dukf.process_var.detach()).tolist()  # the float32-stored O, exactly
@@ -250,7 +252,7 @@ def test_process_noise_is_rate_independent():
 
 
 def test_float32_long_run_stays_spd_and_batch_consistent():
-    d = synthetic_imu(seconds=10.0, rate=400.0, seed=7)
+    d = synthetic_imu(seconds=5.0, rate=400.0, seed=7)
     # Tiny process noise, huge measurement noise, tiny initial variance: the covariance sits near
     # 1e-7 rad^2 and the gain near 0, where float32 rounding could make P indefinite.
     dukf = DUKF(process_var=(1e-10, 1e-10), measurement_var=(1.0, 1.0))
@@ -261,7 +263,10 @@ def test_float32_long_run_stays_spd_and_batch_consistent():
         mean, cov, _ = dukf.filter(gyro, accel, dt, dukf.init_state(accel=accel[:, 0], var=1e-9))
         single, _, _ = dukf.filter(gyro[1:], accel[1:], dt[1:], dukf.init_state(accel=accel[1:, 0], var=1e-9))
     eig = torch.linalg.eigvalsh(cov.double())
-    print(f"\n[float32, 4000 steps at 400 Hz] min cov eigenvalue {eig.min().item():.3e}, finite: {bool(torch.isfinite(mean).all())}")
+    print(
+        f"\n[float32, {gyro.shape[1]} steps at 400 Hz] min cov eigenvalue {eig.min().item():.3e}, "
+        f"finite: {bool(torch.isfinite(mean).all())}"
+    )
     assert torch.isfinite(mean).all() and torch.isfinite(cov).all()
     assert eig.min() > 0
     assert (cov - cov.transpose(-1, -2)).abs().max() == 0
@@ -293,8 +298,11 @@ def _time_steps():
                     dukf.step(state, gyro, accel, dt)
                 best = min(best, (time.perf_counter() - t0) / 200)
         results[name] = best * 1e6
-    print(f"\n[timing] one DUKF.step, B=1 float32 CPU, 1 thread: {results['no_grad']:.0f} us (no_grad), {results['grad']:.0f} us (autograd)")
-    assert results["no_grad"] < 1000  # a loose bound: catches a Python loop over sigma points gone wild
+    print(
+        f"\n[timing] one DUKF.step, B=1 float32 CPU, 1 thread: "
+        f"{results['no_grad']:.0f} us (no_grad), {results['grad']:.0f} us (autograd)"
+    )
+    assert results["no_grad"] < 2000  # loose (shared CI CPUs): catches gross regressions only
 
 
 # ------------------------------------------------------------------------------- bad input
@@ -361,23 +369,16 @@ def test_init_state_and_noise_properties():
 # --------------------------------------------------------------------------------- real OXTS
 
 
-def _read_oxts(oxts_dir: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Stamps (N,) in s and the (N, 30) OXTS rows. Swap for bevo_ros.kitti.read_oxts when it lands."""
-    rows = np.stack([np.loadtxt(f) for f in sorted((oxts_dir / "data").glob("*.txt"))])
-    stamps = []
-    for line in (oxts_dir / "timestamps.txt").read_text().split("\n"):
-        if line.strip():
-            day, frac = line.strip().split(".")
-            base = datetime.strptime(day, "%Y-%m-%d %H:%M:%S").timestamp()
-            stamps.append(base + float("0." + frac))  # nanosecond digits: keep them as a float
-    return np.asarray(stamps), rows
-
-
+@pytest.mark.kitti
 def test_kitti_oxts_filtered_closer_than_raw(kitti_root):
+    from bevo_ros.kitti import read_oxts  # here: a reader problem must not hide the other DUKF tests
+
     oxts = kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0020_sync" / "oxts"
-    stamps, rows = _read_oxts(oxts)
-    assert rows.shape == (1104, 30) and stamps.shape == (1104,)
-    dt = np.diff(stamps, prepend=stamps[0])
+    record = read_oxts(oxts)
+    rows, stamps_ns = record.data, record.stamps_ns
+    assert rows.shape == (1104, 30) and stamps_ns.shape == (1104,)
+    dt = np.diff(stamps_ns, prepend=stamps_ns[0]) * 1e-9  # exact integer differences, then seconds
+    stamps = record.stamps
     gyro = torch.from_numpy(rows[None, :, 17:20])  # wx, wy, wz
     accel = torch.from_numpy(rows[None, :, 11:14])  # ax, ay, az
     ref = rows[:, [4, 3]]  # the unit's own (pitch, roll)

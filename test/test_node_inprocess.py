@@ -48,7 +48,7 @@ def context():
 
 @pytest.fixture(scope="module")
 def drive():
-    return small_drive()
+    return small_drive(duration=1.2)  # 13 frames, 121 IMU samples
 
 
 def base_overrides(drive, **extra):
@@ -191,6 +191,7 @@ def test_odometry_equals_offline_core(harness_factory, drive):
     bev = h.bevs[-1]
     assert bev.encoding == "mono8" and bev.height == 100 and bev.width >= 100
     assert bev.header.stamp == h.odom[-1].header.stamp
+    h.diag.clear()
     assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
     values = {kv.key: kv.value for kv in h.diag[-1].status[0].values}
     for key in ("imu_rate_hz", "image_rate_hz", "odometry_rate_hz", "latency_p50_ms", "latency_p99_ms",
@@ -199,7 +200,7 @@ def test_odometry_equals_offline_core(harness_factory, drive):
     assert values["drops_total"] == "0" and int(values["odometry_published"]) == len(expected)
     assert 0.0 <= float(values["peak_quality_mean"]) <= 1.0
     p50, p99, _ = h.node.latency_percentiles()
-    assert 0 < p50 <= p99 < 1.0
+    assert 0 < p50 <= p99 < 60.0  # figures: tools/bench_node.py
 
 
 def test_reset_service_restarts_at_identity(harness_factory, drive):
@@ -223,16 +224,16 @@ def test_reset_service_restarts_at_identity(harness_factory, drive):
 
 
 def test_time_jump_back_resets_and_small_steps_back_are_dropped(harness_factory, drive):
-    h = harness_factory(base_overrides(drive), subscribe_outputs=False)
+    h = harness_factory(base_overrides(drive, max_time_jump_back=0.5), subscribe_outputs=False)
     messages = drive_messages(drive)
-    h.send_all(messages[:60])
+    h.send_all(messages[:90])  # ~0.8 s of the drive
     h.settle()
     # duplicate and slightly out-of-order IMU and image stamps: dropped, counted, logged
-    last_imu = [m for k, m in messages[:60] if k == "imu"][-1]
+    last_imu = [m for k, m in messages[:90] if k == "imu"][-1]
     h.send("imu", last_imu)
     t_last = stamp_to_sec(last_imu.header.stamp)
     h.send("imu", imu_msg(t_last - 0.005, [0, 0, 0], [0, 0, 9.8]))
-    last_img = [m for k, m in messages[:60] if k == "image"][-1]
+    last_img = [m for k, m in messages[:90] if k == "image"][-1]
     h.send("image", last_img)
     assert h.node.drops["imu_duplicate"] == 1 and h.node.drops["imu_out_of_order"] == 1
     assert h.node.drops["image_duplicate"] == 1
@@ -357,7 +358,7 @@ def test_camera_info_supplies_the_intrinsics(harness_factory, drive):
 def test_use_sim_time_clock_jump_resets(harness_factory, drive):
     from rosgraph_msgs.msg import Clock
 
-    h = harness_factory(base_overrides(drive, use_sim_time=True), subscribe_outputs=False)
+    h = harness_factory(base_overrides(drive, use_sim_time=True, max_time_jump_back=0.5), subscribe_outputs=False)
     clock_pub = h.tester.create_publisher(Clock, "/clock", 10)
     assert spin_until(h.executor, lambda: clock_pub.get_subscription_count() > 0, 5)
     messages = drive_messages(drive)
@@ -371,7 +372,7 @@ def test_use_sim_time_clock_jump_resets(harness_factory, drive):
     h.send_all(messages[:40])
     h.settle()
     assert h.odom and h.odom[-1].header.stamp == [m for k, m in messages[:40] if k == "image"][-1].header.stamp
-    clock(messages[0][1].header.stamp)  # the bag restarted: /clock jumps back by 2 s
+    clock(messages[0][1].header.stamp)  # the bag restarted: /clock jumps back by 1.2 s
     assert h.node.events["clock_jump_reset"] == 1
     n = len(h.odom)
     h.send_all(messages[:40])

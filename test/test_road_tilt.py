@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -17,7 +16,9 @@ def cambered_drive(seconds: float = 60.0, rate: float = 100.0, seed: int = 0):
     vehicle's own fast motion (~1 Hz oscillation, 1-2 deg) + a little noise. ``(1, T, 2)`` each."""
     gen = torch.Generator().manual_seed(seed)
     t = torch.arange(int(seconds * rate), dtype=torch.float64) / rate
-    own = torch.stack([1.5 * DEG * torch.sin(2 * math.pi * 1.1 * t), 2.0 * DEG * torch.sin(2 * math.pi * 0.8 * t + 0.3)], -1)
+    own_pitch = 1.5 * DEG * torch.sin(2 * math.pi * 1.1 * t)
+    own_roll = 2.0 * DEG * torch.sin(2 * math.pi * 0.8 * t + 0.3)
+    own = torch.stack([own_pitch, own_roll], -1)
     own = own + 0.05 * DEG * torch.randn(own.shape, generator=gen, dtype=torch.float64)
     road = torch.tensor([1.5 * DEG, 2.6 * DEG], dtype=torch.float64)
     dt = torch.full((1, t.numel()), 1.0 / rate, dtype=torch.float64)
@@ -34,7 +35,8 @@ def test_recovers_fast_attitude_under_constant_camber():
     amp = torch.sqrt((own[0, settle] ** 2).mean(0)) / DEG
     print(
         f"\n[camber 2.6 deg, slope 1.5 deg, tau {tau} s] after {5 * tau:.0f} s: RMSE pitch/roll deg "
-        f"road-relative {err.numpy().round(4)}, gravity-referenced {raw.numpy().round(4)} (signal RMS {amp.numpy().round(3)})"
+        f"road-relative {err.numpy().round(4)}, gravity-referenced {raw.numpy().round(4)} "
+        f"(signal RMS {amp.numpy().round(3)})"
     )
     assert torch.all(err < 0.1)  # the ~1 Hz motion passes through (a 5 s low-pass barely sees it)
     assert torch.all(err * 10 < raw)
@@ -68,7 +70,8 @@ def test_stateful_equals_functional_and_irregular_dt():
     out_dt = torch.stack([with_dt.update(dt[:, i], x[:, i], is_dt=True) for i in range(x.shape[1])], 1)
     out_st = torch.stack([with_stamps.update(stamps[:, i], x[:, i]) for i in range(x.shape[1])], 1)
     diff_st = (out_st - functional).abs().max().item()
-    print(f"\n[stateful vs functional, B=2, T={x.shape[1]}] dt path max diff {(out_dt - functional).abs().max().item():.1e}, stamp path {diff_st:.1e} rad")
+    diff_dt = (out_dt - functional).abs().max().item()
+    print(f"\n[stateful vs functional, B=2, T={x.shape[1]}] max diff: dt path {diff_dt:.1e}, stamp path {diff_st:.1e} rad")
     assert torch.equal(out_dt, functional)
     assert diff_st < 1e-12  # stamps differences round dt by ~1e-13 s
     torch.testing.assert_close(with_dt.tilt, x[:, -1] - functional[:, -1])
@@ -81,7 +84,10 @@ def test_gradients_flow():
     tau = torch.tensor(2.0, dtype=torch.float64, requires_grad=True)
     rel = road_relative_attitude(x, dt, tau)
     gx, gtau = torch.autograd.grad(rel[0, -1, 1], (x, tau))
-    print(f"\n[gradients] d rel_T / d x_T = {gx[0, -1, 1].item():.4f}, d rel_T / d x_0 = {gx[0, 0, 1].item():.2e}, d / d tau = {gtau.item():.2e}")
+    print(
+        f"\n[gradients] d rel_T / d x_T = {gx[0, -1, 1].item():.4f}, "
+        f"d rel_T / d x_0 = {gx[0, 0, 1].item():.2e}, d rel_T / d tau = {gtau.item():.2e}"
+    )
     assert gx[0, -1, 1] > 0.99 and gx[0, 0, 1] < 0 and gtau.abs() > 0
     # gradcheck on a short sequence through both inputs (float64).
     xs = x.detach()[:, :20].clone().requires_grad_()

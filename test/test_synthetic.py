@@ -65,9 +65,10 @@ def test_shapes_stamps_and_ranges(drive):
 
 
 def test_deterministic_by_seed():
-    a = syn.make_drive(seed=5, duration=2.0, render="lazy")
-    b = syn.make_drive(seed=5, duration=2.0, render="lazy")
-    c = syn.make_drive(seed=6, duration=2.0, render=False, ground_seed=5)
+    # ground_seed=0 reuses the cached texture; texture determinism is checked on small tiles below.
+    a = syn.make_drive(seed=5, duration=2.0, render="lazy", ground_seed=0)
+    b = syn.make_drive(seed=5, duration=2.0, render="lazy", ground_seed=0)
+    c = syn.make_drive(seed=6, duration=2.0, render=False, ground_seed=0)
     for name in ("gyro", "accel", "poses_xy_yaw", "pitch_roll_road", "relative_motion", "imu_velocity_gravity"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
         assert not np.allclose(getattr(a, name), getattr(c, name)), name
@@ -78,6 +79,9 @@ def test_deterministic_by_seed():
     assert ia.shape == (376, 1241) and ia.dtype == np.uint8
     assert np.array_equal(ia, ib) and np.array_equal(ia, syn.render_frame(a, 3))
     assert np.abs(ia.astype(int) - ic).mean() > 5
+    t1, t2, t3 = (syn._make_textures(sd, 512, 128)[0] for sd in (3, 3, 4))
+    print(f"texture tiles: same seed equal {torch.equal(t1, t2)}, other seed mean diff {(t1 - t3).abs().mean():.3f}")
+    assert torch.equal(t1, t2) and (t1 - t3).abs().mean() > 0.02
 
 
 def test_gyro_integrates_to_attitude(drive):
@@ -280,13 +284,16 @@ def test_texture_is_rich_and_not_repeating():
 
 
 def test_render_time(drive):
-    syn.render_frame(drive, 0)  # warm the ray cache
-    t = time.perf_counter()
+    syn.render_frame(drive, 0)  # builds the lane grid once
+    t, c = time.perf_counter(), time.process_time()
     for i in (10, 11):
         syn.render_frame(drive, i)
-    dt = (time.perf_counter() - t) / 2
-    print(f"\nrender 1241x376 with 2x2 supersampling, noise, vignette: {dt * 1000:.0f} ms/frame")
-    assert dt < 1.0  # target < 0.2 s on an idle core; generous for a shared CI machine
+    dt, dc = (time.perf_counter() - t) / 2, (time.process_time() - c) / 2
+    print(f"\nrender 1241x376, 2x2 supersampling, noise, vignette: {dt * 1000:.0f} ms/frame wall, "
+          f"{dc * 1000:.0f} ms CPU ({torch.get_num_threads()} threads)")
+    # ~0.1 s wall on an idle 2-core machine; the bound only catches a lost vectorisation, CPU time
+    # because wall time on a shared machine says little.
+    assert dc < 1.5
 
 
 def test_bad_input_raises():

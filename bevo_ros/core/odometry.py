@@ -157,7 +157,7 @@ class BevoOdometry:
             dt = stamp - self._last_imu
             self._state = self.dukf.step(self._state, gyro_t, accel_t, torch.tensor([dt], dtype=torch.float64))
         self._last_imu = stamp
-        self._pitch_roll_road = self._road_tilt.update(dt, self._state.mean.detach())
+        self._pitch_roll_road = self._road_tilt.update(stamp, self._state.mean.detach())
         out += self._release(lambda s: s <= stamp)
         return out
 

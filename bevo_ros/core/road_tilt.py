@@ -70,7 +70,8 @@ def _offset_tensor(static_offset: Sequence[float] | Tensor | None, like: Tensor)
 
 def _check_attitude(x: Tensor, shape: tuple[int | str, ...], name: str) -> None:
     """ValueError unless ``x`` is a finite tensor of ``shape`` (a str entry = any size, named)."""
-    if not isinstance(x, Tensor) or x.dim() != len(shape) or any(isinstance(s, int) and s != xs for s, xs in zip(shape, x.shape)):
+    ok = isinstance(x, Tensor) and x.dim() == len(shape)
+    if not ok or any(isinstance(s, int) and s != xs for s, xs in zip(shape, x.shape)):
         got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
         want = "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
         raise ValueError(f"{name} must be a tensor of shape {want}, got {got}")
@@ -111,7 +112,7 @@ def road_relative_attitude(
         _check_attitude(dt[:, 1:], (b, t - 1), "dt[:, 1:]")
         if bool((dt[:, 1:] < 0).any()):
             raise ValueError("dt must be >= 0 (time must not run backwards)")
-    alpha = lowpass_gain(dt, tau).unsqueeze(-1)  # (B, T, 1)
+    alpha = lowpass_gain(dt.to(pitch_roll), tau).unsqueeze(-1)  # (B, T, 1), as RoadTiltFilter
     tilt = pitch_roll[:, 0]
     tilts = [tilt]
     for i in range(1, t):

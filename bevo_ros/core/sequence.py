@@ -1,0 +1,162 @@
+"""A whole recording through BEVO at once: batched, differentiable, for training and ablations.
+
+It runs the very functions :class:`~bevo_ros.core.odometry.BevoOdometry` runs per message (the
+DUKF over every IMU sample, the road-tilt low-pass, the BEV projection, the phase correlation),
+with the same rule for which IMU sample a frame sees: the last one with ``stamp <= frame stamp``.
+So a model trained here behaves the same online.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+
+from .bev import project_to_bev
+from .dukf import DUKF, accel_to_pitch_roll
+from .geometry import BevSpec, CameraModel
+from .motion import registration_from_vehicle_motion, vehicle_motion_from_registration
+from .phase_correlation import DpcConfig, Prepared, Registration, prepare, register_prepared
+from .road_tilt import road_relative_attitude
+
+Tensor = torch.Tensor
+
+ATTITUDE_SOURCES = ("dukf", "accel", "given")
+
+
+def frame_imu_indices(imu_stamps: Tensor, frame_stamps: Tensor) -> Tensor:
+    """Index of the last IMU sample with ``stamp <= frame stamp``; -1 if none. ``(N,), (F,) -> (F,)``."""
+    return torch.searchsorted(imu_stamps.contiguous(), frame_stamps.contiguous(), right=True) - 1
+
+
+def imu_attitude(
+    dukf: DUKF | None,
+    imu_stamps: Tensor,
+    gyro: Tensor,
+    accel: Tensor,
+    source: str = "dukf",
+) -> tuple[Tensor, Tensor | None]:
+    """Gravity-referenced [pitch, roll] at every IMU sample.
+
+    Args:
+        dukf: the filter (``source="dukf"``).
+        imu_stamps: ``(N,)`` seconds (float64); gyro, accel: ``(N, 3)``.
+        source: ``"dukf"`` (filtered, the paper) or ``"accel"`` (raw accelerometer angles:
+            the "w/o DUKF" ablation).
+
+    Returns:
+        ``(N, 2)`` attitude and ``(N, 2, 2)`` covariance (None for ``"accel"``).
+    """
+    if source == "accel":
+        return accel_to_pitch_roll(accel), None
+    if source != "dukf" or dukf is None:
+        raise ValueError(f"attitude source must be 'dukf' (with a DUKF) or 'accel', got {source!r}")
+    dtype = dukf.log_process_var.dtype
+    dt = torch.diff(imu_stamps, prepend=imu_stamps[:1]).to(dtype)
+    if imu_stamps.numel() > 1 and bool((dt[1:] <= 0).any()):
+        raise ValueError("IMU stamps must be strictly increasing")
+    dt = dt.clone()
+    dt[0] = 1.0  # unused: sample 0 initialises the filter
+    mean, cov, _ = dukf.filter(gyro.to(dtype)[None], accel.to(dtype)[None], dt[None])
+    return mean[0], cov[0]
+
+
+def road_attitude_at_frames(
+    attitude: Tensor, imu_stamps: Tensor, frame_idx: Tensor, road_tilt_time_constant: float
+) -> Tensor:
+    """Road-relative attitude ``(F, 2)`` at the frames from the IMU-rate attitude ``(N, 2)``."""
+    dt = torch.diff(imu_stamps, prepend=imu_stamps[:1]).to(attitude.dtype)
+    road = road_relative_attitude(attitude[None], dt[None], road_tilt_time_constant)[0]
+    return road[frame_idx]
+
+
+def project_frames(
+    images: Tensor, camera: CameraModel, pitch_roll_road: Tensor, spec: BevSpec, chunk: int = 32
+) -> tuple[Tensor, Tensor]:
+    """BEVs of many frames, in chunks to bound memory.
+
+    Args:
+        images: ``(F, H, W)`` uint8 or float in [0, 1].
+        pitch_roll_road: ``(F, 2)``.
+
+    Returns:
+        ``bev (F, 1, S, S)`` and ``mask (F, 1, S, S)``.
+    """
+    dtype = pitch_roll_road.dtype if pitch_roll_road.is_floating_point() else torch.float32
+    cam = camera.to(images.device, dtype)
+    bevs, masks = [], []
+    for i in range(0, images.shape[0], chunk):
+        img = images[i : i + chunk]
+        img = img.to(dtype) / 255.0 if img.dtype == torch.uint8 else img.to(dtype)
+        pr = pitch_roll_road[i : i + chunk]
+        b, m = project_to_bev(img[:, None], cam, pr[:, 0], pr[:, 1], spec)
+        bevs.append(b)
+        masks.append(m)
+    return torch.cat(bevs), torch.cat(masks)
+
+
+def _slice(p: Prepared, s: slice) -> Prepared:
+    return Prepared(**{f.name: getattr(p, f.name)[s] for f in fields(p)})
+
+
+def register_consecutive(bev: Tensor, mask: Tensor, config: DpcConfig) -> Registration:
+    """Registrations of every consecutive pair ``(F-1)`` with each frame prepared once."""
+    prepared = prepare(bev, mask, config)
+    return register_prepared(_slice(prepared, slice(None, -1)), _slice(prepared, slice(1, None)), config)
+
+
+@dataclass
+class SequenceResult:
+    """Everything a training step or an ablation needs from one pass."""
+
+    registration: Registration  # over the F-1 consecutive pairs
+    motion: Tensor  # (F-1, 3) estimated (dx, dy, dyaw)
+    pitch_roll_gravity: Tensor  # (F, 2) at the frames
+    pitch_roll_road: Tensor  # (F, 2) used for the BEVs
+
+
+def run_sequence(
+    dukf: DUKF | None,
+    camera: CameraModel,
+    spec: BevSpec,
+    dpc: DpcConfig,
+    imu_stamps: Tensor,
+    gyro: Tensor,
+    accel: Tensor,
+    frame_stamps: Tensor,
+    images: Tensor,
+    road_tilt_time_constant: float = 10.0,
+    source: str = "dukf",
+    given_pitch_roll_road: Tensor | None = None,
+) -> SequenceResult:
+    """BEVO over a recording; differentiable in the DUKF's O and Q.
+
+    Args:
+        imu_stamps: ``(N,)`` float64 seconds; gyro, accel ``(N, 3)``.
+        frame_stamps: ``(F,)`` float64 seconds, each >= ``imu_stamps[0]``.
+        images: ``(F, H, W)``.
+        source: ``"dukf"``, ``"accel"`` (w/o DUKF) or ``"given"`` (``given_pitch_roll_road``, e.g.
+            ground truth: the "w/ GT" ablation).
+    """
+    if source not in ATTITUDE_SOURCES:
+        raise ValueError(f"source must be one of {ATTITUDE_SOURCES}, got {source!r}")
+    idx = frame_imu_indices(imu_stamps, frame_stamps)
+    if bool((idx < 0).any()):
+        raise ValueError("every frame needs an IMU sample at or before its stamp; trim the frames")
+    if source == "given":
+        if given_pitch_roll_road is None or given_pitch_roll_road.shape != (frame_stamps.shape[0], 2):
+            raise ValueError("source='given' needs given_pitch_roll_road of shape (F, 2)")
+        road = given_pitch_roll_road
+        gravity = given_pitch_roll_road
+    else:
+        attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source)
+        gravity = attitude[idx]
+        road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
+    bev, mask = project_frames(images, camera, road.float(), spec)
+    reg = register_consecutive(bev, mask, dpc)
+    motion = vehicle_motion_from_registration(reg.angle, reg.shift, spec)
+    return SequenceResult(reg, motion, gravity, road)
+
+
+def registration_targets(motion: Tensor, spec: BevSpec) -> tuple[Tensor, Tensor]:
+    """Ground-truth ``(F-1, 3)`` motion -> the angle and pixel shift the correlation should find."""
+    return registration_from_vehicle_motion(motion, spec)
