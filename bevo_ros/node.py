@@ -515,10 +515,10 @@ class BevoNode(Node):
                 self.get_logger().warning("ROS time jumped backwards (bag restarted?): resetting the odometry")
                 self._reset()
 
-            self._jump_handle = self.get_clock().create_jump_handler(threshold, post_callback=self._guard(
+            self._jump_handle = self.get_clock().create_jump_callback(threshold, post_callback=self._guard(
                 "clock_jump", on_jump))
         except Exception as exc:  # noqa: BLE001 - optional feature
-            self.get_logger().debug(f"no clock jump handler: {exc}")
+            self.get_logger().warning(f"no clock jump handler (resets then rely on message stamps): {exc}")
 
     # ------------------------------------------------------------------ outputs
     def _publish_steps(self, steps: list) -> None:

@@ -4,8 +4,8 @@ The world frame is the road plane (z up along the road normal, the road surface 
 so the renderer and the BEV projection share the geometry of :mod:`bevo_ros.core.geometry`
 exactly (the camera pose comes from :func:`~bevo_ros.core.geometry.camera_pose_on_road`).
 
-Model of the drive (all signals are smooth analytic functions of time, so IMU derivatives are
-exact up to ~1e-9):
+Model of the drive (all signals are smooth analytic functions of time, so the IMU is exact to
+~1e-8):
 
 * the base (IMU) origin moves on the road with speed ``v(t)`` and heading ``yaw(t)``;
   its road-relative attitude is ``R_road_base = Ry(pitch_rel) @ Rx(roll_rel)`` (suspension:
@@ -19,7 +19,8 @@ exact up to ~1e-9):
   acceleration of the accelerometer model (rotating the whole world plane by the tilt instead would
   create huge spurious accelerations far from the origin);
 * gyro = body angular velocity of ``R_grav_base`` (5-point central differences of the analytic
-  rotation, error ~1e-10 rad/s), accel = specific force ``R_grav_base^T (a_grav + [0, 0, g])``.
+  rotation, error ~1e-9 rad/s), accel = specific force ``R_grav_base^T (a_grav + [0, 0, g])``
+  (error ~3e-8 m/s^2).
 
 Arrays of a :class:`SyntheticDrive` are numpy (float64 unless stated); the BEV helpers
 (:func:`true_bev`, :func:`ground_patch`) return torch tensors to compare with ``core.bev``.
@@ -37,6 +38,12 @@ import torch
 import torch.nn.functional as F
 
 from bevo_ros.core.geometry import BevSpec, CameraModel, camera_pose_on_road
+
+__all__ = [
+    "GRAVITY", "ImuNoise", "LazyImages", "RenderOptions", "RoadGround", "SyntheticDrive", "base_poses_4x4",
+    "camera_pose_world", "camera_poses_4x4", "default_ground", "ground_intensity", "ground_patch",
+    "kitti_like_camera", "make_drive", "render_frame", "render_view", "true_bev",
+]
 
 Tensor = torch.Tensor
 
@@ -574,9 +581,9 @@ def _random_motion(rng: np.random.Generator, t_lo: float, t_hi: float, *, speed_
                    curvature, max_yaw_rate, max_lateral_accel, bumps, road_tilt, camera: CameraModel,
                    start_yaw: float) -> _Motion:
     vmin, vmax = speed_range
-    speed_sines = _Sines.random(rng, 3, 0.012, 0.05, 1.0)
+    speed_sines = _Sines.random(rng, 3, 0.015, 0.06, 1.0)
     mid, half = 0.5 * (vmin + vmax), 0.5 * (vmax - vmin) * speed_variation
-    # Curves: Gaussian yaw-rate events every 4-10 s, limited by yaw rate and lateral acceleration.
+    # Curves: smooth yaw-rate bumps every 4-10 s, limited by yaw rate and lateral acceleration.
     centres = []
     c = t_lo + rng.uniform(0.0, 4.0)
     while c < t_hi:
@@ -806,6 +813,11 @@ def make_drive(
         a :class:`SyntheticDrive`.
     """
     _check_positive(duration=duration, frame_rate=frame_rate, imu_rate=imu_rate)
+    for name, sd in (("seed", seed), ("ground_seed", 0 if ground_seed is None else ground_seed)):
+        if isinstance(sd, bool) or not isinstance(sd, (int, np.integer)) or sd < 0:
+            raise ValueError(f"{name} must be an integer >= 0, got {sd!r}")
+    if not math.isfinite(t0):
+        raise ValueError(f"t0 must be finite, got {t0!r}")
     ratio = imu_rate / frame_rate
     if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
         raise ValueError(f"imu_rate / frame_rate must be a positive integer, got {imu_rate} / {frame_rate}")

@@ -79,12 +79,13 @@ def image_msg(t: float, img: np.ndarray, encoding: str = "mono8", frame_id: str 
     return m
 
 
-def drive_messages(drive, start: int = 0, stop: int | None = None) -> list[tuple[str, Any]]:
-    """``[("imu"|"image", msg)]`` in stamp order (an image after the IMU sample of its stamp)."""
+def drive_messages(drive, start: int = 0, stop: int | None = None, offset: float = 0.0) -> list[tuple[str, Any]]:
+    """``[("imu"|"image", msg)]`` in stamp order (an image after the IMU sample of its stamp);
+    ``offset`` seconds are added to every stamp."""
     frames = {int(i): k for k, i in enumerate(drive.frame_imu_index)}
     out = []
     for i in range(start, len(drive.imu_stamps) if stop is None else stop):
-        t = float(drive.imu_stamps[i])
+        t = float(drive.imu_stamps[i]) + offset
         out.append(("imu", imu_msg(t, drive.gyro[i], drive.accel[i])))
         if i in frames:
             out.append(("image", image_msg(t, drive.images[frames[i]])))

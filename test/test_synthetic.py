@@ -314,3 +314,16 @@ def test_bad_input_raises():
     d = syn.make_drive(duration=1.0, render=False)
     with pytest.raises(ValueError, match="out of range"):
         syn.render_frame(d, d.num_frames)
+
+
+def test_options_rates_camera_and_rigid_body():
+    d = syn.make_drive(seed=4, duration=1.0, frame_rate=20.0, imu_rate=200.0, bumps=0.0, noise=False,
+                       render=False, t0=5.5, camera=syn.kitti_like_camera(mount_pitch=0.01))
+    print(f"\n200 Hz IMU / 20 Hz frames: {len(d.imu_stamps)} samples, {d.num_frames} frames, first {d.frame_stamps[0]}")
+    assert len(d.imu_stamps) == 201 and d.num_frames == 21 and d.frame_stamps[0] == 5.5
+    assert np.array_equal(d.frame_stamps, d.imu_stamps[::10])
+    assert np.abs(d.imu_pitch_roll_road).max() == 0.0  # bumps=0: rigid body flat on the road
+    # A positive mounting pitch looks down: the optical axis has a negative base-z component.
+    axis = d.camera.T_base_cam[:3, 2]
+    assert axis[2].item() == pytest.approx(-math.sin(0.01)) and axis[0].item() > 0.99
+    assert np.allclose(syn.camera_poses_4x4(d)[:, 2, 3], d.camera.height, atol=1e-12)

@@ -78,6 +78,9 @@ class DpcConfig:
             of the correlation raised to ``1 / refine_temperature`` in a local window.
         envelope_correction: divide the translation correlation by the weights' overlap before the
             sub-pixel fit (removes a pull of ~0.05 px towards zero shift at 10 px shifts).
+        rotation_refine_step: degrees; the Fourier-magnitude angle is refined by direct alignment
+            (:func:`refine_rotation`) at +-step, halving the step at each of
+            ``rotation_refine_iters`` iterations (0 iterations = off).
         refine_window: half-width of that local window (bins / pixels).
         refine_temperature: see ``subpixel``.
     """
@@ -99,6 +102,8 @@ class DpcConfig:
     whitening_floor: float = 0.0
     subpixel: str = "gaussian"
     envelope_correction: bool = True
+    rotation_refine_step: float = 0.5
+    rotation_refine_iters: int = 0
     refine_window: int = 3
     refine_temperature: float = 1.0
 
@@ -446,6 +451,20 @@ def overlap_envelope(prev_weight_spectrum: Tensor, curr_weight_spectrum: Tensor)
     return torch.fft.fftshift(e, dim=(-2, -1))
 
 
+def translation_correlation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcConfig) -> Tensor:
+    """Whitened, band-passed cross-correlation over :func:`shift_bins` (fftshifted), 1 = perfect
+    match. ``prev_spectrum (B, S, S)`` complex, ``curr_image (B, S, S)`` -> ``(B, S, S)``."""
+    S = curr_image.shape[-1]
+    cross = torch.fft.fft2(curr_image) * prev_spectrum.conj()
+    band, _ = _translation_band(S, config.translation_sigma, config.translation_lowcut, curr_image.dtype,
+                                curr_image.device)
+    cross = _whiten(cross, config.whitening_floor, dims=(-2, -1)) * band
+    # Normalise so that a perfect match peaks at exactly 1 whatever the whitening.
+    norm = (cross.abs().sum(dim=(-2, -1)) / S**2)[:, None, None].clamp_min(1e-12)
+    corr = torch.fft.ifft2(cross).real / norm  # index n <-> shift n (mod S)
+    return torch.fft.fftshift(corr, dim=(-2, -1))  # index i <-> shift i - S//2
+
+
 def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcConfig,
                          envelope: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Shift of ``curr_image`` relative to the image whose ``fft2`` is ``prev_spectrum``.
@@ -463,21 +482,14 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
         :func:`shift_bins` (fftshifted, 1 = perfect match), log-probabilities ``(B, S, S)``.
     """
     B, S, _ = curr_image.shape
-    cross = torch.fft.fft2(curr_image) * prev_spectrum.conj()
-    band, _ = _translation_band(S, config.translation_sigma, config.translation_lowcut, curr_image.dtype,
-                                curr_image.device)
-    cross = _whiten(cross, config.whitening_floor, dims=(-2, -1)) * band
-    # Normalise so that a perfect match peaks at exactly 1 whatever the whitening.
-    norm = (cross.abs().sum(dim=(-2, -1)) / S**2)[:, None, None].clamp_min(1e-12)
-    corr = torch.fft.ifft2(cross).real / norm  # index n <-> shift n (mod S)
-    corr = torch.fft.fftshift(corr, dim=(-2, -1))  # index i <-> shift i - S//2
+    corr = translation_correlation(prev_spectrum, curr_image, config)
     flat = corr.reshape(B, S * S)
     log_prob = F.log_softmax(flat / config.translation_temperature, dim=-1).reshape(B, S, S)
     j = flat.argmax(dim=-1)
     jr, jc = j // S, j % S
     fit = corr if envelope is None else corr / envelope.clamp_min(0.05)
     if config.subpixel == "gaussian":
-        off = _quadratic_offset_2d(fit, jr, jc)
+        off, _ = _quadratic_peak_2d(fit, jr, jc)
     else:
         off = _local_expectation_2d(fit, jr, jc, config)
     shift = torch.stack([jr, jc], dim=-1).to(corr.dtype) - S // 2 + off
@@ -495,10 +507,13 @@ def _window_2d(corr: Tensor, jr: Tensor, jc: Tensor, h: int) -> tuple[Tensor, Te
     return flat.gather(1, idx.reshape(B, -1)).reshape(B, 2 * h + 1, 2 * h + 1), d.to(corr.dtype)
 
 
-def _quadratic_offset_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> Tensor:
+def _quadratic_peak_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> tuple[Tensor, Tensor]:
     """Vertex of a least-squares 2-D quadratic fit to ``log corr`` on the 3x3 around the peak.
 
-    Exact for (possibly elongated, tilted) Gaussian peaks. -> ``(B, 2)`` offsets in [-1, 1].
+    Exact for (possibly elongated, tilted) Gaussian peaks.
+
+    Returns:
+        offsets ``(B, 2)`` in [-1, 1] and the fitted log peak height ``(B,)``.
     """
     win, d = _window_2d(corr, jr, jc, 1)  # (B, 3, 3)
     peak = win[:, 1, 1].abs().clamp_min(1e-12)[:, None, None]
@@ -518,9 +533,12 @@ def _quadratic_offset_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> Tensor:
     det = h11 * h22 - h12**2
     ok = det > 1e-9
     det = torch.where(ok, det, torch.ones_like(det))
-    orow = torch.where(ok, (-b * h22 + c * h12) / det, -b / h11)
-    ocol = torch.where(ok, (-c * h11 + b * h12) / det, -c / h22)
-    return torch.stack([orow, ocol], dim=-1).clamp(-1.0, 1.0)
+    orow = torch.where(ok, (-b * h22 + c * h12) / det, -b / h11).clamp(-1.0, 1.0)
+    ocol = torch.where(ok, (-c * h11 + b * h12) / det, -c / h22).clamp(-1.0, 1.0)
+    a0 = L.mean(dim=(1, 2))
+    log_height = (a0 + b * orow + c * ocol + dd * (orow**2 - 2.0 / 3.0) + ee * (ocol**2 - 2.0 / 3.0)
+                  + ff * orow * ocol + torch.log(peak[:, 0, 0]))
+    return torch.stack([orow, ocol], dim=-1), log_height
 
 
 def _local_expectation_2d(corr: Tensor, jr: Tensor, jc: Tensor, config: DpcConfig) -> Tensor:
@@ -545,13 +563,43 @@ def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
     return (p[..., None] * diff[..., :, None] * diff[..., None, :]).sum(dim=(1, 2))
 
 
+def refine_rotation(prev: Prepared, curr: Prepared, angle: Tensor, step: float, config: DpcConfig,
+                    envelope: Tensor | None = None) -> Tensor:
+    """One refinement of ``angle (B,)`` by direct alignment: the translation-correlation peak
+    height at ``angle - step, angle, angle + step`` and the vertex of a log-parabola through them.
+
+    The Fourier-magnitude estimate is the global, translation-free search; it is disturbed by
+    the content that enters and leaves the BEV between frames. The peak height of the
+    translation correlation measures how well the derotated images really align, so its
+    maximum over the angle is the better local estimate. Moves by at most ``step``. -> ``(B,)``.
+    """
+    B, S = curr.image.shape[0], curr.size
+    k = torch.tensor([-1.0, 0.0, 1.0], dtype=angle.dtype, device=angle.device)
+    cand = (angle[:, None] + step * k).reshape(-1)  # (3B,)
+    img = curr.image[:, None].repeat_interleave(3, dim=0)
+    der = rotate_about_centre(img, -cand)[:, 0]
+    corr = translation_correlation(prev.spectrum.repeat_interleave(3, dim=0), der, config)
+    if envelope is not None:
+        corr = corr / envelope.repeat_interleave(3, dim=0).clamp_min(0.05)
+    j = corr.reshape(3 * B, S * S).argmax(dim=-1)
+    _, log_h = _quadratic_peak_2d(corr, j // S, j % S)
+    lm, l0, lp = log_h.reshape(B, 3).unbind(-1)
+    den = lm - 2.0 * l0 + lp
+    concave = den < -1e-9
+    off = torch.where(concave, 0.5 * (lm - lp) / torch.where(concave, den, -torch.ones_like(den)),
+                      torch.sign(lp - lm))  # not concave: step towards the higher side
+    return angle + step * off.clamp(-1.0, 1.0)
+
+
 def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig) -> Registration:
     """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``)."""
     if prev.image.shape != curr.image.shape:
         raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")
     angle, rcorr, rlog = estimate_rotation(prev, curr, config)
-    derotated = rotate_about_centre(curr.image[:, None], -angle)[:, 0]
     envelope = overlap_envelope(prev.weight_spectrum, curr.weight_spectrum) if config.envelope_correction else None
+    for i in range(config.rotation_refine_iters):
+        angle = refine_rotation(prev, curr, angle, math.radians(config.rotation_refine_step) / 2**i, config, envelope)
+    derotated = rotate_about_centre(curr.image[:, None], -angle)[:, 0]
     shift, tcorr, tlog = estimate_translation(prev.spectrum, derotated, config, envelope)
     dtype, device = rcorr.dtype, rcorr.device
     abins = angle_bins(config, dtype, device)

@@ -1,0 +1,163 @@
+"""Recordings as the engine sees them: synthetic drives to rosbag2, bags to tensors, splits.
+
+Shared by ``tools/run_bag.py``, ``tools/train_from_bag.py``, ``tools/ablation.py`` and the demo,
+so every tool reads a recording the same way.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bevo_ros import bag
+from bevo_ros.config import BevoConfig, camera_model
+from bevo_ros.core.geometry import CameraModel, rpy_from_rotation
+
+PathLike = str | os.PathLike
+
+
+# --------------------------------------------------------------------------- synthetic -> bag
+def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: bool = False,
+                    frame_range: tuple[int, int] | None = None) -> Path:
+    """Write a :class:`bevo_ros.synthetic.SyntheticDrive` as a rosbag2 with KITTI-like topics.
+
+    Sensor topics carry only what sensors give (raw IMU, images, CameraInfo); ground truth goes to
+    ``/ground_truth/odometry`` (base pose in ``odom``, identity at the first written frame) and
+    ``/ground_truth/imu`` (gravity-referenced attitude). ``frame_range`` = (first, stop) frames;
+    the IMU is cut to the same time span.
+    """
+    from bevo_ros.synthetic import base_poses_4x4
+
+    f0, f1 = frame_range or (0, len(drive.frame_stamps))
+    t_lo, t_hi = drive.frame_stamps[f0], drive.frame_stamps[f1 - 1]
+    poses = base_poses_4x4(drive)
+    poses = np.linalg.inv(poses[f0]) @ poses
+    cam = drive.camera
+    K = cam.K.double().numpy()
+    with bag.BagWriter(path, storage=storage, overwrite=overwrite) as w:
+        k = 0
+        imu_sel = np.nonzero((drive.imu_stamps >= t_lo - 0.5) & (drive.imu_stamps <= t_hi))[0]
+        for i in range(f0, f1):
+            s = drive.frame_stamps[i]
+            while k < len(imu_sel) and drive.imu_stamps[imu_sel[k]] <= s:
+                j = imu_sel[k]
+                w.write_imu(float(drive.imu_stamps[j]), drive.gyro[j], drive.accel[j], frame_id="imu_link")
+                k += 1
+            w.write_camera_info(float(s), K, cam.width, cam.height_px, frame_id="camera_optical_frame")
+            w.write_image(float(s), np.asarray(drive.images[i]), frame_id="camera_optical_frame")
+            w.write_odometry(float(s), poses[i], frame_id="odom", child_frame_id="base_link")
+            pitch, roll = drive.pitch_roll_gravity[i]
+            w.write_imu_attitude(float(s), float(roll), float(pitch), float(drive.poses_xy_yaw[i, 2]))
+    return Path(path)
+
+
+# --------------------------------------------------------------------------- bag -> tensors
+@dataclass
+class Sequence:
+    """A recording ready for :func:`bevo_ros.core.sequence.run_sequence` (float64 stamps)."""
+
+    imu_stamps: torch.Tensor  # (N,)
+    gyro: torch.Tensor  # (N, 3)
+    accel: torch.Tensor  # (N, 3)
+    frame_stamps: torch.Tensor  # (F,)
+    images: torch.Tensor  # (F, H, W) uint8
+    camera: CameraModel
+    gt_poses: torch.Tensor | None  # (F, 4, 4) base poses at the frames
+    gt_pitch_roll: torch.Tensor | None  # (F, 2) gravity-referenced reference attitude
+    name: str = ""
+
+    def __len__(self) -> int:
+        return int(self.frame_stamps.shape[0])
+
+    def gt_motion(self) -> torch.Tensor:
+        """``(F-1, 3)`` ground-truth (dx, dy, dyaw) of the base between consecutive frames."""
+        if self.gt_poses is None:
+            raise ValueError(f"{self.name}: no ground truth in this recording")
+        rel = torch.linalg.inv(self.gt_poses[:-1]) @ self.gt_poses[1:]
+        yaw = torch.atan2(rel[:, 1, 0], rel[:, 0, 0])
+        return torch.stack([rel[:, 0, 3], rel[:, 1, 3], yaw], dim=-1)
+
+    def frames(self, start: int, stop: int) -> "Sequence":
+        """Frames ``[start, stop)`` with the IMU from the start of the recording up to the last frame
+        (the filter needs its history; the extra IMU only warms it up)."""
+        t_hi = self.frame_stamps[stop - 1]
+        n = int(torch.searchsorted(self.imu_stamps, t_hi, right=True))
+        return Sequence(self.imu_stamps[:n], self.gyro[:n], self.accel[:n], self.frame_stamps[start:stop],
+                        self.images[start:stop], self.camera,
+                        None if self.gt_poses is None else self.gt_poses[start:stop],
+                        None if self.gt_pitch_roll is None else self.gt_pitch_roll[start:stop], self.name)
+
+
+def camera_for_recording(rec: bag.Recording, config: BevoConfig) -> CameraModel:
+    """Intrinsics from the bag's CameraInfo (else the parameters), extrinsics from the parameters."""
+    if rec.camera_info is not None:
+        ci = rec.camera_info
+        return camera_model(config.camera, K=ci.K, width=ci.width, height_px=ci.height)
+    return camera_model(config.camera)
+
+
+def _interp_poses(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
+    """GT poses at ``stamps``: exact matches (the usual case) else nearest within 5 ms."""
+    idx = np.clip(np.searchsorted(gt_stamps, stamps), 1, len(gt_stamps) - 1)
+    left_closer = np.abs(gt_stamps[idx - 1] - stamps) <= np.abs(gt_stamps[idx] - stamps)
+    idx = np.where(left_closer, idx - 1, idx)
+    if np.max(np.abs(gt_stamps[idx] - stamps)) > 5e-3:
+        raise ValueError("ground truth is not stamped at the image stamps (more than 5 ms apart)")
+    return gt_poses[idx]
+
+
+def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = True) -> Sequence:
+    """Read a bag written by ``kitti_to_bag.py`` or :func:`write_drive_bag` into a :class:`Sequence`.
+
+    Frames before the first IMU sample are dropped (the filter has nothing to say about them).
+    """
+    rec = bag.read_recording(bag_path)
+    if rec.images is None or len(rec.frame_stamps_ns) < 2:
+        raise ValueError(f"{bag_path}: needs at least 2 images")
+    camera = camera_for_recording(rec, config)
+    fs = rec.frame_stamps
+    keep = fs >= rec.imu_stamps[0]
+    gt = gt_pr = None
+    if rec.gt_poses is not None:
+        gt = torch.from_numpy(_interp_poses(fs[keep], rec.gt_stamps, rec.gt_poses))
+    elif require_gt:
+        raise ValueError(f"{bag_path}: no /ground_truth/odometry messages (needed for training/evaluation)")
+    if rec.gt_pitch is not None:
+        gt_pr = torch.from_numpy(np.stack([np.interp(fs[keep], rec.gt_att_stamps, rec.gt_pitch),
+                                           np.interp(fs[keep], rec.gt_att_stamps, rec.gt_roll)], axis=-1))
+    return Sequence(
+        imu_stamps=torch.from_numpy(rec.imu_stamps),
+        gyro=torch.from_numpy(rec.gyro),
+        accel=torch.from_numpy(rec.accel),
+        frame_stamps=torch.from_numpy(fs[keep]),
+        images=torch.from_numpy(rec.images[keep]),
+        camera=camera,
+        gt_poses=gt,
+        gt_pitch_roll=gt_pr,
+        name=Path(bag_path).name,
+    )
+
+
+def split_frames(n: int, split: str) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Frame ranges ``(train, validation)`` for the paper's splits.
+
+    ``"3/4"``: first three quarters train, last quarter validates. ``"20%"``: the first 20 %
+    trains, the rest validates (the paper's generalisation study). Ranges share no pair.
+    """
+    if split in ("3/4", "0.75", "three-quarters"):
+        cut = int(round(0.75 * n))
+    elif split in ("20%", "0.2", "first20"):
+        cut = int(round(0.2 * n))
+    else:
+        raise ValueError(f"unknown split {split!r}: use '3/4' or '20%'")
+    cut = min(max(cut, 2), n - 2)
+    return (0, cut), (cut, n)
+
+
+def road_relative_gt(poses: torch.Tensor) -> torch.Tensor:
+    """Roll/pitch of ground-truth base poses ``(F, 4, 4)`` as ``(F, 2)`` [pitch, roll]."""
+    roll, pitch, _ = rpy_from_rotation(poses[:, :3, :3])
+    return torch.stack([pitch, roll], dim=-1)
