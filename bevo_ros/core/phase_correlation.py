@@ -93,7 +93,7 @@ class DpcConfig:
     window_alpha: float = 1.0
     mask_erosion: int = 2
     mask_blur: float = 2.0
-    rotation_sigma: float = 1.0
+    rotation_sigma: float = 1.5
     rotation_lowcut: float = 0.0
     translation_sigma: float = 1.0
     translation_lowcut: float = 0.0
