@@ -59,12 +59,13 @@ class NodeSettings:
     image_qos_depth: int = 5
     output_qos_depth: int = 10
     image_wait: float = 0.2
+    ordered_intake: bool = True
     max_pending_images: int = 20
     max_time_jump_back: float = 1.0
     diagnostics_period: float = 1.0
     log_throttle_period: float = 5.0
     latency_window: int = 1000
-    torch_threads: int = 0
+    torch_threads: int = 1
 
 
 DESCRIPTIONS = {
@@ -87,12 +88,14 @@ DESCRIPTIONS = {
     "image_qos_depth": "history depth of the image (and CameraInfo) subscription",
     "output_qos_depth": "history depth of the odometry/path/BEV publishers",
     "image_wait": "seconds an image waits for IMU past its stamp before it is processed anyway",
+    "ordered_intake": "take every IMU/image message already received and process them in stamp order "
+                      "(offline order, IMU keeps up under load) instead of one per topic per executor turn",
     "max_pending_images": "images waiting for IMU beyond this are dropped (oldest first, counted)",
     "max_time_jump_back": "a stamp earlier than the previous by more than this (s) resets the odometry",
     "diagnostics_period": "seconds between /diagnostics messages",
     "log_throttle_period": "seconds between two log lines of the same drop reason",
     "latency_window": "number of recent frames the latency percentiles cover",
-    "torch_threads": "torch CPU threads for the engine; 0 keeps torch's default",
+    "torch_threads": "torch CPU threads of the node (1: the engine's small tensors gain nothing from more); 0 = torch's default",
     # engine (bevo_ros.config.BevoConfig)
     "camera.fx": "focal length x (px) of the rectified image; 0 = from CameraInfo",
     "camera.fy": "focal length y (px); 0 = from CameraInfo",
@@ -228,7 +231,7 @@ class BevoNode(Node):
         self._latency: collections.deque[float] = collections.deque(maxlen=s.latency_window)
         self._quality: collections.deque[float] = collections.deque(maxlen=100)
         self._pending: dict[float, tuple[Any, float]] = {}  # engine stamp -> (header Time, arrival)
-        self._engine_counters: dict[str, int] = {}
+        self._engine_counters: tuple[int, ...] = ()
         self._last_imu_stamp: float | None = None
         self._last_gap = 0.0
         self._path = collections.deque(maxlen=max(1, s.path_max_length))
@@ -266,9 +269,11 @@ class BevoNode(Node):
                           "publish_tf is true but neither tf2_ros nor tf2_msgs is available: TF is DISABLED "
                           "(odometry is still published; run `make setup` to build tf2_msgs, or install "
                           "ROS 2 tf2_ros)")
-        self.create_subscription(Imu, s.imu_topic, self._guard("imu", self._on_imu), in_qos(s.imu_qos_depth))
-        self.create_subscription(Image, s.image_topic, self._guard("image", self._on_image),
-                                 in_qos(s.image_qos_depth))
+        self._handle_imu = self._guard("imu", self._on_imu)
+        self._handle_image = self._guard("image", self._on_image)
+        self._imu_sub = self.create_subscription(Imu, s.imu_topic, self._imu_received, in_qos(s.imu_qos_depth))
+        self._image_sub = self.create_subscription(Image, s.image_topic, self._image_received,
+                                                   in_qos(s.image_qos_depth))
         if s.use_camera_info:
             self.create_subscription(CameraInfo, s.camera_info_topic,
                                      self._guard("camera_info", self._on_camera_info), in_qos(s.image_qos_depth))
@@ -339,15 +344,19 @@ class BevoNode(Node):
         else:
             self.engine.set_camera(camera)
 
-    def _read_engine_counters(self) -> dict[str, int]:
+    _WATCHED_COUNTERS = ("dropped_no_imu", "dropped_pending_overflow", "imu_gaps")
+
+    def _read_engine_counters(self) -> tuple[int, ...]:
         c = getattr(self.engine, "counters", None)
-        return dict(vars(c)) if c is not None and hasattr(c, "__dict__") else {}
+        return tuple(int(getattr(c, k, 0)) for k in self._WATCHED_COUNTERS)
 
     def _check_engine_counters(self) -> None:
         """Turn the engine's own drop/gap counters into counted, logged node events."""
         now = self._read_engine_counters()
+        if now == self._engine_counters:
+            return
         old, self._engine_counters = self._engine_counters, now
-        d = {k: now.get(k, 0) - old.get(k, 0) for k in now}
+        d = {k: n - o for k, n, o in zip(self._WATCHED_COUNTERS, now, old)}
         if d.get("dropped_no_imu", 0) > 0:
             self.drops["no_imu"] += d["dropped_no_imu"]
             self._log("no_imu", f"dropped (no_imu): {d['dropped_no_imu']} image(s) with no IMU sample at or before "
@@ -394,8 +403,65 @@ class BevoNode(Node):
         self._last_imu_stamp = None
         self.events["reset"] += 1
 
-    # ------------------------------------------------------------------ callbacks
-    def _on_imu(self, msg) -> None:
+    # ------------------------------------------------------------------ intake
+    @staticmethod
+    def _arrival(info) -> float:
+        """Wall-clock seconds when DDS received the message (else now): latency covers queueing."""
+        ns = info.get("received_timestamp") if isinstance(info, dict) else None
+        return ns * 1e-9 if ns else time.time()
+
+    def _imu_received(self, msg, info) -> None:  # executor callback (message + message info)
+        self._intake([(msg, self._arrival(info))], [])
+
+    def _image_received(self, msg, info) -> None:  # executor callback (message + message info)
+        self._intake([], [(msg, self._arrival(info))])
+
+    def _take_all(self, sub) -> list:
+        """Every message ``sub`` has already received, taken now (not one per executor turn)."""
+        out: list = []
+        try:
+            with sub.handle:
+                while len(out) < 100000:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if taken is None:
+                        break
+                    out.append((taken[0], self._arrival(taken[1])))
+        except (AttributeError, TypeError, KeyError) as exc:  # rclpy internals changed: executor order then
+            self.settings.ordered_intake = False
+            self._log("ordered_intake", f"ordered_intake disabled (rclpy cannot take messages directly: {exc})")
+        return out
+
+    def _intake(self, imus: list, images: list) -> None:
+        """Process IMU and image messages in stamp order (IMU first on equal stamps).
+
+        The executor takes one message per subscription per turn, so when the node is behind,
+        images would outrun the IMU they wait for (and see an attitude from the wrong time).
+        With ``ordered_intake`` everything already received is taken and merged by stamp: the
+        offline order. Two streams whose heads are further apart than ``max_time_jump_back``
+        (a bag restart inside the backlog) are taken IMU first, in arrival order.
+        """
+        if self.settings.ordered_intake:
+            imus = imus + self._take_all(self._imu_sub)
+            images = images + self._take_all(self._image_sub)
+        i = j = 0
+        jump = self.settings.max_time_jump_back
+        while i < len(imus) or j < len(images):
+            if j >= len(images):
+                take_imu = True
+            elif i >= len(imus):
+                take_imu = False
+            else:
+                ti, tg = stamp_to_sec(imus[i][0].header.stamp), stamp_to_sec(images[j][0].header.stamp)
+                take_imu = ti <= tg or abs(ti - tg) > jump
+            if take_imu:
+                self._handle_imu(*imus[i])
+                i += 1
+            else:
+                self._handle_image(*images[j])
+                j += 1
+
+    # ------------------------------------------------------------------ per message
+    def _on_imu(self, msg, arrival: float = 0.0) -> None:
         self.counts["imu_in"] += 1
         t = stamp_to_sec(msg.header.stamp)
         gyro, accel = imu_to_arrays(msg)
@@ -414,8 +480,8 @@ class BevoNode(Node):
         self._last_imu_stamp = t
         self._publish_steps(steps)
 
-    def _on_image(self, msg) -> None:
-        arrival = time.monotonic()
+    def _on_image(self, msg, arrival: float | None = None) -> None:
+        arrival = time.time() if arrival is None else arrival
         self.counts["images_in"] += 1
         t = stamp_to_sec(msg.header.stamp)
         if self.engine is None:
@@ -481,8 +547,12 @@ class BevoNode(Node):
         if self.engine is None or not self._pending or not getattr(self.engine, "pending_images", 0):
             return
         oldest = min(arrival for _, arrival in self._pending.values())
-        if time.monotonic() - oldest < self.settings.image_wait:
+        if time.time() - oldest < self.settings.image_wait:
             return
+        if self.settings.ordered_intake:
+            self._intake([], [])  # IMU that was only queued, not missing, releases them
+            if not getattr(self.engine, "pending_images", 0):
+                return
         n = self.engine.pending_images
         steps = self.engine.flush()
         self.events["flushed_images"] += len(steps)
@@ -531,7 +601,7 @@ class BevoNode(Node):
             odom = odometry_msg(step, stamp_msg, s.odom_frame, s.base_frame)
             self.odom_pub.publish(odom)
             if arrival is not None:
-                self._latency.append(time.monotonic() - arrival)
+                self._latency.append(time.time() - arrival)
             self.counts["odometry_out"] += 1
             q = float(getattr(step, "peak_quality", float("nan")))
             if math.isfinite(q):
@@ -654,7 +724,7 @@ def main(args: list[str] | None = None) -> int:
         try:
             rclpy.spin(node)
         except (KeyboardInterrupt, ExternalShutdownException):
-            logger.info("shutting down")
+            pass  # SIGINT/SIGTERM: rclpy has shut the context down (no /rosout any more)
     finally:
         if node is not None:
             node.destroy_node()

@@ -183,7 +183,9 @@ def test_gradients_are_finite_and_match_finite_differences(big):
     out = outputs(curr)
     grads = [torch.autograd.grad(o, curr, retain_graph=True)[0] for o in out]
     ad = torch.stack([(gr * v).sum() for gr in grads])
-    eps = 1e-4
+    # Phase normalisation makes the map rough on coarse scales (the phase of weak frequencies
+    # turns fast), so the difference quotient converges only for small steps.
+    eps = 1e-6
     with torch.no_grad():
         fd = (outputs(curr0 + eps * v) - outputs(curr0 - eps * v)) / (2 * eps)
     print(f"\nautograd {ad.tolist()}\nfinite d {fd.tolist()}")

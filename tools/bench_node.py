@@ -269,7 +269,8 @@ def main() -> int:
     ap.add_argument("--quarter", action="store_true", help="synthetic camera at 1/4 resolution (320x96)")
     ap.add_argument("--qos", choices=["reliable", "sensor_data"], default="reliable",
                     help="QoS of the replay and of the node's inputs (bag replay: reliable)")
-    ap.add_argument("--torch-threads", type=int, default=0, help="node parameter torch_threads")
+    ap.add_argument("--torch-threads", type=int, default=None,
+                    help="node parameter torch_threads (default: the parameters file's)")
     ap.add_argument("--imu-topic", default="/imu/data")
     ap.add_argument("--image-topic", default="/camera/image_raw")
     ap.add_argument("--domain-id", type=int, default=int(os.environ.get("BEVO_BENCH_DOMAIN_ID", 77)))
@@ -289,8 +290,10 @@ def main() -> int:
 
         params["learned_params_file"] = str(resolve_path(str(learned), base.resolve().parent))
     params.update(input_qos=args.qos, imu_qos_depth=1000, image_qos_depth=100, diagnostics_period=args.diag_period,
-                  latency_window=100000, torch_threads=args.torch_threads, imu_topic=args.imu_topic,
-                  image_topic=args.image_topic, use_camera_info=False)
+                  latency_window=100000, imu_topic=args.imu_topic, image_topic=args.image_topic,
+                  use_camera_info=False)
+    if args.torch_threads is not None:
+        params["torch_threads"] = args.torch_threads
     workdir = Path(tempfile.mkdtemp(prefix="bevo-bench-"))
     params_file = workdir / "params.yaml"
     params_file.write_text(yaml.safe_dump(doc, sort_keys=False))

@@ -112,7 +112,7 @@ def project_to_bev(
     pitch: Tensor,
     roll: Tensor,
     spec: BevSpec,
-    supersample: int = 3,
+    supersample: int = 2,
     downsample: int = 1,
 ) -> tuple[Tensor, Tensor]:
     """Inverse perspective mapping of the image onto the BEV grid.

@@ -68,9 +68,12 @@ def kl_target_predicted(target: Tensor, log_prob: Tensor) -> Tensor:
     """``KL(target || p)`` per item, summed over all but the batch dimension. -> ``(B,)``."""
     t = target.reshape(target.shape[0], -1)
     lp = log_prob.reshape(log_prob.shape[0], -1)
-    # t log t with 0 log 0 = 0
-    tlogt = torch.where(t > 0, t * torch.log(t.clamp_min(torch.finfo(t.dtype).tiny)), torch.zeros_like(t))
-    return (tlogt - t * lp).sum(dim=-1)
+    # Cells without target mass contribute nothing (0 log 0 = 0); masking log p there as well keeps
+    # a -inf log-probability from turning into 0 * inf = nan, forward and backward.
+    pos = t > 0
+    log_t = torch.log(torch.where(pos, t, torch.ones_like(t)))
+    lp = torch.where(pos, lp, torch.zeros_like(lp))
+    return (t * (log_t - lp)).sum(dim=-1)
 
 
 def registration_kl_loss(registration, target_angle: Tensor, target_shift: Tensor,

@@ -15,21 +15,29 @@ the road's z axis (up). This order is what the pipeline measures: the Fourier ma
 ``angle`` regardless of any shift, and ``rotate_about_centre(curr, -angle)`` is exactly ``prev``
 shifted by ``shift``. ``bevo_ros.core.motion`` turns it into vehicle motion.
 
-Pipeline (all differentiable, batched, no Python loops over the batch):
+Pipeline (all differentiable, batched, no Python loops over the batch, no ``.item()``):
 
-1. :func:`prepare`: subtract the weighted mean, multiply by a smooth weight = (mask eroded and
-   blurred) x (radial Tukey window). The window is radially symmetric so that rotating a
-   weighted image equals weighting the rotated one, and the BEV's fixed footprint (identical
-   in every frame) cannot pull the correlation towards zero motion. Then the 2-D FFT and the
-   polar-resampled, compressed, per-radius-normalised magnitude spectrum.
-2. :func:`estimate_rotation`: 1-D phase correlation along the angle axis, cross-power spectra
-   summed over radii, phase-normalised, band-pass weighted (a Gaussian so the correlation peak
-   is a Gaussian, plus a low-cut that removes the fixed, slowly varying anisotropy of the BEV's
-   resolution), softmax with a temperature over ``A`` angle bins.
+1. :func:`prepare` (once per frame; each frame is ``curr`` once and ``prev`` once): subtract the
+   weighted mean, multiply by a smooth weight = (soft mask edge) x (radial Tukey window). The
+   window is radially symmetric, so rotating a weighted image equals weighting the rotated
+   one, and tapered, so the BEV's fixed footprint (identical in every frame) has no edge that
+   could pull the correlation towards zero motion. Then ``rfft2`` of the image, of the weight,
+   and of the zero-padded image, whose compressed magnitude is resampled on a polar grid and
+   normalised per radius.
+2. :func:`estimate_rotation`: 1-D phase correlation along the angle axis (cross-power spectra
+   summed over radii, phase-normalised, Gaussian band weight so the correlation peak is a
+   Gaussian of ``rotation_sigma`` bins), softmax with a temperature over ``A`` angle bins.
 3. :func:`rotate_about_centre` undoes the rotation of ``curr``; :func:`estimate_translation`
-   does a 2-D phase correlation with the same weighting, softmax over the ``(S, S)`` shifts.
-4. Sub-bin / sub-pixel estimates from the correlation surface around its peak (see
-   ``DpcConfig.subpixel``), still differentiable.
+   does a 2-D phase correlation (same kind of band weight), softmax over the ``(S, S)`` shifts.
+4. Point estimates: the argmax cell plus a sub-bin / sub-pixel log-parabola fit through the
+   peak's neighbours (exact for the Gaussian peak the band weight produces; see
+   ``DpcConfig.subpixel``). The translation fit divides out the overlap of the two weights
+   first (:func:`overlap_envelope`), which otherwise drags the peak towards zero shift.
+   The distributions (log-softmax, for the KL loss) are over the full grids.
+
+Paper vs. this implementation: the paper takes the soft expectation over the whole softmax
+distribution. With a sharp temperature that snaps to bin centres; with a soft one the noise
+floor of ``S * S`` cells biases it towards the grid centre, so the point estimate here is local.
 
 Rotation ambiguity: the Fourier magnitude of a real image is point symmetric, so only the
 angle modulo 180 degrees is observable. We resolve it with the rule that a car turns far less
@@ -62,15 +70,17 @@ class DpcConfig:
             interpolation error is fixed to the pixel grid and would bias angles towards 0).
         window_alpha: radial Tukey window, fraction of the radius ``S/2`` that is tapered
             (1 = radial Hann).
-        mask_erosion: pixels the valid mask is eroded by before blurring.
-        mask_blur: Gaussian sigma (pixels) that softens the mask's edge.
+        mask_blur: Gaussian sigma (pixels) of the mask's soft edge: the weight is
+            ``smoothstep(2 * blur(mask) - 1)``, zero on the mask's border and rising to one about
+            ``2 * mask_blur`` pixels inside, so invalid pixels never leak in and the fixed footprint
+            has no sharp edge.
         rotation_sigma: width (bins) of the Gaussian correlation peak for rotation.
         rotation_lowcut: angular frequencies (cycles per 180 degrees) below ~this are suppressed.
         translation_sigma: width (pixels) of the Gaussian correlation peak for translation.
         translation_lowcut: spatial frequencies (cycles per pixel) below ~this are suppressed.
         rotation_temperature, translation_temperature: softmax temperatures on correlations
             normalised to 1 for a perfect match.
-        whitening_floor: phase normalisation divides the cross-power spectrum by
+        whitening_floor: the translation's phase normalisation divides the cross-power spectrum by
             ``|C| + floor * mean|C|`` (0 = pure phase correlation); a floor keeps weak, leakage-
             dominated frequencies (smooth textures) from pulling the peak towards zero shift.
         subpixel: ``"gaussian"``: log-parabola fit through the peak and its neighbours (exact for
@@ -91,7 +101,6 @@ class DpcConfig:
     compression: str = "log"
     rotation_padding: int = 2
     window_alpha: float = 1.0
-    mask_erosion: int = 2
     mask_blur: float = 2.0
     rotation_sigma: float = 1.5
     rotation_lowcut: float = 0.0
@@ -127,8 +136,10 @@ class DpcConfig:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 < self.window_alpha <= 1.0:
             raise ValueError(f"window_alpha must be in (0, 1], got {self.window_alpha}")
-        if self.mask_erosion < 0 or self.mask_blur < 0 or self.refine_window < 1:
-            raise ValueError("mask_erosion and mask_blur must be >= 0, refine_window >= 1")
+        if self.mask_blur < 0 or self.refine_window < 1:
+            raise ValueError(f"need mask_blur >= 0 and refine_window >= 1, got {self.mask_blur}, {self.refine_window}")
+        if self.rotation_refine_iters < 0 or self.rotation_refine_step <= 0:
+            raise ValueError("rotation_refine_iters must be >= 0 and rotation_refine_step > 0")
 
 
 @dataclass
@@ -137,9 +148,9 @@ class Prepared:
 
     Attributes:
         image: ``(B, S, S)`` weighted, zero-mean BEV.
-        spectrum: ``(B, S, S)`` complex ``fft2(image)``.
+        spectrum: ``(B, S, S // 2 + 1)`` complex ``rfft2(image)``.
         polar: ``(B, R, A // 2 + 1)`` complex ``rfft`` along the angle of the polar magnitude.
-        weight_spectrum: ``(B, S, S)`` complex ``fft2`` of the weight (for the overlap envelope).
+        weight_spectrum: ``(B, S, S // 2 + 1)`` complex ``rfft2`` of the weight (overlap envelope).
     """
 
     image: Tensor
@@ -150,6 +161,10 @@ class Prepared:
     @property
     def size(self) -> int:
         return self.image.shape[-1]
+
+    def __getitem__(self, index) -> "Prepared":
+        """Batch slicing, e.g. ``p[:-1]`` / ``p[1:]`` to pair consecutive frames."""
+        return Prepared(self.image[index], self.spectrum[index], self.polar[index], self.weight_spectrum[index])
 
 
 @dataclass
@@ -210,26 +225,20 @@ def _radial_window(size: int, alpha: float, dtype: torch.dtype, device: torch.de
 
 
 @lru_cache(maxsize=32)
-def _gauss_kernel(sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
-    half = max(1, int(math.ceil(3.0 * sigma)))
-    x = torch.arange(-half, half + 1, dtype=torch.float64)
-    k = torch.exp(-0.5 * (x / sigma) ** 2)
-    return (k / k.sum()).to(dtype=dtype, device=device)
-
-
-@lru_cache(maxsize=32)
 def _polar_sampler(size: int, angle_bins: int, radial_range: tuple[float, float], radial_samples: int,
                    device: torch.device) -> tuple[Tensor, Tensor]:
-    """Bilinear polar resampling of an (unshifted) ``fft2`` as 4 gathers.
+    """Bilinear polar resampling of an ``rfft2`` magnitude (``S x (S // 2 + 1)``) as 4 gathers.
 
     Angles ``phi_j = j pi / A`` (``j < A``), measured from the row-frequency axis towards the
-    column-frequency axis; radii evenly spaced in ``radial_range`` (cycles/pixel).
+    column-frequency axis, so the column frequency ``r sin(phi) >= 0``: exactly the half plane
+    ``rfft2`` keeps. Radii evenly spaced in ``radial_range`` (cycles/pixel).
 
     Returns:
-        index ``(4, R * A)`` into the flattened ``(S * S)`` spectrum and weights ``(4, R * A)``
-        (float64; cast by the caller).
+        index ``(4 * R * A,)`` into the flattened ``S * (S // 2 + 1)`` spectrum and weights
+        ``(4, R * A)`` (float64; cast by the caller).
     """
     S = size
+    W = S // 2 + 1
     lo, hi = radial_range
     radii = torch.linspace(lo * S, hi * S, radial_samples, dtype=torch.float64)  # frequency bins
     phi = torch.arange(angle_bins, dtype=torch.float64) * math.pi / angle_bins
@@ -240,9 +249,9 @@ def _polar_sampler(size: int, angle_bins: int, radial_range: tuple[float, float]
     r0, c0 = r0.long(), c0.long()
     idx, wts = [], []
     for dr, dc, w in ((0, 0, (1 - fr) * (1 - fc)), (1, 0, fr * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 1, fr * fc)):
-        idx.append(((r0 + dr) % S) * S + (c0 + dc) % S)
+        idx.append(((r0 + dr) % S) * W + (c0 + dc))  # 0 <= c0 + dc <= hi * S + 1 < W
         wts.append(w)
-    return torch.stack(idx).reshape(4, -1).to(device), torch.stack(wts).reshape(4, -1).to(device)
+    return torch.stack(idx).reshape(-1).to(device), torch.stack(wts).reshape(4, -1).to(device)
 
 
 @lru_cache(maxsize=32)
@@ -264,14 +273,20 @@ def _rotation_band(angle_bins: int, sigma: float, lowcut: float, dtype: torch.dt
 
 @lru_cache(maxsize=32)
 def _translation_band(size: int, sigma: float, lowcut: float, dtype: torch.dtype,
-                      device: torch.device) -> tuple[Tensor, float]:
-    """Weights ``(S, S)`` on the (unshifted) 2-D frequencies and the normaliser of ``ifft2``."""
-    k = torch.fft.fftfreq(size, dtype=torch.float64)  # cycles per pixel
-    k2 = k[:, None] ** 2 + k[None, :] ** 2
+                      device: torch.device) -> tuple[Tensor, Tensor]:
+    """Weights ``(S, S // 2 + 1)`` on the ``rfft2`` frequencies, and the multiplicity of each
+    column in the full spectrum (1 for the DC and Nyquist columns, 2 otherwise)."""
+    kr = torch.fft.fftfreq(size, dtype=torch.float64)  # cycles per pixel
+    kc = torch.fft.rfftfreq(size, dtype=torch.float64)
+    k2 = kr[:, None] ** 2 + kc[None, :] ** 2
     g = torch.exp(-2.0 * math.pi**2 * sigma**2 * k2)
     if lowcut > 0:
         g = g * (1.0 - torch.exp(-0.5 * k2 / lowcut**2))
-    return g.to(dtype=dtype, device=device), float(g.sum()) / size**2
+    mult = torch.full((kc.numel(),), 2.0, dtype=torch.float64)
+    mult[0] = 1.0
+    if size % 2 == 0:
+        mult[-1] = 1.0
+    return g.to(dtype=dtype, device=device), mult.to(dtype=dtype, device=device)
 
 
 @lru_cache(maxsize=32)
@@ -282,17 +297,27 @@ def _base_grid(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     return torch.stack([rr, cc], dim=-1)
 
 
-def angle_bins(config: DpcConfig, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
-    """``(A,)`` bin centres in radians, ``[-pi/2, pi/2)``."""
-    A = config.angle_bins
-    return (torch.arange(A, dtype=dtype, device=device) - A // 2) * (math.pi / A)
+@lru_cache(maxsize=32)
+def _angle_bins(A: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    return (torch.arange(A, dtype=torch.float64) - A // 2).mul(math.pi / A).to(dtype=dtype, device=device)
 
 
-def shift_bins(size: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
-    """``(S, S, 2)`` the ``(d_row, d_col)`` of each cell of the (fftshifted) translation grid."""
+@lru_cache(maxsize=32)
+def _shift_bins(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     i = torch.arange(size, dtype=dtype, device=device) - size // 2
     rr, cc = torch.meshgrid(i, i, indexing="ij")
     return torch.stack([rr, cc], dim=-1)
+
+
+def angle_bins(config: DpcConfig, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+    """``(A,)`` bin centres in radians, ``[-pi/2, pi/2)``: ``(i - A/2) pi / A``. Do not modify in place."""
+    return _angle_bins(config.angle_bins, dtype, torch.device(device or "cpu"))
+
+
+def shift_bins(size: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+    """``(S, S, 2)`` the ``(d_row, d_col)`` of each cell of the (fftshifted) translation grid,
+    ``i - S // 2``. Do not modify in place."""
+    return _shift_bins(size, dtype, torch.device(device or "cpu"))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -308,29 +333,35 @@ def _check_pair(bev: Tensor, mask: Tensor) -> None:
 
 
 def soft_weight(mask: Tensor, config: DpcConfig) -> Tensor:
-    """Smooth weight ``(B, S, S)`` = (mask eroded, blurred) x radial window. ``mask (B, 1, S, S)``."""
+    """Smooth weight ``(B, S, S)`` = (soft mask edge) x radial window. ``mask (B, 1, S, S)``.
+
+    The soft edge is ``smoothstep(2 * blur(mask) - 1)``: 0 on and outside the mask's border
+    (blur = 1/2 there), 1 well inside; cheaper than an erosion and C1-smooth.
+    """
     m = mask.to(dtype=mask.dtype if mask.is_floating_point() else torch.float32)
-    if config.mask_erosion > 0:
-        e = config.mask_erosion
-        m = 1.0 - F.max_pool2d(1.0 - m, 2 * e + 1, stride=1, padding=e)
     if config.mask_blur > 0:
-        k = _gauss_kernel(config.mask_blur, m.dtype, m.device)
-        p = k.numel() // 2
-        m = F.conv2d(m, k.view(1, 1, 1, -1), padding=(0, p))
-        m = F.conv2d(m, k.view(1, 1, -1, 1), padding=(p, 0))
+        # Two box filters of width w have variance (w^2 - 1) / 6: a cheap near-Gaussian blur.
+        w = max(3, 2 * round((math.sqrt(6.0 * config.mask_blur**2 + 1.0) - 1.0) / 2.0) + 1)
+        p = w // 2
+        # Replicate padding: the BEV's outer border is not an invalid region.
+        b = F.avg_pool2d(F.pad(m, (p, p, p, p), mode="replicate"), w, stride=1)
+        b = F.avg_pool2d(F.pad(b, (p, p, p, p), mode="replicate"), w, stride=1)
+        t = (2.0 * b - 1.0).clamp(0.0, 1.0)
+        m = t * t * (3.0 - 2.0 * t) * m
     S = mask.shape[-1]
     return m[:, 0] * _radial_window(S, config.window_alpha, m.dtype, m.device)
 
 
 def _polar_spectrum(spectrum: Tensor, config: DpcConfig) -> Tensor:
     """Compressed magnitude in polar coordinates, zero mean and unit RMS per radius. -> ``(B, R, A)``."""
-    B, S, _ = spectrum.shape  # S here is the padded size
-    mag = spectrum.abs().reshape(B, S * S)
+    B, S, W = spectrum.shape  # S here is the padded size; rfft2 layout
+    mag = spectrum.abs().reshape(B, S * W)
     mag = mag / (mag.mean(dim=1, keepdim=True) + 1e-12)  # brightness/contrast invariant
     mag = torch.log1p(mag) if config.compression == "log" else torch.sqrt(mag + 1e-12)
     idx, w = _polar_sampler(S, config.angle_bins, config.radial_range, config.radial_samples, spectrum.device)
     w = w.to(mag.dtype)
-    polar = (mag[:, idx] * w).sum(dim=1).reshape(B, config.radial_samples, config.angle_bins)
+    polar = (mag.index_select(1, idx).reshape(B, 4, -1) * w).sum(dim=1)
+    polar = polar.reshape(B, config.radial_samples, config.angle_bins)
     polar = polar - polar.mean(dim=-1, keepdim=True)
     return polar / (polar.pow(2).mean(dim=-1, keepdim=True).sqrt() + 1e-12)
 
@@ -353,11 +384,11 @@ def prepare(bev: Tensor, mask: Tensor, config: DpcConfig) -> Prepared:
         raise ValueError("a BEV has no valid pixels after eroding its mask (camera model or BEV spec wrong?)")
     mean = (w * x).sum(dim=(-1, -2), keepdim=True) / wsum
     image = w * (x - mean)
-    spectrum = torch.fft.fft2(image)
+    spectrum = torch.fft.rfft2(image)
     p = config.rotation_padding
-    padded = spectrum if p == 1 else torch.fft.fft2(image, s=(p * image.shape[-2], p * image.shape[-1]))
+    padded = spectrum if p == 1 else torch.fft.rfft2(image, s=(p * image.shape[-2], p * image.shape[-1]))
     polar = torch.fft.rfft(_polar_spectrum(padded, config), dim=-1)
-    return Prepared(image, spectrum, polar, torch.fft.fft2(w))
+    return Prepared(image, spectrum, polar, torch.fft.rfft2(w))
 
 
 def rotate_about_centre(image: Tensor, angle: Tensor) -> Tensor:
@@ -446,33 +477,36 @@ def overlap_envelope(prev_weight_spectrum: Tensor, curr_weight_spectrum: Tensor)
     The correlation of two weighted images is (correlation of the contents) x (correlation of
     the weights); the latter falls off with the shift and drags a sub-pixel peak towards zero.
     """
-    e = torch.fft.ifft2(curr_weight_spectrum * prev_weight_spectrum.conj()).real
+    S = curr_weight_spectrum.shape[-2]
+    e = torch.fft.irfft2(curr_weight_spectrum * prev_weight_spectrum.conj(), s=(S, S))
     e = e / e[:, :1, :1].clamp_min(1e-12)
     return torch.fft.fftshift(e, dim=(-2, -1))
 
 
 def translation_correlation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcConfig) -> Tensor:
     """Whitened, band-passed cross-correlation over :func:`shift_bins` (fftshifted), 1 = perfect
-    match. ``prev_spectrum (B, S, S)`` complex, ``curr_image (B, S, S)`` -> ``(B, S, S)``."""
+    match. ``prev_spectrum (B, S, S // 2 + 1)`` complex ``rfft2``, ``curr_image (B, S, S)`` ->
+    ``(B, S, S)``."""
     S = curr_image.shape[-1]
-    cross = torch.fft.fft2(curr_image) * prev_spectrum.conj()
-    band, _ = _translation_band(S, config.translation_sigma, config.translation_lowcut, curr_image.dtype,
-                                curr_image.device)
+    cross = torch.fft.rfft2(curr_image) * prev_spectrum.conj()
+    band, mult = _translation_band(S, config.translation_sigma, config.translation_lowcut, curr_image.dtype,
+                                   curr_image.device)
     cross = _whiten(cross, config.whitening_floor, dims=(-2, -1)) * band
-    # Normalise so that a perfect match peaks at exactly 1 whatever the whitening.
-    norm = (cross.abs().sum(dim=(-2, -1)) / S**2)[:, None, None].clamp_min(1e-12)
-    corr = torch.fft.ifft2(cross).real / norm  # index n <-> shift n (mod S)
+    # Normalise so that a perfect match peaks at exactly 1 whatever the whitening (sum over the
+    # full spectrum = half plane with the mirrored columns counted twice).
+    norm = ((cross.abs() * mult).sum(dim=(-2, -1)) / S**2)[:, None, None].clamp_min(1e-12)
+    corr = torch.fft.irfft2(cross, s=(S, S)) / norm  # index n <-> shift n (mod S)
     return torch.fft.fftshift(corr, dim=(-2, -1))  # index i <-> shift i - S//2
 
 
 def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcConfig,
                          envelope: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Shift of ``curr_image`` relative to the image whose ``fft2`` is ``prev_spectrum``.
+    """Shift of ``curr_image`` relative to the image whose ``rfft2`` is ``prev_spectrum``.
 
     ``curr(q) = prev(q - shift)``.
 
     Args:
-        prev_spectrum: ``(B, S, S)`` complex.
+        prev_spectrum: ``(B, S, S // 2 + 1)`` complex ``rfft2``.
         curr_image: ``(B, S, S)`` weighted image (already rotated back).
         envelope: optional :func:`overlap_envelope`; the sub-pixel fit then uses the correlation
             divided by it (the distribution is left as is: dividing amplifies far-off noise).
@@ -557,10 +591,14 @@ def _wrapped_spread(log_prob_a: Tensor, bins_a: Tensor, angle: Tensor) -> Tensor
 
 
 def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
+    """Second moment ``(B, 2, 2)`` of the translation distribution about ``shift`` (cyclic)."""
     S = log_prob_t.shape[-1]
-    p = log_prob_t.exp()[..., None]  # (B, S, S, 1)
-    diff = torch.remainder(bins_t[None] - shift[:, None, None, :] + S / 2, S) - S / 2  # (B, S, S, 2)
-    return (p[..., None] * diff[..., :, None] * diff[..., None, :]).sum(dim=(1, 2))
+    p = log_prob_t.exp()  # (B, S, S)
+    dr = torch.remainder(bins_t[None, :, :, 0] - shift[:, 0, None, None] + S / 2, S) - S / 2
+    dc = torch.remainder(bins_t[None, :, :, 1] - shift[:, 1, None, None] + S / 2, S) - S / 2
+    pr = p * dr
+    rr, rc, cc = (pr * dr).sum(dim=(1, 2)), (pr * dc).sum(dim=(1, 2)), (p * dc * dc).sum(dim=(1, 2))
+    return torch.stack([torch.stack([rr, rc], -1), torch.stack([rc, cc], -1)], -2)
 
 
 def refine_rotation(prev: Prepared, curr: Prepared, angle: Tensor, step: float, config: DpcConfig,
