@@ -69,6 +69,11 @@ class FilterSettings:
     road_tilt_time_constant: float = 10.0
     # Longest IMU gap (s) the filter predicts across; longer gaps re-initialise from the accelerometer.
     max_imu_gap: float = 0.5
+    # Static attitude of the base frame relative to the road when the vehicle rests on a level road
+    # (rad; positive pitch = nose down). The road-tilt low-pass removes every constant, so the
+    # mounting tilt of the IMU/camera rig relative to the road must be given here.
+    mounting_pitch: float = 0.0
+    mounting_roll: float = 0.0
 
 
 @dataclass
@@ -344,6 +349,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         spec=spec,
         dukf=dukf,
         road_tilt_time_constant=config.filter.road_tilt_time_constant,
+        mounting_attitude=(config.filter.mounting_pitch, config.filter.mounting_roll),
         max_imu_gap=config.filter.max_imu_gap,
         device=device,
     )

@@ -111,6 +111,8 @@ DESCRIPTIONS = {
     "filter.motion_model": "'euler' (exact Euler-angle kinematics) or 'additive' (the paper's)",
     "filter.road_tilt_time_constant": "low-pass time constant (s) separating road tilt from vehicle attitude; 0 disables",
     "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
+    "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration)",
+    "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration)",
     "learned_params_file": "learned O/Q YAML; relative paths resolve beside the parameters file, then the package",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
 }
@@ -191,7 +193,6 @@ class BevoNode(Node):
         from rcl_interfaces.msg import ParameterDescriptor
         from rclpy.clock import Clock, ClockType
 
-        self._t_start = time.monotonic()
         self._engine_factory = engine_factory or build_odometry
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
 
@@ -200,7 +201,8 @@ class BevoNode(Node):
         flat_defaults.update(BevoConfig().to_flat())
         flat: dict[str, Any] = {}
         for name, default in flat_defaults.items():
-            desc = ParameterDescriptor(description=DESCRIPTIONS.get(name, ""), dynamic_typing=True)
+            desc = ParameterDescriptor(description=DESCRIPTIONS.get(name, "engine setting, see params/kitti.yaml"),
+                                       dynamic_typing=True)
             flat[name] = self.declare_parameter(name, default, desc).value
         self.settings = NodeSettings(**{f.name: _coerce(f.name, flat[f.name], getattr(NodeSettings(), f.name))
                                         for f in dataclasses.fields(NodeSettings)})
@@ -271,8 +273,12 @@ class BevoNode(Node):
                           "ROS 2 tf2_ros)")
         self._handle_imu = self._guard("imu", self._on_imu)
         self._handle_image = self._guard("image", self._on_image)
-        self._imu_sub = self.create_subscription(Imu, s.imu_topic, self._imu_received, in_qos(s.imu_qos_depth))
-        self._image_sub = self.create_subscription(Image, s.image_topic, self._image_received,
+        imu_intake = self._guard("imu", self._imu_received)
+        image_intake = self._guard("image", self._image_received)
+        # two-argument callbacks: rclpy then passes the message info (DDS reception time)
+        self._imu_sub = self.create_subscription(Imu, s.imu_topic, lambda msg, info: imu_intake(msg, info),
+                                                 in_qos(s.imu_qos_depth))
+        self._image_sub = self.create_subscription(Image, s.image_topic, lambda msg, info: image_intake(msg, info),
                                                    in_qos(s.image_qos_depth))
         if s.use_camera_info:
             self.create_subscription(CameraInfo, s.camera_info_topic,

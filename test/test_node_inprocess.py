@@ -39,11 +39,15 @@ RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 @pytest.fixture(scope="module")
 def context():
+    import torch
+
+    threads = torch.get_num_threads()  # the node sets torch_threads process-wide: restore it
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     ctx = rclpy.context.Context()
     rclpy.init(context=ctx, domain_id=DOMAIN_ID)
     yield ctx
     rclpy.shutdown(context=ctx)
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -201,6 +205,21 @@ def test_odometry_equals_offline_core(harness_factory, drive):
     assert 0.0 <= float(values["peak_quality_mean"]) <= 1.0
     p50, p99, _ = h.node.latency_percentiles()
     assert 0 < p50 <= p99 < 60.0  # figures: tools/bench_node.py
+
+
+@pytest.mark.parametrize("imu_rate", [10.0, 400.0])
+def test_imu_rates_10_to_400_hz_match_offline(harness_factory, imu_rate):
+    drive = small_drive(seed=4, duration=0.6 if imu_rate > 100 else 1.5, imu_rate=imu_rate)
+    ov = base_overrides(drive)
+    messages = drive_messages(drive)
+    expected = offline_steps(messages, ov)
+    h = harness_factory(ov, subscribe_outputs=False)
+    h.send_all(messages)
+    h.settle()
+    assert len(h.odom) == len(expected) == drive.num_frames and sum(h.node.drops.values()) == 0
+    for msg, step in zip(h.odom, expected):
+        assert np.allclose(_odom_arrays(msg)[0], step.position, atol=1e-6, rtol=0)
+        assert np.allclose(np.asarray(msg.pose.covariance).reshape(6, 6), step.pose_covariance, atol=1e-6, rtol=1e-9)
 
 
 def test_reset_service_restarts_at_identity(harness_factory, drive):

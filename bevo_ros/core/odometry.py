@@ -76,6 +76,8 @@ class BevoOdometry:
         dukf: the filter (holds the learned O and Q).
         dpc: phase-correlation settings.
         road_tilt_time_constant: seconds; 0 disables road-tilt separation (gravity-referenced BEV).
+        mounting_attitude: static (pitch, roll) of the base relative to the road at rest, rad; added to
+            the road-relative attitude (the road-tilt low-pass removes every constant).
         max_imu_gap: longer IMU gaps re-initialise the filter from the accelerometer.
         device: torch device for the vision part.
         max_pending_images: images waiting for IMU beyond this are dropped (counted).
@@ -88,6 +90,7 @@ class BevoOdometry:
         dukf: DUKF,
         dpc: DpcConfig | None = None,
         road_tilt_time_constant: float = 10.0,
+        mounting_attitude: tuple[float, float] = (0.0, 0.0),
         max_imu_gap: float = 0.5,
         device: str | torch.device = "cpu",
         max_pending_images: int = 20,
@@ -99,6 +102,7 @@ class BevoOdometry:
         self.dukf = dukf
         self.dpc = dpc or DpcConfig()
         self.road_tilt_time_constant = road_tilt_time_constant
+        self.mounting_attitude = torch.tensor([mounting_attitude], dtype=torch.float64)
         self.max_imu_gap = max_imu_gap
         self.max_pending_images = max_pending_images
         self.counters = Counters()
@@ -111,7 +115,7 @@ class BevoOdometry:
         self._last_imu: float | None = None
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
-        self._pitch_roll_road = torch.zeros(1, 2, dtype=torch.float64)
+        self._pitch_roll_road = self.mounting_attitude.clone()
         self._pending: list[tuple[float, np.ndarray]] = []
         self._prev = None  # prepared BEV of the previous frame
         self._prev_stamp: float | None = None
@@ -157,7 +161,7 @@ class BevoOdometry:
             dt = stamp - self._last_imu
             self._state = self.dukf.step(self._state, gyro_t, accel_t, torch.tensor([dt], dtype=torch.float64))
         self._last_imu = stamp
-        self._pitch_roll_road = self._road_tilt.update(stamp, self._state.mean.detach())
+        self._pitch_roll_road = self._road_tilt.update(stamp, self._state.mean.detach()) + self.mounting_attitude
         out += self._release(lambda s: s <= stamp)
         return out
 

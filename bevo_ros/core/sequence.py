@@ -127,6 +127,7 @@ def run_sequence(
     road_tilt_time_constant: float = 10.0,
     source: str = "dukf",
     given_pitch_roll_road: Tensor | None = None,
+    mounting_attitude: tuple[float, float] = (0.0, 0.0),
 ) -> SequenceResult:
     """BEVO over a recording; differentiable in the DUKF's O and Q.
 
@@ -135,7 +136,9 @@ def run_sequence(
         frame_stamps: ``(F,)`` float64 seconds, each >= ``imu_stamps[0]``.
         images: ``(F, H, W)``.
         source: ``"dukf"``, ``"accel"`` (w/o DUKF) or ``"given"`` (``given_pitch_roll_road``, e.g.
-            ground truth: the "w/ GT" ablation).
+            ground truth: the "w/ GT" ablation; used as is, without ``mounting_attitude``).
+        mounting_attitude: static (pitch, roll) of the base on the road, added to the filtered
+            road-relative attitude (as :class:`~bevo_ros.core.odometry.BevoOdometry` does).
     """
     if source not in ATTITUDE_SOURCES:
         raise ValueError(f"source must be one of {ATTITUDE_SOURCES}, got {source!r}")
@@ -151,6 +154,7 @@ def run_sequence(
         attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source)
         gravity = attitude[idx]
         road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
+        road = road + torch.tensor(mounting_attitude, dtype=road.dtype, device=road.device)
     bev, mask = project_frames(images, camera, road.float(), spec)
     reg = register_consecutive(bev, mask, dpc)
     motion = vehicle_motion_from_registration(reg.angle, reg.shift, spec)
