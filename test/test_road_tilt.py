@@ -72,7 +72,7 @@ def test_stateful_equals_functional_and_irregular_dt():
     diff_st = (out_st - functional).abs().max().item()
     diff_dt = (out_dt - functional).abs().max().item()
     print(f"\n[stateful vs functional, B=2, T={x.shape[1]}] max diff: dt path {diff_dt:.1e}, stamp path {diff_st:.1e} rad")
-    assert torch.equal(out_dt, functional)
+    assert diff_dt < 1e-15  # elapsed time: cumsum vs running sum round differently
     assert diff_st < 1e-12  # stamps differences round dt by ~1e-13 s
     torch.testing.assert_close(with_dt.tilt, x[:, -1] - functional[:, -1])
     assert torch.all(functional[:, 0] == 0)

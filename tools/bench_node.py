@@ -211,6 +211,7 @@ def run_once(messages, params_file: Path, rate: float, args) -> dict:
                 image_pub.publish(msg)
                 n_img += 1
         replay_s = time.perf_counter() - start
+        cpu_replay = proc.cpu_times()
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and len(received) < n_img:
             time.sleep(0.02)
@@ -230,6 +231,8 @@ def run_once(messages, params_file: Path, rate: float, args) -> dict:
             latency_max_ms=float(values.get("latency_max_ms", "nan")),
             peak_quality_mean=values.get("peak_quality_mean", "nan"),
             cpu_percent=100.0 * ((cpu1.user + cpu1.system) - (cpu0.user + cpu0.system)) / max(wall, 1e-9),
+            cpu_replay_percent=100.0 * ((cpu_replay.user + cpu_replay.system) - (cpu0.user + cpu0.system))
+            / max(replay_s, 1e-9),
             rss_start_mb=rss_before, peak_rss_mb=proc_status(node.pid, "VmHWM"),
         )
         e2e = [t - sent_at[k] for k, t in received if k in sent_at]
@@ -289,7 +292,7 @@ def main() -> int:
         from bevo_ros.config import resolve_path
 
         params["learned_params_file"] = str(resolve_path(str(learned), base.resolve().parent))
-    params.update(input_qos=args.qos, imu_qos_depth=1000, image_qos_depth=100, diagnostics_period=args.diag_period,
+    params.update(input_qos=args.qos, imu_qos_depth=1000, image_qos_depth=30, diagnostics_period=args.diag_period,
                   latency_window=100000, imu_topic=args.imu_topic, image_topic=args.image_topic,
                   use_camera_info=False)
     if args.torch_threads is not None:
@@ -309,7 +312,7 @@ def main() -> int:
         results.append(run_once(messages, params_file, rate, args))
 
     hdr = (f"{'rate':>5} {'IMU sent/in':>12} {'img sent/in':>12} {'odom out/rx':>12} {'drops':>6} "
-           f"{'lat p50/p99/max ms':>20} {'e2e p50/p99 ms':>15} {'CPU %':>6} {'peak RSS MB':>11} {'exit':>4}")
+           f"{'lat p50/p99/max ms':>20} {'e2e p50/p99 ms':>15} {'CPU %':>6} {'RSS start/peak MB':>17} {'exit':>4}")
     print()
     print(hdr)
     print("-" * len(hdr))
@@ -318,7 +321,7 @@ def main() -> int:
               f"{r['odometry_out']:>5}/{r['odometry_received']:<6} {r['drops']:>6} "
               f"{r['latency_p50_ms']:>6.1f}/{r['latency_p99_ms']:>5.1f}/{r['latency_max_ms']:>6.1f} "
               f"{r['e2e_p50_ms']:>7.1f}/{r['e2e_p99_ms']:>6.1f} {r['cpu_percent']:>6.0f} "
-              f"{r['peak_rss_mb']:>11.0f} {r['exit_code']:>4}")
+              f"{r['rss_start_mb']:>11.0f}/{r['peak_rss_mb']:<5.0f} {r['exit_code']:>4}")
     for r in results:
         extra = []
         if r["node_drops"]:
@@ -327,6 +330,7 @@ def main() -> int:
             extra.append(f"{r['dds_lost']} message(s) lost before the node")
         if r["events"]:
             extra.append(f"events {r['events']}")
+        extra.append(f"node CPU during the replay {r['cpu_replay_percent']:.0f} %")
         extra.append(f"player max lateness {r['player_max_late_ms']:.1f} ms")
         extra.append(f"mean peak quality {r['peak_quality_mean']}")
         print(f"  {r['rate']:g}x: " + "; ".join(extra))

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from .bev import project_to_bev
-from .dukf import DUKF, DukfState
+from .dukf import DUKF, DukfState, remove_turn_acceleration
 from .geometry import BevSpec, CameraModel
 from .motion import vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, prepare, register_prepared
@@ -79,6 +79,9 @@ class BevoOdometry:
         mounting_attitude: static (pitch, roll) of the base relative to the road at rest, rad; added to
             the road-relative attitude (the road-tilt low-pass removes every constant).
         max_imu_gap: longer IMU gaps re-initialise the filter from the accelerometer.
+        turn_compensation: remove ``speed x turn rate`` from the accelerometer before the DUKF
+            update, with the speed of the latest visual odometry step (see
+            :func:`~bevo_ros.core.dukf.remove_turn_acceleration`).
         device: torch device for the vision part.
         max_pending_images: images waiting for IMU beyond this are dropped (counted).
     """
@@ -92,6 +95,7 @@ class BevoOdometry:
         road_tilt_time_constant: float = 10.0,
         mounting_attitude: tuple[float, float] = (0.0, 0.0),
         max_imu_gap: float = 0.5,
+        turn_compensation: bool = False,
         device: str | torch.device = "cpu",
         max_pending_images: int = 20,
     ) -> None:
@@ -104,6 +108,7 @@ class BevoOdometry:
         self.road_tilt_time_constant = road_tilt_time_constant
         self.mounting_attitude = torch.tensor([mounting_attitude], dtype=torch.float64)
         self.max_imu_gap = max_imu_gap
+        self.turn_compensation = turn_compensation
         self.max_pending_images = max_pending_images
         self.counters = Counters()
         self.reset()
@@ -119,6 +124,7 @@ class BevoOdometry:
         self._pending: list[tuple[float, np.ndarray]] = []
         self._prev = None  # prepared BEV of the previous frame
         self._prev_stamp: float | None = None
+        self._speed = torch.zeros(1, dtype=torch.float64)  # forward speed of the latest VO step, m/s
         self._pose = torch.zeros(3, dtype=torch.float64)
         self._pose_cov = torch.zeros(3, 3, dtype=torch.float64)
         self.counters.resets += 1
@@ -152,6 +158,8 @@ class BevoOdometry:
             raise OutOfOrderError("IMU", stamp, self._last_imu)
         out = self._release(lambda s: s < stamp)
         self.counters.imu += 1
+        if self.turn_compensation:
+            accel_t = remove_turn_acceleration(accel_t, gyro_t, self._speed)
         if self._state is None or stamp - self._last_imu > self.max_imu_gap:
             if self._state is not None:
                 self.counters.imu_gaps += 1
@@ -230,6 +238,8 @@ class BevoOdometry:
         self._pose_cov = propagate_covariance_se2(self._pose, self._pose_cov, motion_t, motion_cov_t)
         self._pose = compose_se2(self._pose, motion_t)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
+        if dt > 0:
+            self._speed = torch.tensor([motion[0] / dt], dtype=torch.float64)
         self.counters.frames_out += 1
 
         pitch, roll = (float(v) for v in self._state.mean[0])

@@ -40,9 +40,17 @@ def is_enabled(time_constant: float | None) -> bool:
     return time_constant is not None and math.isfinite(float(time_constant)) and float(time_constant) > 0
 
 
-def lowpass_gain(dt: Tensor, time_constant: float | Tensor) -> Tensor:
-    """``alpha = 1 - exp(-dt / tau)`` (via expm1: exact for dt << tau). ``(...,)`` -> ``(...,)``."""
-    return -torch.expm1(-dt / time_constant)
+def lowpass_gain(dt: Tensor, time_constant: float | Tensor, elapsed: Tensor | None = None) -> Tensor:
+    """``alpha = 1 - exp(-dt / tau)`` (via expm1: exact for dt << tau). ``(...,)`` -> ``(...,)``.
+
+    With ``elapsed`` (seconds since the first sample, this one's dt included) the gain is at least
+    ``dt / elapsed``: for the first ~tau seconds the tilt is the running mean of everything seen so
+    far instead of staying pinned to the first, noisy sample (a bias-corrected start).
+    """
+    alpha = -torch.expm1(-dt / time_constant)
+    if elapsed is not None:
+        alpha = torch.maximum(alpha, torch.where(elapsed > 0, dt / elapsed.clamp_min(1e-12), torch.ones_like(dt)))
+    return alpha
 
 
 def _check_time_constant(time_constant: float | Tensor | None) -> float | Tensor | None:
@@ -112,7 +120,12 @@ def road_relative_attitude(
         _check_attitude(dt[:, 1:], (b, t - 1), "dt[:, 1:]")
         if bool((dt[:, 1:] < 0).any()):
             raise ValueError("dt must be >= 0 (time must not run backwards)")
-    alpha = lowpass_gain(dt.to(pitch_roll), tau).unsqueeze(-1)  # (B, T, 1), as RoadTiltFilter
+    dt = dt.to(pitch_roll)
+    steps = dt.clone()
+    steps[:, 0] = 0.0
+    # elapsed time counts one sample period for the first sample (a running mean over samples).
+    first = dt[:, 1:2] if t > 1 else torch.ones_like(dt[:, :1])
+    alpha = lowpass_gain(dt, tau, elapsed=torch.cumsum(steps, dim=1) + first).unsqueeze(-1)  # (B, T, 1)
     tilt = pitch_roll[:, 0]
     tilts = [tilt]
     for i in range(1, t):
@@ -144,6 +157,7 @@ class RoadTiltFilter:
             _offset_tensor(static_offset, torch.zeros(2, dtype=torch.float64))  # validate early
         self._tilt: Tensor | None = None
         self._stamp: Tensor | None = None
+        self._elapsed: Tensor | None = None
 
     @property
     def enabled(self) -> bool:
@@ -191,6 +205,7 @@ class RoadTiltFilter:
         if self._tilt is None:
             self._tilt = pitch_roll
             self._stamp = None if is_dt else t
+            self._elapsed = None
             return pitch_roll - self._tilt
         if is_dt:
             dt = t
@@ -202,6 +217,9 @@ class RoadTiltFilter:
             self._stamp = t
         if bool((dt < 0).any()):
             raise ValueError(f"time ran backwards (dt = {dt.min().item():.6f} s); call reset() after a jump")
-        alpha = lowpass_gain(dt.to(pitch_roll.dtype), self.time_constant).unsqueeze(-1)
+        # elapsed counts one sample period for the first sample (a running mean over samples).
+        self._elapsed = (2 * dt if self._elapsed is None else self._elapsed + dt)
+        alpha = lowpass_gain(dt.to(pitch_roll.dtype), self.time_constant,
+                             elapsed=self._elapsed.to(pitch_roll.dtype)).unsqueeze(-1)
         self._tilt = self._tilt + alpha * (pitch_roll - self._tilt)
         return pitch_roll - self._tilt

@@ -12,7 +12,7 @@ from dataclasses import dataclass, fields
 import torch
 
 from .bev import project_to_bev
-from .dukf import DUKF, accel_to_pitch_roll
+from .dukf import DUKF, accel_to_pitch_roll, remove_turn_acceleration
 from .geometry import BevSpec, CameraModel
 from .motion import registration_from_vehicle_motion, vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, Prepared, Registration, prepare, register_prepared
@@ -34,6 +34,7 @@ def imu_attitude(
     gyro: Tensor,
     accel: Tensor,
     source: str = "dukf",
+    speed: Tensor | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Gravity-referenced [pitch, roll] at every IMU sample.
 
@@ -42,10 +43,13 @@ def imu_attitude(
         imu_stamps: ``(N,)`` seconds (float64); gyro, accel: ``(N, 3)``.
         source: ``"dukf"`` (filtered, the paper) or ``"accel"`` (raw accelerometer angles:
             the "w/o DUKF" ablation).
+        speed: ``(N,)`` forward speed for the turn compensation of the accelerometer (None: off).
 
     Returns:
         ``(N, 2)`` attitude and ``(N, 2, 2)`` covariance (None for ``"accel"``).
     """
+    if speed is not None:
+        accel = remove_turn_acceleration(accel, gyro, speed)
     if source == "accel":
         return accel_to_pitch_roll(accel), None
     if source != "dukf" or dukf is None:
@@ -58,6 +62,22 @@ def imu_attitude(
     dt[0] = 1.0  # unused: sample 0 initialises the filter
     mean, cov, _ = dukf.filter(gyro.to(dtype)[None], accel.to(dtype)[None], dt[None])
     return mean[0], cov[0]
+
+
+def imu_speeds(imu_stamps: Tensor, frame_stamps: Tensor, motion: Tensor) -> Tensor:
+    """Forward speed each IMU sample sees online: that of the latest VO step whose frame is strictly
+    earlier (the engine processes a frame before fusing the next later IMU sample); 0 before.
+
+    Args:
+        imu_stamps: ``(N,)``; frame_stamps: ``(F,)``; motion: ``(F-1, 3)`` estimated steps.
+
+    Returns:
+        ``(N,)`` m/s, detached.
+    """
+    dt = (frame_stamps[1:] - frame_stamps[:-1]).to(motion.dtype)
+    frame_speed = torch.cat([motion.new_zeros(1), motion[:, 0].detach() / dt])  # (F,): speed known at frame k
+    k = torch.searchsorted(frame_stamps.contiguous(), imu_stamps.contiguous(), right=False) - 1
+    return torch.where(k >= 0, frame_speed[k.clamp_min(0)], torch.zeros_like(frame_speed[0])).to(torch.float64)
 
 
 def road_attitude_at_frames(
@@ -128,6 +148,7 @@ def run_sequence(
     source: str = "dukf",
     given_pitch_roll_road: Tensor | None = None,
     mounting_attitude: tuple[float, float] = (0.0, 0.0),
+    turn_compensation: bool = False,
 ) -> SequenceResult:
     """BEVO over a recording; differentiable in the DUKF's O and Q.
 
@@ -139,6 +160,9 @@ def run_sequence(
             ground truth: the "w/ GT" ablation; used as is, without ``mounting_attitude``).
         mounting_attitude: static (pitch, roll) of the base on the road, added to the filtered
             road-relative attitude (as :class:`~bevo_ros.core.odometry.BevoOdometry` does).
+        turn_compensation: remove speed x turn rate from the accelerometer like the engine does;
+            the speeds come from a first, gradient-free pass (online they come from the previous
+            frame's estimate, so the two differ only by what that first pass changes).
     """
     if source not in ATTITUDE_SOURCES:
         raise ValueError(f"source must be one of {ATTITUDE_SOURCES}, got {source!r}")
@@ -150,11 +174,22 @@ def run_sequence(
             raise ValueError("source='given' needs given_pitch_roll_road of shape (F, 2)")
         road = given_pitch_roll_road
         gravity = given_pitch_roll_road
-    else:
-        attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source)
-        gravity = attitude[idx]
-        road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
-        road = road + torch.tensor(mounting_attitude, dtype=road.dtype, device=road.device)
+        return _register_frames(images, camera, road, gravity, spec, dpc)
+    speed = None
+    if turn_compensation:
+        with torch.no_grad():
+            first = run_sequence(dukf, camera, spec, dpc, imu_stamps, gyro, accel, frame_stamps, images,
+                                 road_tilt_time_constant, source, None, mounting_attitude, turn_compensation=False)
+        speed = imu_speeds(imu_stamps, frame_stamps, first.motion)
+    attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source, speed)
+    gravity = attitude[idx]
+    road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
+    road = road + torch.tensor(mounting_attitude, dtype=road.dtype, device=road.device)
+    return _register_frames(images, camera, road, gravity, spec, dpc)
+
+
+def _register_frames(images: Tensor, camera: CameraModel, road: Tensor, gravity: Tensor, spec: BevSpec,
+                     dpc: DpcConfig) -> SequenceResult:
     bev, mask = project_frames(images, camera, road.float(), spec)
     reg = register_consecutive(bev, mask, dpc)
     motion = vehicle_motion_from_registration(reg.angle, reg.shift, spec)

@@ -1,0 +1,726 @@
+"""End-to-end training of the DUKF's O and Q (paper Sec. 2.4), and the sequence passes the
+training and ablation tools share.
+
+What is learned: the DUKF's four log-variances (``log_process_var`` = O per axis, a density in
+rad^2/s multiplied by each IMU dt; ``log_measurement_var`` = Q per axis, rad^2), with Adam,
+supervised only by the frame-rate ground-truth poses through BEV projection and phase correlation:
+the loss is the KL divergence between the correlation distributions and Gaussian-blurred one-hot
+targets at the ground-truth rotation and shift (:func:`bevo_ros.core.loss.registration_kl_loss`).
+
+Things worth knowing (each measured, see ``tools/train_from_bag.py --help`` and the tests):
+
+* **Loss temperature.** The phase correlation turns correlations into distributions with a
+  softmax temperature (``DpcConfig.*_temperature``). At the engine's 0.02 the distributions are
+  so sharp that the KL loss *rewards* a wrong attitude: a blurred BEV gives a flat, low-loss
+  distribution while a sharp one a pixel off is penalised heavily (on a synthetic bumpy drive the
+  ground-truth attitude scored the *worst* loss of all variants). The temperature changes only
+  the distributions, never the point estimates (argmax + local peak fit), so training uses its
+  own, calibrated temperature (``LOSS_TEMPERATURE`` = 0.1, where the loss ranks the variants as
+  their pose errors do) and the learned O/Q act on the engine unchanged.
+* **Identifiability.** Multiplying O, Q (and the initial covariance, which is Q) by the same
+  factor leaves the filtered mean unchanged, so the odometry loss only sees the ratio O/Q per
+  axis; the common scale stays where initialisation put it.
+* **Failed registrations.** A BEV with no valid pixel (the attitude tilts the camera off the
+  ground, e.g. raw accelerometer angles on a bumpy drive) cannot be registered: those pairs get
+  zero motion and the loss of a uniform (know-nothing) distribution, and are counted.
+* **Memory/time.** The DUKF runs once per step over the recording's IMU from its start (the
+  filter needs its history); BEV + DPC run in windows of ``window`` frames whose gradients are
+  accumulated into the attitude and then pushed through the DUKF once, so the gradient is exact
+  and memory is bounded by the window.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from bevo_ros.config import BevoConfig, LearnedParams, atomic_write_text, provenance, save_learned_params
+from bevo_ros.core.dukf import DUKF
+from bevo_ros.core.geometry import BevSpec, wrap_angle
+from bevo_ros.core.loss import registration_kl_loss
+from bevo_ros.core.motion import vehicle_motion_from_registration
+from bevo_ros.core.phase_correlation import DpcConfig, Prepared, angle_bins, prepare, register_prepared, \
+    shift_bins, soft_weight
+from bevo_ros.core.sequence import frame_imu_indices, imu_attitude, project_frames, registration_targets, \
+    road_attitude_at_frames
+from bevo_ros.datasets import Sequence, split_frames
+
+Tensor = torch.Tensor
+
+LOSS_TEMPERATURE = 0.1
+SIGMA_ANGLE = math.radians(1.0)  # target blur, rad
+SIGMA_SHIFT = 1.0  # target blur, BEV pixels
+MIN_BEV_WEIGHT = 1e-6  # the engine's own test (phase_correlation.prepare) for "no valid pixel"
+CHECKPOINT_FORMAT = "bevo_training_checkpoint/1"
+LOG_VAR_LIMIT = 60.0  # |log variance| beyond this (var < 1e-26 or > 1e26) counts as divergence
+
+
+class TrainingDiverged(RuntimeError):
+    """NaN/inf loss or gradient, or variances driven out of any sane range."""
+
+
+# --------------------------------------------------------------------------- engine pieces
+def bev_spec(config: BevoConfig) -> BevSpec:
+    return BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+
+
+def loss_dpc(temperature: float = LOSS_TEMPERATURE, base: DpcConfig | None = None) -> DpcConfig:
+    """The engine's phase-correlation settings with the loss temperature (point estimates unchanged)."""
+    base = base or DpcConfig()
+    return dataclasses.replace(base, rotation_temperature=float(temperature),
+                               translation_temperature=float(temperature))
+
+
+def make_dukf(process_var, measurement_var, motion_model: str = "euler", device: str | torch.device = "cpu") -> DUKF:
+    """A float64 DUKF (as the engine runs it) on ``device``."""
+    return DUKF(process_var=tuple(float(v) for v in process_var),
+                measurement_var=tuple(float(v) for v in measurement_var),
+                motion_model=motion_model).double().to(device)
+
+
+def variances(dukf: DUKF) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``(O, Q)`` as plain floats."""
+    o = dukf.process_var.detach().cpu().tolist()
+    q = dukf.measurement_var.detach().cpu().tolist()
+    return (o[0], o[1]), (q[0], q[1])
+
+
+def resolve_device(device: str, log: Callable[[str], None] | None = None) -> torch.device:
+    """``cpu``/``cuda[:n]``; CUDA asked but absent falls back to CPU with a warning."""
+    if str(device).startswith("cuda"):
+        if torch.cuda.is_available():
+            return torch.device(device)
+        msg = f"device {device!r} asked for but CUDA is not available: training on the CPU"
+        warnings.warn(msg, RuntimeWarning, stacklevel=2)
+        if log is not None:
+            log("warning: " + msg)
+        return torch.device("cpu")
+    if str(device) != "cpu":
+        raise ValueError(f"device must be 'cpu' or 'cuda[:n]', got {device!r}")
+    return torch.device("cpu")
+
+
+# --------------------------------------------------------------------------- one pass over a recording
+@dataclass
+class PassResult:
+    """BEVO over a recording (or a part of one), with the loss and per-frame errors vs. ground truth.
+
+    ``loss`` is the mean KL per frame pair (failed pairs at the uniform distribution's KL); NaN
+    without ground truth. Errors are per pair: translation (m) and |yaw| (rad).
+    """
+
+    loss: float
+    motion: Tensor  # (P, 3) float64 cpu, zero where failed
+    failed: Tensor  # (P,) bool
+    pitch_roll_gravity: Tensor  # (F, 2)
+    pitch_roll_road: Tensor  # (F, 2)
+    gt_motion: Tensor | None = None  # (P, 3)
+    trans_err: Tensor | None = None  # (P,) m
+    yaw_err: Tensor | None = None  # (P,) rad
+
+    @property
+    def pairs(self) -> int:
+        return int(self.motion.shape[0])
+
+    @property
+    def n_failed(self) -> int:
+        return int(self.failed.sum())
+
+    @property
+    def mean_trans_err(self) -> float:
+        return float(self.trans_err.mean()) if self.trans_err is not None and self.pairs else float("nan")
+
+    @property
+    def mean_yaw_err_deg(self) -> float:
+        return math.degrees(float(self.yaw_err.mean())) if self.yaw_err is not None and self.pairs else float("nan")
+
+
+def frame_attitudes(dukf: DUKF | None, imu_stamps: Tensor, gyro: Tensor, accel: Tensor, frame_stamps: Tensor,
+                    road_tilt_time_constant: float, source: str = "dukf",
+                    given_pitch_roll_road: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Gravity- and road-referenced ``[pitch, roll]`` at the frames, ``(F, 2)`` each, exactly as
+    :func:`bevo_ros.core.sequence.run_sequence` computes them (differentiable for ``"dukf"``)."""
+    if source == "given":
+        if given_pitch_roll_road is None or given_pitch_roll_road.shape != (frame_stamps.shape[0], 2):
+            raise ValueError("source='given' needs given_pitch_roll_road of shape (F, 2)")
+        g = given_pitch_roll_road.to(frame_stamps.device, torch.float64)
+        return g, g
+    idx = frame_imu_indices(imu_stamps, frame_stamps)
+    if bool((idx < 0).any()):
+        raise ValueError("every frame needs an IMU sample at or before its stamp; trim the frames")
+    attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source)
+    road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
+    return attitude[idx], road
+
+
+def _take(p: Prepared, index: Tensor) -> Prepared:
+    return Prepared(**{f.name: getattr(p, f.name)[index] for f in dataclasses.fields(p)})
+
+
+def _uniform_kl(target_angle: Tensor, target_shift: Tensor, dpc: DpcConfig, size: int,
+                sigma_angle: float, sigma_shift: float) -> Tensor:
+    """Summed KL of the targets against uniform distributions: the loss of a failed pair."""
+    n = target_angle.shape[0]
+    a_bins = angle_bins(dpc, torch.float64, target_angle.device)
+    s_bins = shift_bins(size, torch.float64, target_angle.device)
+    fake = SimpleNamespace(
+        rotation_log_prob=torch.full((n, a_bins.shape[0]), -math.log(a_bins.shape[0]), dtype=torch.float64,
+                                     device=target_angle.device),
+        rotation_bins=a_bins,
+        translation_log_prob=torch.full((n, size, size), -2.0 * math.log(size), dtype=torch.float64,
+                                        device=target_angle.device),
+        translation_bins=s_bins,
+    )
+    return registration_kl_loss(fake, target_angle.double(), target_shift.double(), sigma_angle, sigma_shift) * n
+
+
+def sequence_pass(
+    dukf: DUKF | None,
+    seq: Sequence,
+    config: BevoConfig,
+    *,
+    source: str = "dukf",
+    given_pitch_roll_road: Tensor | None = None,
+    backward: bool = False,
+    window: int = 32,
+    temperature: float = LOSS_TEMPERATURE,
+    sigma_angle: float = SIGMA_ANGLE,
+    sigma_shift: float = SIGMA_SHIFT,
+    device: str | torch.device = "cpu",
+    dpc: DpcConfig | None = None,
+) -> PassResult:
+    """BEVO over ``seq`` (its frames; its IMU from the recording start), windowed.
+
+    With ``backward=True`` the gradient of ``loss`` (mean over pairs) w.r.t. the DUKF's parameters
+    is accumulated into their ``.grad`` (call ``zero_grad`` first). Point estimates are those of
+    :func:`~bevo_ros.core.sequence.run_sequence` (the engine's); only the distributions the loss
+    reads use ``temperature``.
+    """
+    if len(seq) < 2:
+        raise ValueError(f"{seq.name or 'sequence'}: needs at least 2 frames, got {len(seq)}")
+    if window < 1:
+        raise ValueError(f"window must be >= 1 frame pair, got {window}")
+    dev = torch.device(device)
+    spec = bev_spec(config)
+    dpc = dpc if dpc is not None else loss_dpc(temperature)
+    n_pairs = len(seq) - 1
+    need_grad = backward and source == "dukf" and dukf is not None
+    with torch.set_grad_enabled(need_grad):
+        gravity, road = frame_attitudes(
+            dukf, seq.imu_stamps.to(dev), seq.gyro.to(dev), seq.accel.to(dev), seq.frame_stamps.to(dev),
+            config.filter.road_tilt_time_constant, source,
+            None if given_pitch_roll_road is None else given_pitch_roll_road.to(dev))
+    road_leaf = road.detach().requires_grad_(need_grad)
+    gt = seq.gt_motion() if seq.gt_poses is not None else None
+    targets = registration_targets(gt.to(dev), spec) if gt is not None else None
+
+    motion = torch.zeros(n_pairs, 3, dtype=torch.float64)
+    failed = torch.zeros(n_pairs, dtype=torch.bool)
+    loss_sum = 0.0
+    for w0 in range(0, n_pairs, window):
+        w1 = min(w0 + window, n_pairs)  # pairs w0..w1-1 = frames w0..w1
+        images = seq.images[w0:w1 + 1].to(dev)
+        with torch.set_grad_enabled(need_grad):
+            bev, mask = project_frames(images, seq.camera, road_leaf[w0:w1 + 1].float(), spec)
+            valid = soft_weight(mask, dpc).sum(dim=(-1, -2)) > MIN_BEV_WEIGHT  # (frames,)
+            ok = valid[:-1] & valid[1:]
+            n_ok = int(ok.sum())
+            if n_ok:
+                pos = torch.cumsum(valid.long(), 0) - 1
+                prepared = prepare(bev[valid], mask[valid], dpc)
+                reg = register_prepared(_take(prepared, pos[:-1][ok]), _take(prepared, pos[1:][ok]), dpc)
+                m = vehicle_motion_from_registration(reg.angle, reg.shift, spec)
+                sel = torch.arange(w0, w1)[ok.cpu()]
+                motion[sel] = m.detach().double().cpu()
+                if targets is not None:
+                    ta, ts = targets[0][w0:w1][ok], targets[1][w0:w1][ok]
+                    loss = registration_kl_loss(reg, ta, ts, sigma_angle, sigma_shift) * n_ok
+                    if need_grad and loss.requires_grad:
+                        (loss / n_pairs).backward()
+                    loss_sum += float(loss.detach())
+            if n_ok < w1 - w0:
+                bad = ~ok
+                failed[torch.arange(w0, w1)[bad.cpu()]] = True
+                if targets is not None:
+                    loss_sum += float(_uniform_kl(targets[0][w0:w1][bad], targets[1][w0:w1][bad], dpc,
+                                                  spec.size, sigma_angle, sigma_shift))
+    if need_grad and road.requires_grad and road_leaf.grad is not None:
+        road.backward(road_leaf.grad)
+
+    result = PassResult(
+        loss=loss_sum / n_pairs if targets is not None else float("nan"),
+        motion=motion, failed=failed,
+        pitch_roll_gravity=gravity.detach().double().cpu(), pitch_roll_road=road.detach().double().cpu(),
+    )
+    if gt is not None:
+        gt = gt.double().cpu()
+        result.gt_motion = gt
+        result.trans_err = torch.linalg.norm(motion[:, :2] - gt[:, :2], dim=-1)
+        result.yaw_err = wrap_angle(motion[:, 2] - gt[:, 2]).abs()
+    return result
+
+
+# --------------------------------------------------------------------------- initialisation
+def median_imu_dt(seqs: list[Sequence]) -> float:
+    dts = torch.cat([torch.diff(s.imu_stamps.double()) for s in seqs if s.imu_stamps.numel() > 1])
+    if dts.numel() == 0:
+        raise ValueError("no IMU samples to infer the IMU rate from")
+    return float(dts.median())
+
+
+def random_init(seed: int | None, imu_dt: float) -> tuple[tuple[float, float], tuple[float, float], list[float]]:
+    """The paper's initialisation: O and Q uniform in [0, 1].
+
+    The paper's O is a variance *per IMU step* (rad^2); ours is a density (rad^2/s) times each dt,
+    so a per-step draw ``u`` maps to ``O = u / imu_dt`` at the recording's median IMU period. Q is
+    per measurement in both (rad^2). Draws are floored at 1e-6 (log-parameters).
+
+    Returns:
+        ``(O, Q, [u_O_pitch, u_O_roll, u_Q_pitch, u_Q_roll])``.
+    """
+    u = np.maximum(np.random.default_rng(seed).uniform(0.0, 1.0, 4), 1e-6)
+    return (u[0] / imu_dt, u[1] / imu_dt), (u[2], u[3]), [float(v) for v in u]
+
+
+# --------------------------------------------------------------------------- training
+@dataclass
+class TrainOptions:
+    epochs: int = 20
+    lr: float = 0.3
+    patience: int = 5  # epochs without a better validation loss before stopping (0 = never)
+    split: str = "3/4"
+    steps_per_bag: int = 8  # Adam steps per bag per epoch: its training part is cut into this many chunks
+    window: int = 32  # frame pairs per BEV/DPC chunk (memory bound)
+    temperature: float = LOSS_TEMPERATURE
+    sigma_angle: float = SIGMA_ANGLE
+    sigma_shift: float = SIGMA_SHIFT
+    seed: int | None = 0
+    init: tuple[float, float, float, float] | None = None  # O_pitch O_roll (rad^2/s) Q_pitch Q_roll (rad^2)
+    # Coarse search before Adam: O scaled by 10^0, 10^-1, ... (this many decades) at fixed Q, the
+    # lowest training loss wins. None = on (9) for the random init, off for a given --init.
+    init_search: int | None = None
+    device: str = "cpu"
+
+    def check(self) -> None:
+        if self.epochs < 0:
+            raise ValueError(f"epochs must be >= 0, got {self.epochs}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+        if self.patience < 0 or self.window < 1 or self.steps_per_bag < 1:
+            raise ValueError("need patience >= 0, window >= 1 and steps_per_bag >= 1")
+        if not (self.temperature > 0 and self.sigma_angle > 0 and self.sigma_shift > 0):
+            raise ValueError("temperature and target blurs must be > 0")
+        if self.init is not None:
+            if len(self.init) != 4 or not all(math.isfinite(v) and v > 0 for v in self.init):
+                raise ValueError(f"init needs 4 finite values > 0 (O1 O2 Q1 Q2), got {self.init}")
+        if self.init_search is not None and self.init_search < 0:
+            raise ValueError(f"init_search must be >= 0, got {self.init_search}")
+        split_frames(10, self.split)  # validates the name
+
+    def search_decades(self) -> int:
+        if self.init_search is not None:
+            return self.init_search
+        return 0 if self.init is not None else 9
+
+
+@dataclass
+class Evaluation:
+    loss: float
+    trans_m: float
+    yaw_deg: float
+    pairs: int
+    failed: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"loss": _f(self.loss), "rpe_trans_m": _f(self.trans_m), "rpe_yaw_deg": _f(self.yaw_deg),
+                "pairs": self.pairs, "failed_pairs": self.failed}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Evaluation":
+        nan = float("nan")
+        return cls(d.get("loss") if d.get("loss") is not None else nan,
+                   d.get("rpe_trans_m") if d.get("rpe_trans_m") is not None else nan,
+                   d.get("rpe_yaw_deg") if d.get("rpe_yaw_deg") is not None else nan,
+                   int(d.get("pairs", 0)), int(d.get("failed_pairs", 0)))
+
+
+@dataclass
+class TrainResult:
+    status: str  # "completed", "early-stopped" or "diverged"
+    message: str
+    learned: LearnedParams  # the best validated O/Q with provenance
+    last_good: tuple[tuple[float, float], tuple[float, float]]
+    best_epoch: int
+    epochs_run: int
+    before: Evaluation
+    after: Evaluation
+    history: list[dict[str, Any]] = field(default_factory=list)
+    seconds_per_epoch: float = float("nan")
+
+
+def _f(v: float) -> float | None:
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+def _split_parts(seqs: list[Sequence], split: str, steps_per_bag: int):
+    """Per bag: the training steps' frame ranges (consecutive chunks sharing their boundary frame,
+    so every training pair is used once) and the validation part."""
+    steps, vals = [], []
+    for s in seqs:
+        (a, b), (c, d) = split_frames(len(s), split)
+        n_pairs = b - a - 1
+        k = max(1, min(steps_per_bag, n_pairs))
+        edges = [a + round(i * n_pairs / k) for i in range(k + 1)]
+        steps += [(s, lo, hi + 1) for lo, hi in zip(edges[:-1], edges[1:]) if hi > lo]
+        vals.append((s, c, d))
+    return steps, vals
+
+
+def training_loss(dukf: DUKF, steps, config: BevoConfig, options: TrainOptions, device) -> float:
+    """Mean KL per pair over the training parts (no gradient)."""
+    total, pairs = 0.0, 0
+    for s, a, b in steps:
+        r = sequence_pass(dukf, s.frames(a, b), config, window=options.window, temperature=options.temperature,
+                          sigma_angle=options.sigma_angle, sigma_shift=options.sigma_shift, device=device)
+        total += r.loss * r.pairs
+        pairs += r.pairs
+    return total / pairs
+
+
+def evaluate_parts(dukf: DUKF, parts, config: BevoConfig, options: TrainOptions, device) -> Evaluation:
+    losses, trans, yaw, failed = [], [], [], 0
+    for s, c, d in parts:
+        r = sequence_pass(dukf, s.frames(c, d), config, window=options.window, temperature=options.temperature,
+                          sigma_angle=options.sigma_angle, sigma_shift=options.sigma_shift, device=device)
+        losses.append(r.loss * r.pairs)
+        trans.append(r.trans_err)
+        yaw.append(r.yaw_err)
+        failed += r.n_failed
+    pairs = sum(int(t.numel()) for t in trans)
+    return Evaluation(sum(losses) / pairs, float(torch.cat(trans).mean()),
+                      math.degrees(float(torch.cat(yaw).mean())), pairs, failed)
+
+
+def _finite_params(dukf: DUKF) -> str | None:
+    for name, p in (("O", dukf.log_process_var), ("Q", dukf.log_measurement_var)):
+        v = p.detach()
+        if not bool(torch.isfinite(v).all()):
+            return f"log {name} became non-finite ({v.tolist()})"
+        if bool((v.abs() > LOG_VAR_LIMIT).any()):
+            return f"{name} left the sane range (variances {v.exp().tolist()})"
+    return None
+
+
+def _adam_state_to_plain(opt: torch.optim.Adam, params: list[Tensor]) -> dict[str, Any]:
+    out = {}
+    for name, p in zip(("log_process_var", "log_measurement_var"), params):
+        st = opt.state.get(p)
+        if st:
+            out[name] = {"step": float(st["step"]), "exp_avg": [float(v) for v in st["exp_avg"].tolist()],
+                         "exp_avg_sq": [float(v) for v in st["exp_avg_sq"].tolist()]}
+    return out
+
+
+def _adam_state_from_plain(opt: torch.optim.Adam, params: list[Tensor], plain: dict[str, Any]) -> None:
+    for name, p in zip(("log_process_var", "log_measurement_var"), params):
+        st = plain.get(name)
+        if st:
+            opt.state[p] = {"step": torch.tensor(float(st["step"]), dtype=torch.float32),
+                            "exp_avg": torch.tensor(st["exp_avg"], dtype=p.dtype, device=p.device),
+                            "exp_avg_sq": torch.tensor(st["exp_avg_sq"], dtype=p.dtype, device=p.device)}
+
+
+def _pair(v) -> list[float]:
+    return [float(v[0]), float(v[1])]
+
+
+def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
+    """Human-readable YAML checkpoint, written atomically (no pickle)."""
+    import yaml
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = ("# BEVO training checkpoint (tools/train_from_bag.py --resume THIS). Plain numbers only.\n"
+              "# O = process noise density (rad^2/s), Q = measurement noise variance (rad^2), [pitch, roll].\n")
+    atomic_write_text(path, header + yaml.safe_dump(state, sort_keys=False, default_flow_style=None))
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    import yaml
+
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"checkpoint not found: {path}") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"checkpoint {path} is not valid YAML: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a BEVO training checkpoint (format {CHECKPOINT_FORMAT!r})")
+    for key in ("epoch", "current", "best"):
+        if key not in doc:
+            raise ValueError(f"checkpoint {path}: missing '{key}'")
+    for key in ("current", "best"):
+        for sub in ("process_noise_density", "measurement_noise_variance"):
+            vals = doc[key].get(sub) if isinstance(doc[key], dict) else None
+            if not (isinstance(vals, list) and len(vals) == 2 and all(
+                    isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in vals)):
+                raise ValueError(f"checkpoint {path}: '{key}.{sub}' must be 2 finite numbers > 0")
+    return doc
+
+
+def train(
+    seqs: list[Sequence],
+    config: BevoConfig,
+    options: TrainOptions,
+    *,
+    checkpoint: str | Path | None = None,
+    resume: str | Path | None = None,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+    extra_info: dict[str, Any] | None = None,
+) -> TrainResult:
+    """Train O and Q on the training parts of ``seqs``; validate each epoch on the held-out parts.
+
+    Every step runs the DUKF (from the recording start), BEV and DPC over one of the
+    ``steps_per_bag`` chunks of a bag's training part and takes one Adam step on the four
+    log-variances. Returns the best validated
+    parameters (``learned``), also when the run diverges (``status == "diverged"``).
+    """
+    options.check()
+    if not seqs:
+        raise ValueError("no recordings to train on")
+    for s in seqs:
+        if s.gt_poses is None:
+            raise ValueError(f"{s.name}: no ground truth; training needs /ground_truth/odometry")
+        if len(s) < 4:
+            raise ValueError(f"{s.name}: {len(s)} frames; need at least 4 to split train/validation")
+    device = resolve_device(options.device, log)
+    steps, vals = _split_parts(seqs, options.split, options.steps_per_bag)
+    imu_dt = median_imu_dt(seqs)
+
+    state: dict[str, Any] | None = load_checkpoint(resume) if resume else None
+    init_info: dict[str, Any]
+    if state is not None:
+        o, q = state["current"]["process_noise_density"], state["current"]["measurement_noise_variance"]
+        init_info = state.get("init", {})
+        names = [s.name for s in seqs]
+        if state.get("bags") and state["bags"] != names:
+            log(f"warning: resuming with bags {names}, checkpoint was trained on {state['bags']}")
+        if state.get("split") and state["split"] != options.split:
+            log(f"warning: resuming with split {options.split!r}, checkpoint used {state['split']!r}")
+    elif options.init is not None:
+        o, q = options.init[:2], options.init[2:]
+        init_info = {"mode": "given (--init)", "process_noise_density": _pair(o), "measurement_noise_variance": _pair(q)}
+    else:
+        o, q, u = random_init(options.seed, imu_dt)
+        init_info = {"mode": "paper: uniform in [0, 1], O per IMU step (density = draw / IMU period), Q per sample",
+                     "seed": options.seed, "imu_period_s": imu_dt, "draws_per_step": u,
+                     "process_noise_density": _pair(o), "measurement_noise_variance": _pair(q)}
+    decades = options.search_decades() if state is None else 0
+    if decades:
+        o, q = _init_search(o, q, decades, steps, config, options, device, log, init_info)
+    dukf = make_dukf(o, q, config.filter.motion_model, device)
+    params = [dukf.log_process_var, dukf.log_measurement_var]
+    opt = torch.optim.Adam(params, lr=options.lr)
+
+    if state is not None:
+        _adam_state_from_plain(opt, params, state.get("adam") or {})
+        start_epoch = int(state["epoch"]) + 1
+        best = state["best"]
+        best_loss = float(best.get("val_loss", math.inf))
+        best_params = (tuple(best["process_noise_density"]), tuple(best["measurement_noise_variance"]))
+        best_epoch = int(best.get("epoch", 0))
+        bad_epochs = int(state.get("bad_epochs", 0))
+        history = list(state.get("history", []))
+        before = Evaluation.from_dict(state["before"]) if state.get("before") else None
+        log(f"resumed from {resume}: epoch {start_epoch - 1} done, best val loss {best_loss:.4f} at epoch {best_epoch}")
+    else:
+        start_epoch, bad_epochs, history, before = 1, 0, [], None
+    if before is None or not math.isfinite(before.loss):
+        with torch.no_grad():
+            before = evaluate_parts(dukf, vals, config, options, device)
+        log(f"initial O {_fmt(variances(dukf)[0])} rad^2/s, Q {_fmt(variances(dukf)[1])} rad^2: "
+            f"val loss {before.loss:.4f}, RPE {before.trans_m:.4f} m / {before.yaw_deg:.4f} deg"
+            + (f", {before.failed} failed pairs" if before.failed else ""))
+    if state is None:
+        best_loss, best_params, best_epoch = before.loss, variances(dukf), 0
+        if not math.isfinite(best_loss):
+            raise TrainingDiverged(f"the initial validation loss is {best_loss}; check the data and --init")
+    after = before
+    last_good = variances(dukf)
+    status, message = "completed", ""
+    epoch = start_epoch - 1
+    epoch_times: list[float] = []
+
+    def snapshot() -> dict[str, Any]:
+        o_, q_ = last_good
+        return {
+            "format": CHECKPOINT_FORMAT, "epoch": epoch,
+            "bags": [s.name for s in seqs], "split": options.split,
+            "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(options).items()},
+            "init": init_info,
+            "current": {"process_noise_density": _pair(o_), "measurement_noise_variance": _pair(q_)},
+            "best": {"epoch": best_epoch, "val_loss": _f(best_loss), "process_noise_density": _pair(best_params[0]),
+                     "measurement_noise_variance": _pair(best_params[1])},
+            "bad_epochs": bad_epochs,
+            "before": before.as_dict(),
+            "adam": _adam_state_to_plain(opt, params),
+            "history": history,
+        }
+
+    try:
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover - tqdm is a dependency
+        tqdm = None
+    try:
+        for epoch in range(start_epoch, options.epochs + 1):
+            t0 = time.perf_counter()
+            bar = tqdm(total=len(steps), desc=f"epoch {epoch}/{options.epochs}", unit="step", leave=False,
+                       disable=not progress or tqdm is None, file=sys.stderr) if tqdm else None
+            train_losses, train_pairs = [], 0
+            for k, (s, a, b) in enumerate(steps):
+                opt.zero_grad(set_to_none=True)
+                try:
+                    r = sequence_pass(dukf, s.frames(a, b), config, backward=True, window=options.window,
+                                      temperature=options.temperature, sigma_angle=options.sigma_angle,
+                                      sigma_shift=options.sigma_shift, device=device)
+                except ValueError as exc:
+                    if "non-finite" in str(exc) or "NaN" in str(exc):
+                        raise TrainingDiverged(f"epoch {epoch} step {k + 1}: {exc}") from exc
+                    raise
+                where = f"epoch {epoch} step {k + 1} ({s.name} frames {a}..{b - 1})"
+                if not math.isfinite(r.loss):
+                    raise TrainingDiverged(f"{where}: loss is {r.loss}")
+                grads = [p.grad for p in params]
+                if any(g is None for g in grads):
+                    raise RuntimeError(f"{where}: the loss does not reach O and Q (no gradient)")
+                if not all(bool(torch.isfinite(g).all()) for g in grads):
+                    raise TrainingDiverged(f"{where}: gradient is not finite ({[g.tolist() for g in grads]})")
+                last_good = variances(dukf)
+                opt.step()
+                bad = _finite_params(dukf)
+                if bad:
+                    raise TrainingDiverged(f"{where}: after the step {bad}")
+                train_losses.append(r.loss * r.pairs)
+                train_pairs += r.pairs
+                if bar is not None:
+                    bar.set_postfix(loss=f"{r.loss:.4f}")
+                    bar.update(1)
+            if bar is not None:
+                bar.close()
+            with torch.no_grad():
+                val = evaluate_parts(dukf, vals, config, options, device)
+            if not math.isfinite(val.loss):
+                raise TrainingDiverged(f"epoch {epoch}: validation loss is {val.loss}")
+            last_good = variances(dukf)
+            after = val
+            seconds = time.perf_counter() - t0
+            epoch_times.append(seconds)
+            improved = val.loss < best_loss - 1e-6
+            if improved:
+                best_loss, best_params, best_epoch, bad_epochs = val.loss, last_good, epoch, 0
+            else:
+                bad_epochs += 1
+            o_, q_ = last_good
+            history.append({"epoch": epoch, "train_loss": _f(sum(train_losses) / max(train_pairs, 1)),
+                            "val_loss": _f(val.loss), "val_rpe_trans_m": _f(val.trans_m),
+                            "val_rpe_yaw_deg": _f(val.yaw_deg), "val_failed_pairs": val.failed,
+                            "process_noise_density": _pair(o_), "measurement_noise_variance": _pair(q_),
+                            "seconds": round(seconds, 3)})
+            log(f"epoch {epoch}/{options.epochs}: train loss {history[-1]['train_loss']:.4f}, val loss {val.loss:.4f}, "
+                f"val RPE {val.trans_m:.4f} m / {val.yaw_deg:.4f} deg, O {_fmt(o_)}, Q {_fmt(q_)}, {seconds:.1f} s"
+                + (" *best*" if improved else ""))
+            if checkpoint:
+                save_checkpoint(checkpoint, snapshot())
+            if options.patience and bad_epochs >= options.patience:
+                status = "early-stopped"
+                message = f"no better validation loss for {bad_epochs} epochs: stopped after epoch {epoch}"
+                log(message)
+                break
+    except TrainingDiverged as exc:
+        status = "diverged"
+        message = (f"training diverged: {exc}. Stopped; the last good parameters (O {_fmt(last_good[0])}, "
+                   f"Q {_fmt(last_good[1])}) are kept and the best validated ones (epoch {best_epoch}) written")
+        log(message)
+        with torch.no_grad():
+            dukf.log_process_var.copy_(torch.tensor(last_good[0], dtype=torch.float64).log())
+            dukf.log_measurement_var.copy_(torch.tensor(last_good[1], dtype=torch.float64).log())
+        epoch = max(epoch - 1, start_epoch - 1)  # the diverged epoch did not complete
+        if checkpoint:
+            save_checkpoint(checkpoint, snapshot() | {"diverged": str(exc)})
+
+    # "after" = the written (best validated) parameters on the validation parts.
+    if best_epoch == 0:
+        after = before
+    elif not history or best_epoch != history[-1]["epoch"] or status == "diverged":
+        with torch.no_grad():
+            probe = make_dukf(best_params[0], best_params[1], config.filter.motion_model, device)
+            after = evaluate_parts(probe, vals, config, options, device)
+    info = {
+        "trainer": "tools/train_from_bag.py (bevo_ros.training)",
+        "training_bags": [s.name for s in seqs],
+        "split": options.split,
+        "status": status,
+        "epochs_run": len(history),
+        "best_epoch": best_epoch,
+        "lr": options.lr,
+        "loss": {"kind": "KL(target || DPC distribution), rotation + translation", "temperature": options.temperature,
+                 "sigma_angle_deg": math.degrees(options.sigma_angle), "sigma_shift_px": options.sigma_shift},
+        "init": init_info,
+        "validation_before": before.as_dict(),
+        "validation_after": after.as_dict(),
+        "seconds_per_epoch": _f(float(np.mean(epoch_times))) if epoch_times else None,
+    }
+    if message:
+        info["message"] = message
+    if extra_info:
+        info.update(extra_info)
+    learned = LearnedParams(tuple(best_params[0]), tuple(best_params[1]), provenance(info))
+    return TrainResult(status, message, learned, last_good, best_epoch, len(history), before, after, history,
+                       float(np.mean(epoch_times)) if epoch_times else float("nan"))
+
+
+def _init_search(o, q, decades, steps, config, options, device, log, init_info):
+    """Coarse search over the O/Q ratio (the only thing the odometry loss sees): O times 10^-k,
+    k = 0..decades-1, at fixed Q; the lowest training loss is where Adam starts."""
+    tried = []
+    for k in range(decades):
+        ok = (o[0] * 10.0 ** -k, o[1] * 10.0 ** -k)
+        with torch.no_grad():
+            loss = training_loss(make_dukf(ok, q, config.filter.motion_model, device), steps, config, options, device)
+        tried.append({"process_noise_density": _pair(ok), "train_loss": _f(loss)})
+    finite = [t for t in tried if t["train_loss"] is not None]
+    if not finite:
+        raise TrainingDiverged("every initial O/Q of the coarse search gave a non-finite loss")
+    best = min(finite, key=lambda t: t["train_loss"])
+    log("init search (O x 10^-k at fixed Q): " + ", ".join(
+        f"{t['process_noise_density'][0]:.3g}: {t['train_loss']:.4f}" if t["train_loss"] is not None else "nan"
+        for t in tried) + f" -> start at O {_fmt(best['process_noise_density'])}")
+    init_info["search"] = {"rule": "O x 10^-k, k = 0..%d, Q fixed; lowest training loss" % (decades - 1),
+                           "tried": tried, "chosen": best["process_noise_density"]}
+    return tuple(best["process_noise_density"]), q
+
+
+def _fmt(pair) -> str:
+    return "[" + ", ".join(f"{v:.3g}" for v in pair) + "]"
+
+
+def write_learned(result: TrainResult, path: str | Path) -> Path:
+    return save_learned_params(result.learned, path)
+
+
+__all__ = [
+    "LOSS_TEMPERATURE", "PassResult", "TrainOptions", "TrainResult", "TrainingDiverged", "Evaluation", "bev_spec",
+    "frame_attitudes", "load_checkpoint", "loss_dpc", "make_dukf", "median_imu_dt", "random_init",
+    "resolve_device", "save_checkpoint", "sequence_pass", "train", "variances", "write_learned",
+]
