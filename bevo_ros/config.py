@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 LEARNED_FORMAT = "bevo_learned_params/1"
@@ -328,7 +329,7 @@ def camera_model(settings: CameraSettings, K=None, width: int | None = None, hei
         raise ConfigError("camera.base_T_camera: rotation part is not orthonormal")
     if settings.height <= 0:
         raise ConfigError(f"camera.height must be > 0 m, got {settings.height}")
-    return CameraModel(torch.as_tensor(K, dtype=torch.float64).reshape(3, 3), int(width), int(height_px), T,
+    return CameraModel(torch.tensor(np.array(K, dtype=np.float64)).reshape(3, 3), int(width), int(height_px), T,
                        float(settings.height))
 
 

@@ -99,7 +99,7 @@ def camera_for_recording(rec: bag.Recording, config: BevoConfig) -> CameraModel:
     return camera_model(config.camera)
 
 
-def _interp_poses(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
+def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
     """GT poses at ``stamps``: exact matches (the usual case) else nearest within 5 ms."""
     idx = np.clip(np.searchsorted(gt_stamps, stamps), 1, len(gt_stamps) - 1)
     left_closer = np.abs(gt_stamps[idx - 1] - stamps) <= np.abs(gt_stamps[idx] - stamps)
@@ -122,7 +122,7 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
     keep = fs >= rec.imu_stamps[0]
     gt = gt_pr = None
     if rec.gt_poses is not None:
-        gt = torch.from_numpy(_interp_poses(fs[keep], rec.gt_stamps, rec.gt_poses))
+        gt = torch.from_numpy(gt_at(fs[keep], rec.gt_stamps, rec.gt_poses))
     elif require_gt:
         raise ValueError(f"{bag_path}: no /ground_truth/odometry messages (needed for training/evaluation)")
     if rec.gt_pitch is not None:

@@ -44,7 +44,7 @@ class NodeSettings:
     imu_topic: str = "/imu/data"
     image_topic: str = "/camera/image_raw"
     camera_info_topic: str = "/camera/camera_info"
-    use_camera_info: bool = False
+    use_camera_info: bool = True
     camera_info_use_p: bool = True
     odometry_topic: str = "/bevo/odometry"
     path_topic: str = "/bevo/path"
@@ -73,7 +73,8 @@ DESCRIPTIONS = {
     "imu_topic": "sensor_msgs/Imu input topic",
     "image_topic": "sensor_msgs/Image input topic (rectified; mono8, rgb8/bgr8/rgba8/bgra8, mono16 accepted)",
     "camera_info_topic": "sensor_msgs/CameraInfo topic (read when use_camera_info is true)",
-    "use_camera_info": "take the intrinsics and image size from CameraInfo instead of the camera.* parameters",
+    "use_camera_info": "subscribe to CameraInfo: its intrinsics and image size replace the camera.* ones "
+                       "(which are used until it arrives; without them the node waits for it)",
     "camera_info_use_p": "use CameraInfo P[:3,:3] (rectified camera matrix) rather than K",
     "odometry_topic": "nav_msgs/Odometry output topic",
     "path_topic": "nav_msgs/Path output topic (published only when subscribed)",
@@ -306,6 +307,8 @@ class BevoNode(Node):
             try:
                 return fn(*args)
             except Exception as exc:  # noqa: BLE001 - the node must survive anything
+                if not self.context.ok():
+                    return None  # shutting down (SIGINT): publishers are gone, nothing to report
                 self._drop("callback_error", f"unexpected {type(exc).__name__} in the {name} callback: {exc}\n"
                                              f"{traceback.format_exc()}", level="error")
                 if name == "reset" and len(args) == 2:  # a service must still answer

@@ -31,6 +31,7 @@ Things worth knowing (each measured, see ``tools/train_from_bag.py --help`` and 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import sys
 import time
@@ -81,10 +82,14 @@ def loss_dpc(temperature: float = LOSS_TEMPERATURE, base: DpcConfig | None = Non
 
 
 def make_dukf(process_var, measurement_var, motion_model: str = "euler", device: str | torch.device = "cpu") -> DUKF:
-    """A float64 DUKF (as the engine runs it) on ``device``."""
-    return DUKF(process_var=tuple(float(v) for v in process_var),
-                measurement_var=tuple(float(v) for v in measurement_var),
-                motion_model=motion_model).double().to(device)
+    """A float64 DUKF (as the engine runs it) on ``device``, its log-variances exact in float64."""
+    o = tuple(float(v) for v in process_var)
+    q = tuple(float(v) for v in measurement_var)
+    dukf = DUKF(process_var=o, measurement_var=q, motion_model=motion_model).double().to(device)
+    with torch.no_grad():  # DUKF creates its parameters in float32: restore full precision
+        dukf.log_process_var.copy_(torch.tensor(o, dtype=torch.float64).log())
+        dukf.log_measurement_var.copy_(torch.tensor(q, dtype=torch.float64).log())
+    return dukf
 
 
 def variances(dukf: DUKF) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -443,10 +448,16 @@ def _pair(v) -> list[float]:
     return [float(v[0]), float(v[1])]
 
 
+def _plain(obj: Any) -> Any:
+    """Plain JSON-like copy (no shared references, tuples as lists): YAML without anchors."""
+    return json.loads(json.dumps(obj))
+
+
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     """Human-readable YAML checkpoint, written atomically (no pickle)."""
     import yaml
 
+    state = _plain(state)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = ("# BEVO training checkpoint (tools/train_from_bag.py --resume THIS). Plain numbers only.\n"
@@ -685,7 +696,7 @@ def train(
         info["message"] = message
     if extra_info:
         info.update(extra_info)
-    learned = LearnedParams(tuple(best_params[0]), tuple(best_params[1]), provenance(info))
+    learned = LearnedParams(tuple(best_params[0]), tuple(best_params[1]), _plain(provenance(info)))
     return TrainResult(status, message, learned, last_good, best_epoch, len(history), before, after, history,
                        float(np.mean(epoch_times)) if epoch_times else float("nan"))
 

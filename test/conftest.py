@@ -25,3 +25,21 @@ def kitti_root() -> Path:
             pytest.fail(msg + "; CI=true requires it")
         pytest.skip(msg)
     return KITTI_ROOT
+
+
+def load_tool(name: str):
+    """Import ``tools/<name>.py`` as a module (tools/ holds scripts, not a package)."""
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses defined in the tool need their module registered
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="session")
+def tool():
+    """``tool("run_bag").main([...])``: the user-facing tools, called in-process."""
+    return load_tool

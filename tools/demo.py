@@ -29,8 +29,9 @@ KITTI = REPO.parent / "shared" / "data" / "kitti"
 
 def tool(name: str):
     """Import tools/<name>.py as a module (tools/ is scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", REPO / "tools" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses defined in the tool need their module registered
     spec.loader.exec_module(module)
     return module
 

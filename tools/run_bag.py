@@ -31,7 +31,7 @@ from bevo_ros.config import BevoConfig, ConfigError, REPO_ROOT, atomic_write_tex
 from bevo_ros.core.geometry import quaternion_from_rpy
 from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
-from bevo_ros.datasets import camera_for_recording
+from bevo_ros.datasets import camera_for_recording, gt_at
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
@@ -120,9 +120,7 @@ def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.Recording, T_ba
                     f"{s.pitch_roll_road[0]:.9f},{s.pitch_roll_road[1]:.9f},{s.peak_quality:.6f}")
     atomic_write_text(paths[2], "\n".join(rows) + "\n")
     if rec.gt_poses is not None:
-        idx = np.searchsorted(rec.gt_stamps_ns, [round(s.stamp * 1e9) for s in steps])
-        idx = np.clip(idx, 0, len(rec.gt_stamps_ns) - 1)
-        gt_cam = camera_trajectory(rec.gt_poses[idx], T_base_cam)
+        gt_cam = camera_trajectory(gt_at(stamps, rec.gt_stamps, rec.gt_poses), T_base_cam)
         paths.append(out / "gt_kitti.txt")
         kitti.write_poses(paths[-1], gt_cam)
     return paths

@@ -218,7 +218,7 @@ class BevoOdometry:
 
     @torch.no_grad()
     def _process(self, stamp: float, img: np.ndarray) -> OdometryStep:
-        image = torch.as_tensor(img, device=self.device)
+        image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
         image = image.to(self.dtype) / 255.0 if image.dtype == torch.uint8 else image.to(self.dtype)
         pr_road = self._pitch_roll_road.to(self.device, self.dtype)
         bev, mask = project_to_bev(image[None, None], self.camera, pr_road[:, 0], pr_road[:, 1], self.spec)

@@ -1,0 +1,96 @@
+"""Parameters files and learned-parameters files: round trips and clear errors."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import yaml
+
+from bevo_ros.config import (BevoConfig, ConfigError, LearnedParams, REPO_ROOT, build_odometry, camera_model,
+                             load_config, load_learned_params, load_params_file, save_learned_params)
+
+
+def test_flat_round_trip_and_every_setting_in_the_kitti_params():
+    config = BevoConfig()
+    assert BevoConfig.from_flat(config.to_flat()) == config
+    flat = load_params_file(REPO_ROOT / "params" / "kitti.yaml")
+    missing = sorted(set(config.to_flat()) - set(flat))
+    assert not missing, f"params/kitti.yaml does not document {missing}"
+
+
+def test_shipped_params_load_and_build_the_engine():
+    for name in ("kitti.yaml", "synthetic.yaml"):
+        config, _ = load_config(REPO_ROOT / "params" / name)
+        learned = load_learned_params(config.learned_params_file)
+        if config.camera.has_intrinsics():
+            odo = build_odometry(config, learned)
+            assert odo.camera.width == config.camera.width
+
+
+def test_bad_parameter_types_name_the_parameter(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"bevo_node": {"ros__parameters": {"bev": {"size": "big"}}}}))
+    with pytest.raises(ConfigError, match="bev.size"):
+        load_config(p)
+    p.write_text(yaml.safe_dump({"other_node": {"ros__parameters": {}}}))
+    with pytest.raises(ConfigError, match="no 'bevo_node"):
+        load_config(p)
+    p.write_text("bevo_node: [unclosed")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "absent.yaml")
+
+
+def test_camera_extrinsics_are_validated():
+    config = BevoConfig()
+    config.camera.fx = config.camera.fy = 500.0
+    config.camera.width, config.camera.height_px = 640, 480
+    config.camera.base_T_camera = [2.0] + config.camera.base_T_camera[1:]
+    with pytest.raises(ConfigError, match="orthonormal"):
+        camera_model(config.camera)
+    with pytest.raises(ConfigError, match="intrinsics"):
+        camera_model(BevoConfig().camera)
+
+
+def test_learned_params_round_trip_is_human_readable_and_atomic(tmp_path):
+    path = tmp_path / "learned.yaml"
+    save_learned_params(LearnedParams((1e-5, 2e-5), (3e-2, 4e-2), {"bags": ["a", "b"]}), path)
+    text = path.read_text()
+    assert "process_noise_density" in text and "rad^2/s" in text  # a person can read it
+    loaded = load_learned_params(path)
+    assert loaded.process_noise_density == (1e-5, 2e-5)
+    assert loaded.measurement_noise_variance == (3e-2, 4e-2)
+    assert loaded.info["bags"] == ["a", "b"]
+    assert [f for f in os.listdir(tmp_path) if f != "learned.yaml"] == []  # no temp files left
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda d: d.pop("format"), "format"),
+    (lambda d: d["process_noise_density"].pop("roll"), "process_noise_density.roll"),
+    (lambda d: d["measurement_noise_variance"].update(pitch=-1.0), "must be finite and > 0"),
+    (lambda d: d["measurement_noise_variance"].update(pitch=".nan"), "must be finite and > 0"),
+    (lambda d: d.update(process_noise_density=[1, 2]), "missing section"),
+])
+def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, message):
+    path = tmp_path / "learned.yaml"
+    save_learned_params(LearnedParams(), path)
+    doc = yaml.safe_load(path.read_text())
+    mutate(doc)
+    path.write_text(yaml.safe_dump(doc).replace("'.nan'", ".nan"))
+    with pytest.raises(ConfigError, match=message) as err:
+        load_learned_params(path)
+    assert str(path) in str(err.value)
+
+
+def test_missing_or_garbage_learned_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_learned_params(tmp_path / "none.yaml")
+    garbage = tmp_path / "g.yaml"
+    garbage.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(ConfigError):
+        load_learned_params(garbage)
+    Path(tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load_learned_params(tmp_path / "list.yaml")
