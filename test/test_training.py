@@ -78,8 +78,10 @@ def test_gradient_reaches_o_and_q_and_equals_plain_autograd(synth):
     # The same loss through run_sequence in one graph: same motion, loss and gradient.
     ref = make_dukf(BAD_INIT[:2], BAD_INIT[2:], config.filter.motion_model)
     spec = training.bev_spec(config)
+    mounting = (config.filter.mounting_pitch, config.filter.mounting_roll)
     res = run_sequence(ref, part.camera, spec, training.loss_dpc(), part.imu_stamps, part.gyro, part.accel,
-                       part.frame_stamps, part.images, config.filter.road_tilt_time_constant)
+                       part.frame_stamps, part.images, config.filter.road_tilt_time_constant,
+                       mounting_attitude=mounting)
     angle, shift = registration_targets(part.gt_motion(), spec)
     loss = registration_kl_loss(res.registration, angle, shift, training.SIGMA_ANGLE, training.SIGMA_SHIFT)
     loss.backward()
@@ -87,6 +89,20 @@ def test_gradient_reaches_o_and_q_and_equals_plain_autograd(synth):
     assert abs(float(loss.detach()) - r.loss) < 1e-4 * max(1.0, abs(r.loss))
     assert torch.allclose(ref.log_process_var.grad, g_o, rtol=1e-3, atol=1e-6)
     assert torch.allclose(ref.log_measurement_var.grad, g_q, rtol=1e-3, atol=1e-6)
+
+    # The engine's options: a mounting tilt and the turn compensation give run_sequence's motion too.
+    config.filter.mounting_pitch, config.filter.turn_compensation = 0.01, True
+    try:
+        with torch.no_grad():
+            r2 = sequence_pass(ref, part, config, window=5)
+            res2 = run_sequence(ref, part.camera, spec, training.loss_dpc(), part.imu_stamps, part.gyro, part.accel,
+                                part.frame_stamps, part.images, config.filter.road_tilt_time_constant,
+                                mounting_attitude=(0.01, config.filter.mounting_roll), turn_compensation=True)
+    finally:
+        config.filter.mounting_pitch, config.filter.turn_compensation = mounting[0], False
+    assert torch.allclose(r2.motion, res2.motion.double(), atol=1e-4)
+    assert torch.allclose(r2.pitch_roll_road, res2.pitch_roll_road.double(), atol=1e-9)
+    assert not torch.allclose(r2.motion, r.motion, atol=1e-3)
 
     before = [p.detach().clone() for p in (dukf.log_process_var, dukf.log_measurement_var)]
     torch.optim.Adam([dukf.log_process_var, dukf.log_measurement_var], lr=0.1).step()

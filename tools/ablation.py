@@ -48,13 +48,14 @@ GT_MODES = ("imu-highpass", "imu", "road-poses", "zero")
 EPILOG = """\
 reference attitude for "w/ GT" (--gt-attitude):
   imu-highpass  the bag's /ground_truth/imu attitude (KITTI: the OXTS unit's own roll/pitch)
-                minus its low-pass with filter.road_tilt_time_constant, i.e. the very road-tilt
-                separation BEVO applies to the DUKF output, fed a near-perfect attitude (default)
+                minus its low-pass with filter.road_tilt_time_constant, plus filter.mounting_*,
+                i.e. the very road-tilt separation BEVO applies to the DUKF output, fed a
+                near-perfect attitude (default)
   imu           the /ground_truth/imu attitude as is: the exact road-relative attitude on a level
                 road (synthetic drives without road tilt); on KITTI it contains slope and camber
   road-poses    roll/pitch of the ground-truth poses, i.e. relative to the FIRST frame's attitude
-                (the bags' odom frame is the base at the first frame)
-  zero          a level vehicle on a flat road
+                (the bags' odom frame is the base at the first frame), plus filter.mounting_*
+  zero          a level vehicle on a flat road (filter.mounting_* only)
   (--synthetic drives use the simulator's exact road-relative attitude.)
 
 examples:
@@ -116,8 +117,12 @@ def make_synthetic_bag(path: Path, seconds: float, seed: int, bumps: float, nois
     return write_drive_bag(drive, path, overwrite=True), drive
 
 
-def reference_attitude(seq, mode: str, road_tilt_time_constant: float):
-    """``(F, 2)`` [pitch, roll] road-relative reference for "w/ GT" (float64 tensor)."""
+def reference_attitude(seq, mode, config):
+    """``(F, 2)`` [pitch, roll] road-relative reference for "w/ GT" (float64 tensor).
+
+    Modes that lose the static part (imu-highpass, road-poses, zero) get the configured mounting
+    attitude added, exactly as the engine adds it to the filtered attitude; "imu" and the
+    simulator's truth are absolute already."""
     import torch
 
     from bevo_ros.core.road_tilt import road_relative_attitude
@@ -125,16 +130,18 @@ def reference_attitude(seq, mode: str, road_tilt_time_constant: float):
 
     if not isinstance(mode, str):  # the simulator's own road-relative attitude of these frames
         return torch.as_tensor(mode, dtype=torch.float64)
+    mounting = torch.tensor([config.filter.mounting_pitch, config.filter.mounting_roll], dtype=torch.float64)
     if mode == "zero":
-        return torch.zeros(len(seq), 2, dtype=torch.float64)
+        return torch.zeros(len(seq), 2, dtype=torch.float64) + mounting
     if mode == "road-poses":
-        return road_relative_gt(seq.gt_poses.double())
+        return road_relative_gt(seq.gt_poses.double()) + mounting
     if seq.gt_pitch_roll is None:
         raise ValueError(f"{seq.name}: no /ground_truth/imu attitude for --gt-attitude {mode}")
     if mode == "imu":
         return seq.gt_pitch_roll.double().clone()
     dt = torch.diff(seq.frame_stamps.double(), prepend=seq.frame_stamps[:1].double())
-    return road_relative_attitude(seq.gt_pitch_roll.double()[None], dt[None], road_tilt_time_constant)[0]
+    tau = config.filter.road_tilt_time_constant
+    return road_relative_attitude(seq.gt_pitch_roll.double()[None], dt[None], tau)[0] + mounting
 
 
 def planar_poses(motion) -> np.ndarray:
@@ -163,7 +170,7 @@ def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empiric
     from bevo_ros.training import make_dukf, sequence_pass
 
     o_l, q_l = tuple(learned.process_noise_density), tuple(learned.measurement_noise_variance)
-    ref = reference_attitude(seq, gt_mode, config.filter.road_tilt_time_constant)
+    ref = reference_attitude(seq, gt_mode, config)
     gt = seq.gt_poses.double().numpy()
     gt = np.linalg.inv(gt[0]) @ gt
     rows = []
@@ -370,7 +377,7 @@ def main(argv: list[str] | None = None) -> int:
             md.append(table_markdown(s.name, rows, frames, label))
             gt = part.gt_poses.double().numpy()
             gt = np.linalg.inv(gt[0]) @ gt
-            ref = reference_attitude(part, mode, config.filter.road_tilt_time_constant).numpy()
+            ref = reference_attitude(part, mode, config).numpy()
             png = out / f"{s.name}_ablation.png"
             plot_bag(png, s.name, gt, rows, ref)
             md.append(f"![{s.name}]({png.name})\n")

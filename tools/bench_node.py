@@ -292,7 +292,7 @@ def main() -> int:
         from bevo_ros.config import resolve_path
 
         params["learned_params_file"] = str(resolve_path(str(learned), base.resolve().parent))
-    params.update(input_qos=args.qos, imu_qos_depth=1000, image_qos_depth=30, diagnostics_period=args.diag_period,
+    params.update(input_qos=args.qos, imu_qos_depth=1000, image_qos_depth=100, diagnostics_period=args.diag_period,
                   latency_window=100000, imu_topic=args.imu_topic, image_topic=args.image_topic,
                   use_camera_info=False)
     if args.torch_threads is not None:

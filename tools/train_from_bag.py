@@ -44,7 +44,7 @@ initial values (paper: O and Q uniform in [0, 1]):
 loss temperature:
   The DPC's softmax temperature shapes only the distributions the KL loss reads, never the point
   estimates. At the engine's 0.02 the KL loss prefers wrong attitudes (blurred BEVs give flat,
-  cheap distributions); --temperature 0.1 (default) ranks attitudes as their pose errors do.
+  cheap distributions); at --temperature 0.2 (default) it ranks attitudes as their pose errors do.
 
 exit status: 0 done (completed or early-stopped), 3 diverged (NaN/inf loss or gradient, or
 variances out of range: the output holds the best validated values, the checkpoint the last good
@@ -75,12 +75,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial O (rad^2/s) and Q (rad^2), [pitch, roll] each, instead of the random draw")
     p.add_argument("--init-search", type=int, default=None, metavar="N",
                    help="decades of O tried before Adam (default 9 for the random init, 0 with --init)")
-    p.add_argument("--temperature", type=float, default=None, help="DPC softmax temperature of the loss (default 0.1)")
+    p.add_argument("--lr-decay", type=float, default=0.5,
+                   help="learning rate factor after an epoch without improvement (default 0.5, 1 = constant)")
+    p.add_argument("--temperature", type=float, default=None, help="DPC softmax temperature of the loss (default 0.2)")
     p.add_argument("--sigma-angle", type=float, default=1.0, help="rotation target blur, degrees (default 1)")
     p.add_argument("--sigma-shift", type=float, default=1.0, help="translation target blur, BEV pixels (default 1)")
     p.add_argument("--window", type=int, default=32, help="frame pairs per BEV/DPC chunk: bounds memory (default 32)")
     p.add_argument("--checkpoint", help="checkpoint YAML (default: OUT.ckpt.yaml)")
-    p.add_argument("--resume", metavar="CHECKPOINT", help="continue from a checkpoint")
+    p.add_argument("--resume", metavar="CHECKPOINT",
+                   help="continue from a checkpoint (its O/Q, Adam state and learning rate; --epochs is the total)")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda (falls back to CPU with a warning)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: fastest for 100x100 BEVs)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
@@ -102,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     checkpoint = Path(args.checkpoint) if args.checkpoint else out.with_name(out.name + ".ckpt.yaml")
     try:
         options = TrainOptions(
-            epochs=args.epochs, lr=args.lr, patience=args.patience, split=args.split,
+            epochs=args.epochs, lr=args.lr, patience=args.patience, lr_decay=args.lr_decay, split=args.split,
             steps_per_bag=args.steps_per_bag, window=args.window,
             temperature=LOSS_TEMPERATURE if args.temperature is None else args.temperature,
             sigma_angle=math.radians(args.sigma_angle), sigma_shift=args.sigma_shift, seed=args.seed,

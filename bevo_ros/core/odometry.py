@@ -7,7 +7,9 @@ online and offline results identical: an image is processed once every IMU sampl
 """
 from __future__ import annotations
 
+import bisect
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +56,7 @@ class OdometryStep:
     bev_mask: np.ndarray  # (S, S) float32
     peak_quality: float  # correlation peak quality in [0, 1]; nan for the first frame
     first: bool = False
+    correlation: np.ndarray | None = None  # (S, S) translation correlation (the heat-map), None first
 
 
 @dataclass
@@ -121,6 +124,9 @@ class BevoOdometry:
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
         self._pitch_roll_road = self.mounting_attitude.clone()
+        # (stamp, road-relative attitude, DUKF state) per fused IMU sample: an image is projected
+        # with the attitude of the last IMU sample at or before its stamp, however late it arrives.
+        self._history: deque[tuple[float, torch.Tensor, DukfState]] = deque(maxlen=4000)
         self._pending: list[tuple[float, np.ndarray]] = []
         self._prev = None  # prepared BEV of the previous frame
         self._prev_stamp: float | None = None
@@ -170,6 +176,7 @@ class BevoOdometry:
             self._state = self.dukf.step(self._state, gyro_t, accel_t, torch.tensor([dt], dtype=torch.float64))
         self._last_imu = stamp
         self._pitch_roll_road = self._road_tilt.update(stamp, self._state.mean.detach()) + self.mounting_attitude
+        self._history.append((stamp, self._pitch_roll_road, self._state))
         out += self._release(lambda s: s <= stamp)
         return out
 
@@ -220,7 +227,8 @@ class BevoOdometry:
     def _process(self, stamp: float, img: np.ndarray) -> OdometryStep:
         image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
         image = image.to(self.dtype) / 255.0 if image.dtype == torch.uint8 else image.to(self.dtype)
-        pr_road = self._pitch_roll_road.to(self.device, self.dtype)
+        pr_road, state = self._attitude_at(stamp)
+        pr_road = pr_road.to(self.device, self.dtype)
         bev, mask = project_to_bev(image[None, None], self.camera, pr_road[:, 0], pr_road[:, 1], self.spec)
         curr = prepare(bev, mask, self.dpc)
         first = self._prev is None
@@ -242,8 +250,8 @@ class BevoOdometry:
             self._speed = torch.tensor([motion[0] / dt], dtype=torch.float64)
         self.counters.frames_out += 1
 
-        pitch, roll = (float(v) for v in self._state.mean[0])
-        att_cov = self._state.cov[0].double().cpu().numpy()  # [pitch, roll]
+        pitch, roll = (float(v) for v in state.mean[0])
+        att_cov = state.cov[0].double().cpu().numpy()  # [pitch, roll]
         pose_cov = np.zeros((6, 6))
         pose_cov[np.ix_([0, 1, 5], [0, 1, 5])] = self._pose_cov.numpy()
         pose_cov[2, 2] = Z_VARIANCE
@@ -272,7 +280,14 @@ class BevoOdometry:
             bev_mask=mask[0, 0].cpu().numpy(),
             peak_quality=quality,
             first=first,
+            correlation=None if first else reg.translation_corr[0].detach().cpu().numpy(),
         )
+
+    def _attitude_at(self, stamp: float) -> tuple[torch.Tensor, DukfState]:
+        """Road-relative attitude and DUKF state of the last IMU sample at or before ``stamp``."""
+        i = bisect.bisect_right(self._history, stamp, key=lambda h: h[0]) - 1
+        _, pr_road, state = self._history[max(i, 0)]  # older than the whole history: its oldest entry
+        return pr_road, state
 
     def _motion_covariance(self, reg) -> np.ndarray:
         """(dx, dy, dyaw) covariance from the correlation distributions' spread (first order)."""
