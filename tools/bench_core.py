@@ -45,10 +45,11 @@ def timeit(fn, repeat: int) -> list[float]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--frames", type=int, default=60, help="frames to time (default 60)")
-    p.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch default)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads (default 1, as bevo_node's torch_threads: tiny tensors lose to thread sync)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     args = p.parse_args(argv)
-    if args.threads:
+    if args.threads > 0:
         torch.set_num_threads(args.threads)
     device = args.device if (args.device == "cpu" or torch.cuda.is_available()) else "cpu"
     sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
