@@ -158,6 +158,10 @@ def split_frames(n: int, split: str) -> tuple[tuple[int, int], tuple[int, int]]:
 
 
 def road_relative_gt(poses: torch.Tensor) -> torch.Tensor:
-    """Roll/pitch of ground-truth base poses ``(F, 4, 4)`` as ``(F, 2)`` [pitch, roll]."""
+    """Roll/pitch of ground-truth base poses ``(F, 4, 4)`` as ``(F, 2)`` [pitch, roll].
+
+    The poses are relative to the first frame's base (as bags store them), so this is the attitude
+    relative to the road only when the first frame sits level on it (``w/ GT`` ablation on KITTI).
+    """
     roll, pitch, _ = rpy_from_rotation(poses[:, :3, :3])
     return torch.stack([pitch, roll], dim=-1)
