@@ -67,7 +67,7 @@ class FilterSettings:
     # "euler": exact Euler-angle kinematics (default); "additive": the paper's rates-added model.
     motion_model: str = "euler"
     # Low-pass time constant (s) separating road camber/slope from vehicle attitude; 0 disables.
-    road_tilt_time_constant: float = 10.0
+    road_tilt_time_constant: float = 2.0
     # Longest IMU gap (s) the filter predicts across; longer gaps re-initialise from the accelerometer.
     max_imu_gap: float = 0.5
     # Static attitude of the base frame relative to the road when the vehicle rests on a level road
@@ -207,8 +207,8 @@ class LearnedParams:
     measurement_noise_variance: Q per axis (pitch, roll), rad^2.
     """
 
-    process_noise_density: tuple[float, float] = (1e-4, 1e-4)
-    measurement_noise_variance: tuple[float, float] = (3e-3, 3e-3)
+    process_noise_density: tuple[float, float] = (1e-6, 1e-6)
+    measurement_noise_variance: tuple[float, float] = (5e-2, 5e-2)
     info: dict[str, Any] = field(default_factory=dict)
 
 

@@ -95,7 +95,7 @@ class BevoOdometry:
         spec: BevSpec,
         dukf: DUKF,
         dpc: DpcConfig | None = None,
-        road_tilt_time_constant: float = 10.0,
+        road_tilt_time_constant: float = 2.0,
         mounting_attitude: tuple[float, float] = (0.0, 0.0),
         max_imu_gap: float = 0.5,
         turn_compensation: bool = False,
