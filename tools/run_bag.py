@@ -46,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
     p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
     p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default 1, as bevo_node's torch_threads: same arithmetic, same result)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
@@ -65,7 +67,7 @@ def run(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_
         bar = tqdm(total=total, unit="frame", desc="run_bag")
     for topic, stamp_ns, msg in bag.iter_messages(bag_path, [imu_topic, image_topic]):
         stamp_ns = bag.stamp_ns(msg.header.stamp)
-        stamp = stamp_ns * 1e-9
+        stamp = float(bag.ns_to_seconds([stamp_ns])[0])  # sec + nanosec * 1e-9, bit-identical to the node
         try:
             if topic == imu_topic:
                 a, g = msg.linear_acceleration, msg.angular_velocity
@@ -128,6 +130,8 @@ def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.Recording, T_ba
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     try:
         config, _ = load_config(args.params)
         learned = args.learned or config.learned_params_file
