@@ -398,22 +398,13 @@ def read_poses(poses_txt: PathLike) -> np.ndarray:
 
 def write_poses(path: PathLike, poses: np.ndarray) -> None:
     """``(F, 4, 4)`` or ``(F, 3, 4)`` -> KITTI pose file, atomically (temp file + os.replace)."""
-    import os
-    import tempfile
+    from bevo_ros.config import atomic_write_text
 
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] not in ((4, 4), (3, 4)):
         raise ValueError(f"poses must be (F, 4, 4) or (F, 3, 4), got {poses.shape}")
     path = Path(path)
-    text = "".join(" ".join(f"{v:.9e}" for v in T[:3, :].ravel()) + "\n" for T in poses)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, "".join(" ".join(f"{v:.9e}" for v in T[:3, :].ravel()) + "\n" for T in poses))
 
 
 def read_times(times_txt: PathLike) -> np.ndarray:

@@ -2,12 +2,13 @@
 synthetic bumpy drive; the ground-truth attitude must beat the raw accelerometer there."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 
 import pytest
 import torch
+
+from conftest import load_tool, make_bumpy_bag
 
 from bevo_ros.config import REPO_ROOT, LearnedParams, save_learned_params
 
@@ -15,17 +16,10 @@ SYNTH_PARAMS = REPO_ROOT / "params" / "synthetic.yaml"
 ROWS = ("w/o O", "w/o Q", "w/o DUKF", "BEVO", "w/ GT")
 
 
-def _tool(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "tools" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def ablation():
     torch.set_num_threads(1)
-    return _tool("ablation")
+    return load_tool("ablation")
 
 
 def _check_outputs(out, bag_name: str) -> dict:
@@ -46,25 +40,8 @@ def _check_outputs(out, bag_name: str) -> dict:
     return {r["variant"]: r for r in rows}
 
 
-def bumpy_bag(path, seconds: float, seed: int):
-    """Bumps x2, IMU noise x2 (accelerometer vibration), gentle curves, no road tilt, 620x188 images
-    (the recipe of test_training.py)."""
-    from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.datasets import write_drive_bag
-    from bevo_ros.synthetic import RenderOptions, kitti_like_camera, make_drive
-
-    cam = kitti_like_camera()
-    K = cam.K.clone()
-    K[:2] *= 0.5
-    cam = CameraModel(K, 620, 188, cam.T_base_cam, cam.height)
-    drive = make_drive(seed=seed, duration=seconds, bumps=2.0, noise=2.0, render="lazy", camera=cam, curvature=0.3,
-                       road_tilt=False, speed_variation=0.3, ground_seed=0,
-                       render_options=RenderOptions(supersample=1))
-    return write_drive_bag(drive, path, overwrite=True)
-
-
 def test_ablation_table_on_a_bumpy_synthetic_drive(ablation, tmp_path):
-    bag_path = bumpy_bag(tmp_path / "tiny_bag", seconds=4.0, seed=5)
+    bag_path = make_bumpy_bag(tmp_path / "tiny_bag", seconds=4.0, seed=5)
     learned = tmp_path / "learned.yaml"
     save_learned_params(LearnedParams((1e-4, 1e-4), (1e-2, 1e-2), {"note": "test"}), learned)
     out = tmp_path / "ablation"

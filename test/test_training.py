@@ -8,7 +8,6 @@ vibrating accelerometer) lower both the validation loss and the relative pose er
 """
 from __future__ import annotations
 
-import importlib.util
 import math
 import time
 from pathlib import Path
@@ -18,11 +17,12 @@ import pytest
 import torch
 import yaml
 
+from conftest import load_tool, make_bumpy_bag
+
 from bevo_ros.config import REPO_ROOT, load_config, load_learned_params
-from bevo_ros.core.geometry import CameraModel
 from bevo_ros.core.loss import registration_kl_loss
 from bevo_ros.core.sequence import registration_targets, run_sequence
-from bevo_ros.datasets import load_sequence, write_drive_bag
+from bevo_ros.datasets import load_sequence
 from bevo_ros import training
 from bevo_ros.training import TrainOptions, load_checkpoint, make_dukf, sequence_pass, train
 
@@ -30,33 +30,11 @@ SYNTH_PARAMS = REPO_ROOT / "params" / "synthetic.yaml"
 BAD_INIT = (1.0, 1.0, 1e-2, 1e-2)  # O 1 rad^2/s at 100 Hz: per-step variance = Q -> follows the accelerometer
 
 
-def _tool(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "tools" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def bumpy_bag(path: Path, seconds: float = 6.0, seed: int = 3) -> Path:
-    """Bumps x2 (suspension/bump events), IMU noise x2 (accelerometer vibration 1 m/s^2 RMS per
-    axis), gentle curves, no road tilt, 620x188 images."""
-    from bevo_ros.synthetic import RenderOptions, kitti_like_camera, make_drive
-
-    cam = kitti_like_camera()
-    K = cam.K.clone()
-    K[:2] *= 0.5
-    cam = CameraModel(K, 620, 188, cam.T_base_cam, cam.height)
-    drive = make_drive(seed=seed, duration=seconds, bumps=2.0, noise=2.0, render="lazy", camera=cam, curvature=0.3,
-                       road_tilt=False, speed_variation=0.3, ground_seed=0,
-                       render_options=RenderOptions(supersample=1))
-    return write_drive_bag(drive, path, overwrite=True)
-
-
 @pytest.fixture(scope="module")
 def synth(tmp_path_factory):
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    path = bumpy_bag(tmp_path_factory.mktemp("train") / "bumpy_bag")
+    path = make_bumpy_bag(tmp_path_factory.mktemp("train") / "bumpy_bag")
     config, _ = load_config(SYNTH_PARAMS)
     seq = load_sequence(path, config)
     print(f"\nsynthetic bumpy bag: {len(seq)} frames, {seq.imu_stamps.numel()} IMU samples "
@@ -133,7 +111,7 @@ def test_training_lowers_validation_loss_and_pose_error(synth):
 
 def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path):
     bag_path, _, _ = synth
-    tool = _tool("train_from_bag")
+    tool = load_tool("train_from_bag")
     out = tmp_path / "learned.yaml"
     common = [str(bag_path), "--out", str(out), "--params", str(SYNTH_PARAMS), "--lr", "0.5", "--steps-per-bag",
               "3", "-q"]
@@ -161,7 +139,7 @@ def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path):
 
 def test_divergence_stops_cleanly_keeping_the_last_good_values(synth, tmp_path, capsys):
     bag_path, config, seq = synth
-    tool = _tool("train_from_bag")
+    tool = load_tool("train_from_bag")
     out = tmp_path / "learned.yaml"
     rc = tool.main([str(bag_path), "--out", str(out), "--params", str(SYNTH_PARAMS), "--epochs", "3", "--lr", "1e6",
                     "--init", *map(str, BAD_INIT), "-q"])
