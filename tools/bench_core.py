@@ -80,6 +80,15 @@ def main(argv: list[str] | None = None) -> int:
     g = torch.tensor([[0.01, 0.02, 0.03]], dtype=torch.float64)
     a = torch.tensor([[0.1, 0.2, 9.8]], dtype=torch.float64)
     dt = torch.tensor([0.01], dtype=torch.float64)
+    noise = odo.dukf.noise_floats()
+    scalar_state = ((0.0, 0.0), (1e-3, 0.0, 1e-3))
+    scalar_ms = timeit(lambda: odo.dukf.step_scalar(*scalar_state, (0.01, 0.02, 0.03), (0.1, 0.2, 9.8), 0.01, noise), 2000)
+    add_imu_ms = []
+    stamp0 = float(drive.imu_stamps[-1]) + 10.0  # after the drive: a fresh stretch of the same engine
+    for k in range(500):
+        t = time.perf_counter()
+        odo.add_imu(stamp0 + 0.01 * k, drive.gyro[k], drive.accel[k])
+        add_imu_ms.append((time.perf_counter() - t) * 1e3)
     with torch.no_grad():
         dukf_ms = timeit(lambda: odo.dukf.step(state, g, a, dt), 500)
         img = torch.as_tensor(images[0], device=device).float()[None, None] / 255.0
@@ -95,7 +104,9 @@ def main(argv: list[str] | None = None) -> int:
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"device {device}, torch threads {torch.get_num_threads()}, {len(per_frame)} frames timed")
     print(f"full step (10 DUKF + BEV + 2 PC) : median {statistics.median(per_frame):7.2f} ms   p90 {pct(per_frame, 90):7.2f} ms")
-    print(f"  DUKF update (one IMU message)  : median {statistics.median(dukf_ms) * 1e3:7.1f} us   p90 {pct(dukf_ms, 90) * 1e3:7.1f} us")
+    print(f"  add_imu (DUKF + road tilt)     : median {statistics.median(add_imu_ms) * 1e3:7.1f} us   p90 {pct(add_imu_ms, 90) * 1e3:7.1f} us")
+    print(f"    DUKF step, scalar (engine)   : median {statistics.median(scalar_ms) * 1e3:7.1f} us")
+    print(f"    DUKF step, tensor (training) : median {statistics.median(dukf_ms) * 1e3:7.1f} us")
     print(f"  BEV projection                 : median {statistics.median(bev_ms):7.2f} ms")
     print(f"  DPC prepare (window + FFTs)    : median {statistics.median(prep_ms):7.2f} ms")
     print(f"  DPC register (rot + trans)     : median {statistics.median(reg_ms):7.2f} ms")

@@ -424,6 +424,77 @@ class DUKF(nn.Module):
         self._check_inputs(None, accel, None)
         return self._update(state, accel)
 
+    def noise_floats(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """``(O, Q)`` as plain floats, for :meth:`step_scalar` (read once, not per message)."""
+        o, q = self.process_var.tolist(), self.measurement_var.tolist()
+        return (o[0], o[1]), (q[0], q[1])
+
+    def step_scalar(
+        self,
+        mean: tuple[float, float],
+        cov: tuple[float, float, float],
+        gyro: Sequence[float],
+        accel: Sequence[float],
+        dt: float,
+        noise: tuple[tuple[float, float], tuple[float, float]],
+    ) -> tuple[tuple[float, float], tuple[float, float, float]]:
+        """:meth:`step` for one vehicle in plain float64 arithmetic: the inference path.
+
+        The same math as ``_predict`` + ``_update`` (sigma points, motion model, closed-form
+        identity update, ``- K S K^T``, symmetrisation, jitter), written out for 2x2 so that a
+        message costs microseconds instead of ~45 tensor dispatches; test_dukf pins the two
+        together to 1e-12. No autograd: training uses the tensor path.
+
+        Args:
+            mean: (pitch, roll); cov: (P00, P01, P11); gyro, accel: 3 floats; dt > 0 s;
+            noise: ``noise_floats()``.
+
+        Returns:
+            the posterior ``(mean, cov)`` in the same form.
+        """
+        (o0, o1), (q0, q1) = noise
+        p, r = mean
+        a, b, d = cov
+        wx, wy, wz = (float(g) * dt for g in gyro)
+        # sigma points from the clamped closed-form Cholesky (as _cholesky_2x2)
+        l00 = math.sqrt(max(a, 1e-30))
+        l10 = b / l00
+        l11 = math.sqrt(max(d - l10 * l10, 1e-30))
+        c = math.sqrt(2 + self.lambda_)
+        pts = ((p, r), (p + c * l00, r + c * l10), (p, r + c * l11), (p - c * l00, r - c * l10), (p, r - c * l11))
+        if self.motion_model == "euler":
+            moved = []
+            for pi, ri in pts:
+                cr, sr = math.cos(ri), math.sin(ri)
+                moved.append((pi + wy * cr - wz * sr, ri + wx + (wy * sr + wz * cr) * math.tan(pi)))
+        else:
+            moved = [(pi + wy, ri + wx) for pi, ri in pts]
+        wm, wc = self._wm, self._wc
+        mp = sum(w * x[0] for w, x in zip(wm, moved))
+        mr = sum(w * x[1] for w, x in zip(wm, moved))
+        pa = pb = pd = 0.0
+        for w, (xp, xr) in zip(wc, moved):
+            dp, dr = xp - mp, xr - mr
+            pa += w * dp * dp
+            pb += w * dp * dr
+            pd += w * dr * dr
+        jit = self.jitter
+        pa, pd = pa + o0 * dt + jit, pd + o1 * dt + jit
+        # update: z from the accelerometer, S = P + Q, K^T = S^-1 P
+        ax, ay, az = (float(v) for v in accel)
+        zp, zr = -math.atan2(ax, math.hypot(ay, az)), math.atan2(ay, az)
+        s00, s11 = pa + q0, pd + q1
+        det = s00 * s11 - pb * pb
+        k00, k01 = (s11 * pa - pb * pb) / det, (s11 * pb - pb * pd) / det  # K^T rows
+        k10, k11 = (s00 * pb - pb * pa) / det, (s00 * pd - pb * pb) / det
+        ep, er = zp - mp, zr - mr
+        new_mean = (mp + ep * k00 + er * k10, mr + ep * k01 + er * k11)
+        c00 = pa - (pa * k00 + pb * k10)
+        c01 = pb - (pa * k01 + pb * k11)
+        c10 = pb - (pb * k00 + pd * k10)
+        c11 = pd - (pb * k01 + pd * k11)
+        return new_mean, (c00 + jit, 0.5 * (c01 + c10), c11 + jit)
+
     def step(self, state: DukfState, gyro: Tensor, accel: Tensor, dt: Tensor) -> DukfState:
         """``predict`` then ``update`` for one IMU message.
 

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from .bev import project_to_bev
-from .dukf import DUKF, DukfState, remove_turn_acceleration
+from .dukf import DUKF
 from .geometry import BevSpec, CameraModel
 from .motion import vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, prepare, register_prepared
@@ -119,18 +119,21 @@ class BevoOdometry:
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         """Forget everything but the settings: the trajectory restarts at identity."""
-        self._state: DukfState | None = None
+        # DUKF belief as plain floats, (pitch, roll) and (P00, P01, P11): the per-message path
+        # runs DUKF.step_scalar (microseconds); training runs the same math on tensors.
+        self._state: tuple[tuple[float, float], tuple[float, float, float]] | None = None
+        self._noise = self.dukf.noise_floats()
         self._last_imu: float | None = None
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
         self._pitch_roll_road = self.mounting_attitude.clone()
-        # (stamp, road-relative attitude, DUKF state) per fused IMU sample: an image is projected
+        # (stamp, road-relative attitude, DUKF belief) per fused IMU sample: an image is projected
         # with the attitude of the last IMU sample at or before its stamp, however late it arrives.
-        self._history: deque[tuple[float, torch.Tensor, DukfState]] = deque(maxlen=4000)
+        self._history: deque[tuple[float, torch.Tensor, tuple]] = deque(maxlen=4000)
         self._pending: list[tuple[float, np.ndarray]] = []
         self._prev = None  # prepared BEV of the previous frame
         self._prev_stamp: float | None = None
-        self._speed = torch.zeros(1, dtype=torch.float64)  # forward speed of the latest VO step, m/s
+        self._speed = 0.0  # forward speed of the latest VO step, m/s
         self._pose = torch.zeros(3, dtype=torch.float64)
         self._pose_cov = torch.zeros(3, 3, dtype=torch.float64)
         self.counters.resets += 1
@@ -142,7 +145,7 @@ class BevoOdometry:
     @property
     def pitch_roll(self) -> np.ndarray | None:
         """Current gravity-referenced (pitch, roll) from the DUKF, radians."""
-        return None if self._state is None else self._state.mean[0].detach().cpu().numpy().copy()
+        return None if self._state is None else np.array(self._state[0])
 
     @property
     def pending_images(self) -> int:
@@ -154,28 +157,29 @@ class BevoOdometry:
 
         Raises ValueError for non-finite data and OutOfOrderError for stamps not after the last.
         """
-        gyro_t = torch.as_tensor(np.asarray(gyro, dtype=np.float64)).reshape(1, 3)
-        accel_t = torch.as_tensor(np.asarray(accel, dtype=np.float64)).reshape(1, 3)
-        if not (math.isfinite(stamp) and torch.isfinite(gyro_t).all() and torch.isfinite(accel_t).all()):
+        g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
+        a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
+        if not (math.isfinite(stamp) and all(math.isfinite(v) for v in g + a)):
             raise ValueError("IMU sample contains NaN or inf")
-        if float(accel_t.norm()) < 1e-6:
+        if math.hypot(*a) < 1e-6:
             raise ValueError("IMU linear acceleration is zero: no gravity, no attitude")
         if self._last_imu is not None and stamp <= self._last_imu:
             raise OutOfOrderError("IMU", stamp, self._last_imu)
         out = self._release(lambda s: s < stamp)
         self.counters.imu += 1
-        if self.turn_compensation:
-            accel_t = remove_turn_acceleration(accel_t, gyro_t, self._speed)
+        if self.turn_compensation:  # remove_turn_acceleration, in floats
+            a[1] -= self._speed * g[2]
         if self._state is None or stamp - self._last_imu > self.max_imu_gap:
             if self._state is not None:
                 self.counters.imu_gaps += 1
-            self._state = self.dukf.init_state(accel=accel_t)
-            dt = 0.0
+            init = self.dukf.init_state(accel=torch.tensor([a], dtype=torch.float64))
+            c = init.cov[0].tolist()
+            self._state = (tuple(init.mean[0].tolist()), (c[0][0], c[0][1], c[1][1]))
         else:
-            dt = stamp - self._last_imu
-            self._state = self.dukf.step(self._state, gyro_t, accel_t, torch.tensor([dt], dtype=torch.float64))
+            self._state = self.dukf.step_scalar(*self._state, g, a, stamp - self._last_imu, self._noise)
         self._last_imu = stamp
-        self._pitch_roll_road = self._road_tilt.update(stamp, self._state.mean.detach()) + self.mounting_attitude
+        mean = torch.tensor([self._state[0]], dtype=torch.float64)
+        self._pitch_roll_road = self._road_tilt.update(stamp, mean) + self.mounting_attitude
         self._history.append((stamp, self._pitch_roll_road, self._state))
         out += self._release(lambda s: s <= stamp)
         return out
@@ -247,11 +251,11 @@ class BevoOdometry:
         self._pose = compose_se2(self._pose, motion_t)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
         if dt > 0:
-            self._speed = torch.tensor([motion[0] / dt], dtype=torch.float64)
+            self._speed = float(motion[0] / dt)
         self.counters.frames_out += 1
 
-        pitch, roll = (float(v) for v in state.mean[0])
-        att_cov = state.cov[0].double().cpu().numpy()  # [pitch, roll]
+        (pitch, roll), (c00, c01, c11) = state
+        att_cov = np.array([[c00, c01], [c01, c11]])  # [pitch, roll]
         pose_cov = np.zeros((6, 6))
         pose_cov[np.ix_([0, 1, 5], [0, 1, 5])] = self._pose_cov.numpy()
         pose_cov[2, 2] = Z_VARIANCE
@@ -283,7 +287,7 @@ class BevoOdometry:
             correlation=None if first else reg.translation_corr[0].detach().cpu().numpy(),
         )
 
-    def _attitude_at(self, stamp: float) -> tuple[torch.Tensor, DukfState]:
+    def _attitude_at(self, stamp: float) -> tuple[torch.Tensor, tuple]:
         """Road-relative attitude and DUKF state of the last IMU sample at or before ``stamp``."""
         i = bisect.bisect_right(self._history, stamp, key=lambda h: h[0]) - 1
         _, pr_road, state = self._history[max(i, 0)]  # older than the whole history: its oldest entry
