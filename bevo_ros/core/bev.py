@@ -31,8 +31,11 @@ _MIN_DEPTH = 0.1  # metres in front of the camera; closer ground points are inva
 
 
 @lru_cache(maxsize=32)
+@lru_cache(maxsize=16)
 def _ground_points_h(spec: BevSpec, supersample: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Road-frame points (x, y, 0) of the sub-samples of every BEV cell. -> ``(S, S, n*n, 3)``.
+
+    Cached: they depend only on the grid (the per-frame cost is the projection, not this).
 
     The sub-samples sit at the centres of an ``n x n`` split of each cell, so their mean is the
     cell average; with ``n = 1`` this is exactly ``spec.ground_points``.

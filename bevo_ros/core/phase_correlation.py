@@ -536,9 +536,8 @@ def _window_2d(corr: Tensor, jr: Tensor, jc: Tensor, h: int) -> tuple[Tensor, Te
     d = torch.arange(-h, h + 1, device=corr.device)
     rows = (jr[:, None] + d) % S  # (B, n)
     cols = (jc[:, None] + d) % S
-    flat = corr.reshape(B, S * S)
-    idx = rows[:, :, None] * S + cols[:, None, :]
-    return flat.gather(1, idx.reshape(B, -1)).reshape(B, 2 * h + 1, 2 * h + 1), d.to(corr.dtype)
+    batch = torch.arange(B, device=corr.device)[:, None, None]
+    return corr[batch, rows[:, :, None], cols[:, None, :]], d.to(corr.dtype)  # (B, n, n)
 
 
 def _quadratic_peak_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> tuple[Tensor, Tensor]:
