@@ -18,7 +18,7 @@ import torch
 from .bev import project_to_bev
 from .dukf import DUKF
 from .geometry import BevSpec, CameraModel
-from .motion import vehicle_motion_from_registration
+from .motion import motion_covariance_from_registration, vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
@@ -295,8 +295,6 @@ class BevoOdometry:
 
     def _motion_covariance(self, reg) -> np.ndarray:
         """(dx, dy, dyaw) covariance from the correlation distributions' spread (first order)."""
-        from .motion import motion_covariance_from_registration
-
         return motion_covariance_from_registration(reg, self.spec)[0].double().cpu().numpy()
 
 
