@@ -9,7 +9,8 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export ROS_DOMAIN_ID ?= 42
 export PYTHONUNBUFFERED := 1
 # pip's offline mirror warns about every package it does not carry; keep real errors visible.
-PIP_FILTER := grep -v -E "Location '.*' is ignored" || true
+# (braces: `|| true` must cover only grep, or it would also swallow a failing pip under pipefail)
+PIP_FILTER := { grep -v -E "Location '.*' is ignored" || true; }
 
 .PHONY: setup test demo bench lock clean
 

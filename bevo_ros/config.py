@@ -279,6 +279,9 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)  # mkstemp makes 0600; a saved file is as readable as any other
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -351,6 +354,9 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         raise ConfigError(f"filter.motion_model must be 'euler' or 'additive', got {config.filter.motion_model!r}")
     device = config.device
     if device.startswith("cuda") and not torch.cuda.is_available():
+        import warnings
+
+        warnings.warn(f"device '{device}' asked for but CUDA is not available: running on the CPU", stacklevel=2)
         device = "cpu"
     dukf = DUKF(process_var=learned.process_noise_density, measurement_var=learned.measurement_noise_variance,
                 motion_model=config.filter.motion_model).double()

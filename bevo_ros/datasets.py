@@ -92,10 +92,16 @@ class Sequence:
 
 
 def camera_for_recording(rec: bag.Recording, config: BevoConfig) -> CameraModel:
-    """Intrinsics from the bag's CameraInfo (else the parameters), extrinsics from the parameters."""
+    """Intrinsics from the bag's CameraInfo (else the parameters), extrinsics from the parameters.
+
+    Uses ``P[:3, :3]``, the rectified camera matrix, as bevo_node does by default
+    (``camera_info_use_p``): the images are rectified, and for them K and P can differ.
+    """
     if rec.camera_info is not None:
         ci = rec.camera_info
-        return camera_model(config.camera, K=ci.K, width=ci.width, height_px=ci.height)
+        P = np.asarray(ci.P, dtype=np.float64).reshape(3, 4)
+        K = P[:, :3] if P[0, 0] > 0 else ci.K
+        return camera_model(config.camera, K=K, width=ci.width, height_px=ci.height)
     return camera_model(config.camera)
 
 

@@ -111,6 +111,7 @@ DESCRIPTIONS = {
     "bev.forward_offset": "distance from the base origin to the BEV near edge (m)",
     "filter.motion_model": "'euler' (exact Euler-angle kinematics) or 'additive' (the paper's)",
     "filter.road_tilt_time_constant": "low-pass time constant (s) separating road tilt from vehicle attitude; 0 disables",
+    "filter.turn_compensation": "subtract speed x yaw rate (centripetal) from the accelerometer before the DUKF update",
     "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
     "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration)",
     "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration)",
@@ -353,7 +354,7 @@ class BevoNode(Node):
         else:
             self.engine.set_camera(camera)
 
-    _WATCHED_COUNTERS = ("dropped_no_imu", "dropped_pending_overflow", "imu_gaps")
+    _WATCHED_COUNTERS = ("dropped_no_imu", "dropped_pending_overflow", "imu_gaps", "dropped_invalid_bev")
 
     def _read_engine_counters(self) -> tuple[int, ...]:
         c = getattr(self.engine, "counters", None)
@@ -375,6 +376,10 @@ class BevoNode(Node):
             self._log("pending_overflow", f"dropped (pending_overflow): {d['dropped_pending_overflow']} image(s): "
                                           f"more than max_pending_images={self.settings.max_pending_images} "
                                           "images were waiting for IMU")
+        if d.get("dropped_invalid_bev", 0) > 0:
+            self.drops["invalid_bev"] += d["dropped_invalid_bev"]
+            self._log("invalid_bev", f"dropped (invalid_bev): {d['dropped_invalid_bev']} image(s) whose BEV had no "
+                                     "valid pixel (pitch/roll put the ground patch out of the image)")
         if d.get("imu_gaps", 0) > 0:
             self.events["imu_gap"] += d["imu_gaps"]
             self._log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.config.filter.max_imu_gap} s "

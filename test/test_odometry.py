@@ -139,3 +139,21 @@ def test_imu_gap_reinitialises_and_reset_restarts(drive):
     odo2.reset()
     again = feed(odo2, d, images)
     np.testing.assert_allclose(again[-1].position, steps[-1].position, atol=1e-9)
+
+
+def test_a_frame_whose_bev_is_invalid_is_dropped_not_raised(drive):
+    """An absurd attitude (70 deg nose up) leaves no valid BEV pixel: counted drop, no exception,
+    no lost state; the engine carries on with the next frames."""
+    d, images = drive
+    odo = build_odometry(BevoConfig(), LearnedParams((1e-6, 1e-6), (1e-3, 1e-3)), camera=d.camera)
+    t0 = float(d.imu_stamps[0])
+    level, nose_up = [0.0, 0.0, 9.81], [9.81 * math.sin(1.22), 0.0, 9.81 * math.cos(1.22)]
+    odo.add_imu(t0, [0.0, 0.0, 0.0], level)
+    assert odo.add_image(t0 + 0.05, images[0]) == []  # waits for the IMU after it
+    steps = odo.add_imu(t0 + 0.10, [0.0, 0.0, 0.0], nose_up)
+    steps += odo.add_image(t0 + 0.10, images[1])
+    print(f"\nsteps {len(steps)}, dropped (invalid BEV) {odo.counters.dropped_invalid_bev}")
+    assert odo.counters.dropped_invalid_bev >= 1
+    assert odo._last_imu == t0 + 0.10  # the IMU sample was fused, nothing raised
+    odo.reset()
+    assert len(feed(odo, d, images)) == len(images)  # and the engine works on afterwards

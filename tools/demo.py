@@ -126,7 +126,9 @@ def main(argv: list[str] | None = None) -> int:
         print("\n(4/4 skipped: no KITTI sample at ../shared/data/kitti)")
 
     table = HEADER + "\n" + "\n".join(rows) + "\n"
-    (out / "summary.md").write_text("# BEVO demo\n\n" + table)
+    from bevo_ros.config import atomic_write_text
+
+    atomic_write_text(out / "summary.md", "# BEVO demo\n\n" + table)
     print("\n" + table)
     print(f"plots: {out}/eval_learned/trajectory.png, frame_errors.png, pitch_roll.png")
     print(f"demo finished in {time.perf_counter() - t_start:.0f} s")

@@ -31,7 +31,6 @@ _MIN_DEPTH = 0.1  # metres in front of the camera; closer ground points are inva
 
 
 @lru_cache(maxsize=32)
-@lru_cache(maxsize=16)
 def _ground_points_h(spec: BevSpec, supersample: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Road-frame points (x, y, 0) of the sub-samples of every BEV cell. -> ``(S, S, n*n, 3)``.
 

@@ -45,7 +45,7 @@ __all__ = [
 # _0018 and _0027 (10 Hz OXTS, filtered angles vs. the unit's own roll/pitch); drive 0020, which
 # the tests use, was held out. Q ~ (5.7 deg)^2 is the size of the raw accelerometer-angle error
 # there (4-6 deg RMS: braking and centripetal acceleration, not white noise). Only O/Q shapes
-# the mean; 3e-5 /s is the roll optimum (0.60 deg RMS vs 4.4 raw) and within 0.1 deg of the pitch
+# the mean; a ratio O/Q of 3e-5 /s is the roll optimum (0.60 deg RMS vs 4.4 raw) and within 0.1 deg of the pitch
 # one (1.41 vs 5.4 raw), which keeps falling as the accelerometer is ignored altogether, i.e.
 # pure gyro integration: too fragile against a MEMS gyro's bias to be a default. Q is per
 # measurement, so at IMU rates far from 10 Hz the effective weighting changes: learn or retune.

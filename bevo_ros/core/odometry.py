@@ -67,6 +67,7 @@ class Counters:
     imu_gaps: int = 0
     dropped_no_imu: int = 0
     dropped_pending_overflow: int = 0
+    dropped_invalid_bev: int = 0  # the attitude put the BEV's ground patch out of the image
     resets: int = 0
 
 
@@ -115,6 +116,7 @@ class BevoOdometry:
         self.max_pending_images = max_pending_images
         self.counters = Counters()
         self.reset()
+        self.counters.resets = 0  # count explicit resets only
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -205,7 +207,7 @@ class BevoOdometry:
             raise OutOfOrderError("image", stamp, last)
         self.counters.images += 1
         if self._last_imu is not None and self._last_imu >= stamp:
-            return [self._process(stamp, img)]
+            return self._process_or_drop(stamp, img)
         self._pending.append((stamp, img))
         if len(self._pending) > self.max_pending_images:
             self._pending.pop(0)
@@ -224,8 +226,17 @@ class BevoOdometry:
             if self._state is None:
                 self.counters.dropped_no_imu += 1
                 continue
-            out.append(self._process(stamp, img))
+            out += self._process_or_drop(stamp, img)
         return out
+
+    def _process_or_drop(self, stamp: float, img: np.ndarray) -> list[OdometryStep]:
+        """One frame, or a counted drop when its BEV has no valid pixel (e.g. an absurd attitude):
+        ``_process`` changes no state before that check, so the next frame simply carries on."""
+        try:
+            return [self._process(stamp, img)]
+        except ValueError:
+            self.counters.dropped_invalid_bev += 1
+            return []
 
     @torch.no_grad()
     def _process(self, stamp: float, img: np.ndarray) -> OdometryStep:
@@ -263,11 +274,15 @@ class BevoOdometry:
         pose_cov[3, 4] = pose_cov[4, 3] = att_cov[0, 1]
         twist_cov = np.zeros((6, 6))
         if dt > 0:
-            twist_cov[np.ix_([0, 1, 5], [0, 1, 5])] = motion_cov / dt**2
-            lin = np.array([motion[0] / dt, motion[1] / dt, 0.0])
+            # nav_msgs/Odometry's twist is in child_frame_id at t: rotate the step (base at t-1) by -dyaw.
+            c, s_ = math.cos(motion[2]), math.sin(motion[2])
+            rot = np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]])
+            twist_cov[np.ix_([0, 1, 5], [0, 1, 5])] = rot @ motion_cov @ rot.T / dt**2
+            lin = np.array([c * motion[0] + s_ * motion[1], -s_ * motion[0] + c * motion[1], 0.0]) / dt
             ang = np.array([0.0, 0.0, motion[2] / dt])
         else:
             lin, ang = np.zeros(3), np.zeros(3)
+            twist_cov[0, 0] = twist_cov[1, 1] = twist_cov[5, 5] = Z_VARIANCE  # first frame: velocity unknown
         twist_cov[2, 2] = twist_cov[3, 3] = twist_cov[4, 4] = Z_VARIANCE
         return OdometryStep(
             stamp=stamp,

@@ -11,12 +11,16 @@ estimated by a first-order low-pass of the filtered gravity-referenced attitude 
 road-relative attitude is what remains:
 
     alpha_t = 1 - exp(-dt_t / tau)            (per-sample dt: any IMU/camera rate, gaps included)
+    alpha_t = max(alpha_t, dt_t / elapsed_t)  (a running mean for the first ~tau seconds, so
+                                               the first, noisy sample is not locked in)
     tilt_t  = tilt_{t-1} + alpha_t (x_t - tilt_{t-1}),   tilt_0 = x_0
     road_relative_t = x_t - tilt_t
 
 Trade-offs of ``tau``: attitude changes lasting longer than ~tau (a long lean in a steady bend, a
 long hill's start) are progressively absorbed into the tilt, and a change of camber/slope shows
-up in the road-relative attitude until it decays with tau. Tens of seconds suit cars.
+up in the road-relative attitude until it decays with tau. The engine's default is 2 s: it also
+removes what the accelerometer gets wrong for seconds (braking, bends); bumps stay (measured on
+the synthetic demo drive: 9 cm/frame at 2 s vs 31 cm/frame at 10 s).
 
 ``time_constant <= 0``, ``inf`` or ``None`` disables the low-pass: the attitude is returned
 unchanged, minus ``static_offset`` if one is given (a fixed, known mounting/road tilt). With the
