@@ -50,10 +50,9 @@ from bevo_ros.core.dukf import DUKF
 from bevo_ros.core.geometry import BevSpec, wrap_angle
 from bevo_ros.core.loss import registration_kl_loss
 from bevo_ros.core.motion import vehicle_motion_from_registration
-from bevo_ros.core.phase_correlation import DpcConfig, Prepared, angle_bins, prepare, register_prepared, \
+from bevo_ros.core.phase_correlation import DpcConfig, angle_bins, prepare, register_prepared, \
     shift_bins, soft_weight
-from bevo_ros.core.sequence import frame_imu_indices, imu_attitude, imu_speeds, project_frames, \
-    registration_targets, road_attitude_at_frames
+from bevo_ros.core.sequence import frame_attitudes, imu_speeds, project_frames, registration_targets
 from bevo_ros.datasets import Sequence, split_frames
 
 Tensor = torch.Tensor
@@ -150,34 +149,6 @@ class PassResult:
         return math.degrees(float(self.yaw_err.mean())) if self.yaw_err is not None and self.pairs else float("nan")
 
 
-def frame_attitudes(dukf: DUKF | None, imu_stamps: Tensor, gyro: Tensor, accel: Tensor, frame_stamps: Tensor,
-                    road_tilt_time_constant: float, source: str = "dukf",
-                    given_pitch_roll_road: Tensor | None = None,
-                    mounting_attitude: tuple[float, float] = (0.0, 0.0),
-                    speed: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Gravity- and road-referenced ``[pitch, roll]`` at the frames, ``(F, 2)`` each, exactly as
-    :func:`bevo_ros.core.sequence.run_sequence` computes them (differentiable for ``"dukf"``):
-    the road-tilt low-pass, then the static mounting attitude added; ``"given"`` is used as is.
-    ``speed`` (``(N,)``, see :func:`~bevo_ros.core.sequence.imu_speeds`) turns on the turn
-    compensation of the accelerometer."""
-    if source == "given":
-        if given_pitch_roll_road is None or given_pitch_roll_road.shape != (frame_stamps.shape[0], 2):
-            raise ValueError("source='given' needs given_pitch_roll_road of shape (F, 2)")
-        g = given_pitch_roll_road.to(frame_stamps.device, torch.float64)
-        return g, g
-    idx = frame_imu_indices(imu_stamps, frame_stamps)
-    if bool((idx < 0).any()):
-        raise ValueError("every frame needs an IMU sample at or before its stamp; trim the frames")
-    attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source, speed)
-    road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
-    road = road + torch.tensor(mounting_attitude, dtype=road.dtype, device=road.device)
-    return attitude[idx], road
-
-
-def _take(p: Prepared, index: Tensor) -> Prepared:
-    return Prepared(**{f.name: getattr(p, f.name)[index] for f in dataclasses.fields(p)})
-
-
 def _uniform_kl(target_angle: Tensor, target_shift: Tensor, dpc: DpcConfig, size: int,
                 sigma_angle: float, sigma_shift: float) -> Tensor:
     """Summed KL of the targets against uniform distributions: the loss of a failed pair."""
@@ -262,7 +233,7 @@ def sequence_pass(
             if n_ok:
                 pos = torch.cumsum(valid.long(), 0) - 1
                 prepared = prepare(bev[valid], mask[valid], dpc)
-                reg = register_prepared(_take(prepared, pos[:-1][ok]), _take(prepared, pos[1:][ok]), dpc)
+                reg = register_prepared(prepared[pos[:-1][ok]], prepared[pos[1:][ok]], dpc)
                 m = vehicle_motion_from_registration(reg.angle, reg.shift, spec)
                 sel = torch.arange(w0, w1)[ok.cpu()]
                 motion[sel] = m.detach().double().cpu()
@@ -768,6 +739,6 @@ def write_learned(result: TrainResult, path: str | Path) -> Path:
 
 __all__ = [
     "LOSS_TEMPERATURE", "PassResult", "TrainOptions", "TrainResult", "TrainingDiverged", "Evaluation", "bev_spec",
-    "frame_attitudes", "load_checkpoint", "loss_dpc", "make_dukf", "median_imu_dt", "random_init",
+    "load_checkpoint", "loss_dpc", "make_dukf", "median_imu_dt", "random_init",
     "resolve_device", "save_checkpoint", "sequence_pass", "train", "variances", "write_learned",
 ]

@@ -7,7 +7,7 @@ So a model trained here behaves the same online.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 
@@ -15,7 +15,7 @@ from .bev import project_to_bev
 from .dukf import DUKF, accel_to_pitch_roll, remove_turn_acceleration
 from .geometry import BevSpec, CameraModel
 from .motion import registration_from_vehicle_motion, vehicle_motion_from_registration
-from .phase_correlation import DpcConfig, Prepared, Registration, prepare, register_prepared
+from .phase_correlation import DpcConfig, Registration, prepare, register_prepared
 from .road_tilt import road_relative_attitude
 
 Tensor = torch.Tensor
@@ -114,14 +114,10 @@ def project_frames(
     return torch.cat(bevs), torch.cat(masks)
 
 
-def _slice(p: Prepared, s: slice) -> Prepared:
-    return Prepared(**{f.name: getattr(p, f.name)[s] for f in fields(p)})
-
-
 def register_consecutive(bev: Tensor, mask: Tensor, config: DpcConfig) -> Registration:
     """Registrations of every consecutive pair ``(F-1)`` with each frame prepared once."""
     prepared = prepare(bev, mask, config)
-    return register_prepared(_slice(prepared, slice(None, -1)), _slice(prepared, slice(1, None)), config)
+    return register_prepared(prepared[:-1], prepared[1:], config)
 
 
 @dataclass
@@ -166,26 +162,38 @@ def run_sequence(
     """
     if source not in ATTITUDE_SOURCES:
         raise ValueError(f"source must be one of {ATTITUDE_SOURCES}, got {source!r}")
-    idx = frame_imu_indices(imu_stamps, frame_stamps)
-    if bool((idx < 0).any()):
-        raise ValueError("every frame needs an IMU sample at or before its stamp; trim the frames")
-    if source == "given":
-        if given_pitch_roll_road is None or given_pitch_roll_road.shape != (frame_stamps.shape[0], 2):
-            raise ValueError("source='given' needs given_pitch_roll_road of shape (F, 2)")
-        road = given_pitch_roll_road
-        gravity = given_pitch_roll_road
-        return _register_frames(images, camera, road, gravity, spec, dpc)
     speed = None
-    if turn_compensation:
+    if turn_compensation and source != "given":
         with torch.no_grad():
             first = run_sequence(dukf, camera, spec, dpc, imu_stamps, gyro, accel, frame_stamps, images,
                                  road_tilt_time_constant, source, None, mounting_attitude, turn_compensation=False)
         speed = imu_speeds(imu_stamps, frame_stamps, first.motion)
+    gravity, road = frame_attitudes(dukf, imu_stamps, gyro, accel, frame_stamps, road_tilt_time_constant, source,
+                                    given_pitch_roll_road, mounting_attitude, speed)
+    return _register_frames(images, camera, road, gravity, spec, dpc)
+
+
+def frame_attitudes(dukf: DUKF | None, imu_stamps: Tensor, gyro: Tensor, accel: Tensor, frame_stamps: Tensor,
+                    road_tilt_time_constant: float, source: str = "dukf",
+                    given_pitch_roll_road: Tensor | None = None,
+                    mounting_attitude: tuple[float, float] = (0.0, 0.0),
+                    speed: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Gravity-referenced and road-relative ``[pitch, roll]`` at the frames, ``(F, 2)`` each, as the
+    engine computes them (differentiable for ``"dukf"``): the filter over every IMU sample, the
+    road-tilt low-pass, then the static mounting attitude; ``"given"`` is used as is. ``speed``
+    (``(N,)``, see :func:`imu_speeds`) turns on the turn compensation of the accelerometer."""
+    if source == "given":
+        if given_pitch_roll_road is None or given_pitch_roll_road.shape != (frame_stamps.shape[0], 2):
+            raise ValueError("source='given' needs given_pitch_roll_road of shape (F, 2)")
+        given = given_pitch_roll_road.to(frame_stamps.device, torch.float64)
+        return given, given
+    idx = frame_imu_indices(imu_stamps, frame_stamps)
+    if bool((idx < 0).any()):
+        raise ValueError("every frame needs an IMU sample at or before its stamp; trim the frames")
     attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source, speed)
-    gravity = attitude[idx]
     road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
     road = road + torch.tensor(mounting_attitude, dtype=road.dtype, device=road.device)
-    return _register_frames(images, camera, road, gravity, spec, dpc)
+    return attitude[idx], road
 
 
 def _register_frames(images: Tensor, camera: CameraModel, road: Tensor, gravity: Tensor, spec: BevSpec,
