@@ -417,21 +417,26 @@ class RawMessage:
     data: bytes
 
 
-def iter_raw_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start_ns: int | None = None,
-                      stop_ns: int | None = None) -> Iterator[RawMessage]:
-    """Serialized messages in bag-time order (ties: storage order), optionally filtered by topic."""
+def _read(bag_path: PathLike, topics: Sequence[str] | None, start_ns: int | None, stop_ns: int | None):
+    """``(reader, connection, bag time ns, raw bytes)`` in bag-time order; the reader closes at the end."""
     reader = _open_reader(bag_path)
     try:
         conns = _select_connections(reader, bag_path, topics)
-        if not conns:
-            return
-        for conn, t_ns, raw in reader.messages(connections=conns, start=start_ns, stop=stop_ns):
-            data = bytes(raw)
-            if _is_ros1(conn):
-                data = bytes(reader.typestore.ros1_to_cdr(data, conn.msgtype))
-            yield RawMessage(conn.topic, conn.msgtype, int(t_ns), data)
+        if conns:
+            for conn, t_ns, raw in reader.messages(connections=conns, start=start_ns, stop=stop_ns):
+                yield reader, conn, int(t_ns), raw
     finally:
         reader.close()
+
+
+def iter_raw_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start_ns: int | None = None,
+                      stop_ns: int | None = None) -> Iterator[RawMessage]:
+    """Serialized messages in bag-time order (ties: storage order), optionally filtered by topic."""
+    for reader, conn, t_ns, raw in _read(bag_path, topics, start_ns, stop_ns):
+        data = bytes(raw)
+        if _is_ros1(conn):
+            data = bytes(reader.typestore.ros1_to_cdr(data, conn.msgtype))
+        yield RawMessage(conn.topic, conn.msgtype, t_ns, data)
 
 
 def _is_ros1(conn) -> bool:
@@ -451,15 +456,8 @@ def _select_connections(reader, bag_path: PathLike, topics: Sequence[str] | None
 def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start_ns: int | None = None,
                   stop_ns: int | None = None) -> Iterator[tuple[str, int, Any]]:
     """``(topic, bag time ns, deserialized rosbags message)`` in bag-time order."""
-    reader = _open_reader(bag_path)
-    try:
-        conns = _select_connections(reader, bag_path, topics)
-        if not conns:
-            return
-        for conn, t_ns, raw in reader.messages(connections=conns, start=start_ns, stop=stop_ns):
-            yield conn.topic, int(t_ns), reader.deserialize(raw, conn.msgtype)
-    finally:
-        reader.close()
+    for reader, conn, t_ns, raw in _read(bag_path, topics, start_ns, stop_ns):
+        yield conn.topic, t_ns, reader.deserialize(raw, conn.msgtype)
 
 
 # Image encodings decoded here: name -> (channels, bytes per channel).

@@ -355,6 +355,14 @@ class BevoNode(Node):
             self.engine.set_camera(camera)
 
     _WATCHED_COUNTERS = ("dropped_no_imu", "dropped_pending_overflow", "imu_gaps", "dropped_invalid_bev")
+    # engine counter -> node drop reason, and why (formatted with the node settings as ``s``)
+    _ENGINE_DROPS = (
+        ("dropped_no_imu", "no_imu", "with no IMU sample at or before their stamp (frames before any IMU)"),
+        ("dropped_pending_overflow", "pending_overflow",
+         "more than max_pending_images={s.max_pending_images} images were waiting for IMU"),
+        ("dropped_invalid_bev", "invalid_bev",
+         "whose BEV had no valid pixel (pitch/roll put the ground patch out of the image)"),
+    )
 
     def _read_engine_counters(self) -> tuple[int, ...]:
         c = getattr(self.engine, "counters", None)
@@ -367,19 +375,10 @@ class BevoNode(Node):
             return
         old, self._engine_counters = self._engine_counters, now
         d = {k: n - o for k, n, o in zip(self._WATCHED_COUNTERS, now, old)}
-        if d.get("dropped_no_imu", 0) > 0:
-            self.drops["no_imu"] += d["dropped_no_imu"]
-            self._log("no_imu", f"dropped (no_imu): {d['dropped_no_imu']} image(s) with no IMU sample at or before "
-                                "their stamp (frames before any IMU)")
-        if d.get("dropped_pending_overflow", 0) > 0:
-            self.drops["pending_overflow"] += d["dropped_pending_overflow"]
-            self._log("pending_overflow", f"dropped (pending_overflow): {d['dropped_pending_overflow']} image(s): "
-                                          f"more than max_pending_images={self.settings.max_pending_images} "
-                                          "images were waiting for IMU")
-        if d.get("dropped_invalid_bev", 0) > 0:
-            self.drops["invalid_bev"] += d["dropped_invalid_bev"]
-            self._log("invalid_bev", f"dropped (invalid_bev): {d['dropped_invalid_bev']} image(s) whose BEV had no "
-                                     "valid pixel (pitch/roll put the ground patch out of the image)")
+        for counter, reason, why in self._ENGINE_DROPS:
+            if d.get(counter, 0) > 0:
+                self.drops[reason] += d[counter]
+                self._log(reason, f"dropped ({reason}): {d[counter]} image(s) " + why.format(s=self.settings))
         if d.get("imu_gaps", 0) > 0:
             self.events["imu_gap"] += d["imu_gaps"]
             self._log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.config.filter.max_imu_gap} s "

@@ -35,7 +35,6 @@ __all__ = [
     "accel_to_pitch_roll",
     "remove_turn_acceleration",
     "merwe_weights",
-    "sigma_points",
     "euler_motion",
     "additive_motion",
     "MOTION_MODELS",
@@ -152,22 +151,6 @@ def _cholesky_2x2(cov: Tensor, floor: float = 1e-30) -> Tensor:
     l10 = b / l00
     l11 = (d - l10 * l10).clamp_min(floor).sqrt()
     return torch.stack([l00, torch.zeros_like(l00), l10, l11], dim=-1).reshape(-1, 2, 2)
-
-
-def sigma_points(mean: Tensor, cov: Tensor, lambda_: float) -> Tensor:
-    """Scaled sigma points ``[mu, mu + c L_0, mu + c L_1, mu - c L_0, mu - c L_1]``, ``c = sqrt(n + lambda)``.
-
-    ``L_k`` is column k of the lower Cholesky factor (= row k of scipy's upper factor, as filterpy).
-
-    Args:
-        mean: ``(B, 2)``; cov: ``(B, 2, 2)``.
-
-    Returns:
-        ``(B, 5, 2)``.
-    """
-    c = math.sqrt(2 + lambda_)
-    sel = torch.tensor([[0.0, 0.0], [c, 0.0], [0.0, c], [-c, 0.0], [0.0, -c]], dtype=mean.dtype, device=mean.device)
-    return _sigma_points(mean, cov, sel)
 
 
 def _sigma_points(mean: Tensor, cov: Tensor, sel: Tensor) -> Tensor:

@@ -26,14 +26,6 @@ def integrate_motions(motions: Tensor, start: Tensor | None = None) -> Tensor:
     return torch.stack(poses)
 
 
-def relative_se2(pose_a: Tensor, pose_b: Tensor) -> Tensor:
-    """The increment taking ``pose_a`` to ``pose_b`` in a's frame (inverse of compose). ``(..., 3)``."""
-    d = pose_b[..., :2] - pose_a[..., :2]
-    c, s = torch.cos(pose_a[..., 2]), torch.sin(pose_a[..., 2])
-    return torch.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
-                        wrap_angle(pose_b[..., 2] - pose_a[..., 2])], dim=-1)
-
-
 def propagate_covariance_se2(pose: Tensor, cov: Tensor, motion: Tensor, motion_cov: Tensor) -> Tensor:
     """First-order covariance of ``compose_se2(pose, motion)``. ``(3,)``, ``(3, 3)`` -> ``(3, 3)``."""
     yaw = pose[..., 2]
