@@ -31,22 +31,20 @@ _MIN_DEPTH = 0.1  # metres in front of the camera; closer ground points are inva
 
 
 @lru_cache(maxsize=32)
-def _ground_points_h(spec: BevSpec, supersample: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """Road-frame points (x, y, 0) of the sub-samples of every BEV cell. -> ``(S, S, n*n, 3)``.
+def _ground_axes(spec: BevSpec, supersample: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """Road-frame ``x`` of the sub-sample rows and ``y`` of the sub-sample columns, ``(n, S)`` each.
 
-    Cached: they depend only on the grid (the per-frame cost is the projection, not this).
-
-    The sub-samples sit at the centres of an ``n x n`` split of each cell, so their mean is the
-    cell average; with ``n = 1`` this is exactly ``spec.ground_points``.
+    The BEV grid is axis-aligned on the road (row -> x, column -> y), so its sub-samples are the
+    outer product of these two axes. ``x[a, i]`` is the centre of the ``a``-th of ``n`` strips of
+    row ``i`` (likewise ``y[b, j]``), so the mean over ``(a, b)`` is the cell average; ``n = 1`` is
+    exactly ``spec.ground_points``. Cached: they depend only on the grid.
     """
-    n = supersample
-    centres = spec.ground_points(dtype=torch.float64, device="cpu")  # (S, S, 2)
-    offs = (torch.arange(n, dtype=torch.float64) + 0.5) / n - 0.5  # (n,) in cells
-    ox, oy = torch.meshgrid(offs, offs, indexing="ij")
-    sub = torch.stack([ox, oy], dim=-1).reshape(n * n, 2) * spec.metres_per_pixel  # (n*n, 2)
-    pts = centres[:, :, None, :] + sub[None, None]  # (S, S, n*n, 2)
-    pts = torch.cat([pts, torch.zeros_like(pts[..., :1])], dim=-1)
-    return pts.to(dtype=dtype, device=device)
+    n, S = supersample, spec.size
+    fine = BevSpec(S * n, spec.metres_per_pixel / n, spec.forward_offset)  # fine row i n + a
+    xy = fine.ground_points(dtype=torch.float64, device="cpu")
+    x = xy[:, 0, 0].reshape(S, n).T
+    y = xy[0, :, 1].reshape(S, n).T
+    return x.to(dtype=dtype, device=device).contiguous(), y.to(dtype=dtype, device=device).contiguous()
 
 
 def _check_attitude(pitch: Tensor, roll: Tensor) -> None:
@@ -73,39 +71,47 @@ def bev_sampling_grid(
             factor (see :func:`project_to_bev`); defaults to the camera's size.
 
     Returns:
-        grid ``(B, S, S * n * n, 2)`` normalised ``(x, y)`` for ``grid_sample(align_corners=False)``
-        (``n = 1``: ``(B, S, S, 2)``), and valid ``(B, S, S * n * n)`` bool: in front of the
-        camera and at least one pixel inside the image border.
+        grid ``(B, n n S, S, 2)`` normalised ``(x, y)`` for ``grid_sample(align_corners=False)``
+        and valid ``(B, n n S, S)`` bool: in front of the camera and at least one pixel inside the
+        image border. Sub-sample ``(a, b)`` of cell ``(i, j)`` is at row ``(a n + b) S + i``,
+        column ``j``: each sub-sample is an ``(S, S)`` plane, so the cell mean is a mean over
+        planes (``n = 1``: the plain ``(B, S, S, 2)`` grid). Invalid samples are finite.
     """
     _check_attitude(pitch, roll)
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     dtype, device = pitch.dtype, pitch.device
+    B, S, n = pitch.shape[0], spec.size, supersample
     W, H = camera.width, camera.height_px
     R, t = camera_pose_on_road(camera, pitch, roll)  # (B, 3, 3), (B, 3)
     K = camera.K.to(dtype=dtype, device=device)
-    pts = _ground_points_h(spec, supersample, dtype, device)  # (S, S, m, 3)
-    S, m = spec.size, supersample * supersample
-    p = pts.reshape(1, -1, 3) - t[:, None, :]  # (B, N, 3) road frame, relative to the camera
-    # p_cam = R^T p: with row vectors that is p @ R; then project with K in one go.
-    uvw = p @ (R @ K.transpose(0, 1))  # (B, N, 3) = (K R^T p)^T
-    z = uvw[..., 2]
-    front = z > _MIN_DEPTH
-    zs = torch.where(front, z, torch.ones_like(z))  # no division by ~0 behind the camera
-    u, v = uvw[..., 0] / zs, uvw[..., 1] / zs
-    valid = front & (u >= 1.0) & (u <= W - 2.0) & (v >= 1.0) & (v <= H - 2.0)
-    if image_size is not None:
-        # Image reduced by an integer factor f: pixel j covers [f j - 0.5, f j + f - 0.5).
-        f = W // image_size[0]
-        u, v = (u - (f - 1) / 2.0) / f, (v - (f - 1) / 2.0) / f
-        W, H = image_size
-    gx = (2.0 * u + 1.0) / W - 1.0
-    gy = (2.0 * v + 1.0) / H - 1.0
-    # Keep invalid samples finite (they are masked) so gradients stay clean.
-    gx = torch.where(valid, gx, torch.full_like(gx, -2.0))
-    gy = torch.where(valid, gy, torch.full_like(gy, -2.0))
-    grid = torch.stack([gx, gy], dim=-1).reshape(-1, S, S * m, 2)
-    return grid, valid.reshape(-1, S, S * m)
+    # Pixel u (OpenCV centres) -> grid_sample g = (2 u + 1) / W - 1, or on an image reduced by an
+    # integer factor f, where pixel j covers [f j - 0.5, f j + f - 0.5): u' = (u - (f - 1) / 2) / f.
+    f = 1 if image_size is None else W // image_size[0]
+    Ws, Hs = (W, H) if image_size is None else image_size
+    c = 1.0 - (f - 1.0) / f
+    scale = torch.tensor([2.0 / (f * Ws), 2.0 / (f * Hs)], dtype=dtype, device=device)
+    offset = torch.tensor([c / Ws - 1.0, c / Hs - 1.0], dtype=dtype, device=device)
+    # The road plane maps to the image through a homography: for a road point p = (x, y, 0),
+    # (u w, v w, w) = M (p - t) with M = K R^T. Folding the u -> g affine map into M's first two
+    # rows gives g = (A (p - t))_xy / w directly, and as the grid is axis-aligned,
+    # A (p - t) = (A[:, 0] x_row - A t) + A[:, 1] y_col: an outer sum, no per-point matmul.
+    M = K @ R.transpose(-1, -2)  # (B, 3, 3)
+    A = torch.cat([M[:, :2] * scale[:, None] + offset[:, None] * M[:, 2:], M[:, 2:]], dim=1)
+    x, y = _ground_axes(spec, n, dtype, device)  # (n, S) each
+    at = (A @ t[:, :, None])[:, :, :, None]  # (B, 3, 1, 1)
+    by_row = A[:, :, 0, None, None] * x - at  # (B, 3, n, S)
+    by_col = A[:, :, 1, None, None] * y  # (B, 3, n, S)
+    # Planar (B, 3, a, b, i, j) layout: elementwise ops on contiguous planes are fast on CPU.
+    gw = (by_row[:, :, :, None, :, None] + by_col[:, :, None, :, None, :]).reshape(B, 3, n * n * S, S)
+    w = gw[:, 2]
+    g = gw[:, :2] / w.clamp_min(_MIN_DEPTH)[:, None]  # finite everywhere, also behind the camera
+    # Inside with a 1-pixel margin, u in [1, W - 2] and v in [1, H - 2], in grid units.
+    lo = torch.tensor([1.0, 1.0], dtype=dtype, device=device) * scale + offset
+    hi = torch.tensor([W - 2.0, H - 2.0], dtype=dtype, device=device) * scale + offset
+    out = (g - (0.5 * (lo + hi))[:, None, None]).abs() - (0.5 * (hi - lo))[:, None, None]
+    valid = (torch.maximum(out[:, 0], out[:, 1]) <= 0) & (w > _MIN_DEPTH)
+    return g.permute(0, 2, 3, 1), valid
 
 
 def project_to_bev(
@@ -153,10 +159,8 @@ def project_to_bev(
     grid, valid = bev_sampling_grid(camera, pitch, roll, spec, supersample, size)
     S, m = spec.size, supersample * supersample
     samples = F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    valid_f = valid.to(image.dtype)
-    samples = samples * valid_f[:, None]  # (B, C, S, S*m)
-    bev = samples.reshape(B, C, S, S, m).mean(dim=-1)
-    mask = valid_f.reshape(B, 1, S, S, m).amin(dim=-1)
+    bev = samples.reshape(B, C, m, S, S).mean(dim=2)  # the sub-sample mean: a box filter on the ground
+    mask = valid.reshape(B, 1, m, S, S).all(dim=2).to(image.dtype)  # valid only if every sub-sample is
     return bev * mask, mask
 
 

@@ -332,6 +332,16 @@ def _check_pair(bev: Tensor, mask: Tensor) -> None:
         raise ValueError(f"bev must be floating point, got {bev.dtype}")
 
 
+def _box_blur(x: Tensor, width: int) -> Tensor:
+    """Mean over a ``width x width`` box, replicate padding (the BEV's outer border is not an
+    invalid region). ``(B, 1, H, W)`` -> same. Two separable 1-D convolutions: on CPU ~5x faster
+    than ``avg_pool2d`` with stride 1."""
+    p = width // 2
+    k = torch.full((1, 1, 1, width), 1.0 / width, dtype=x.dtype, device=x.device)
+    x = F.pad(x, (p, p, p, p), mode="replicate")
+    return F.conv2d(F.conv2d(x, k), k.transpose(-1, -2))
+
+
 def soft_weight(mask: Tensor, config: DpcConfig) -> Tensor:
     """Smooth weight ``(B, S, S)`` = (soft mask edge) x radial window. ``mask (B, 1, S, S)``.
 
@@ -342,20 +352,23 @@ def soft_weight(mask: Tensor, config: DpcConfig) -> Tensor:
     if config.mask_blur > 0:
         # Two box filters of width w have variance (w^2 - 1) / 6: a cheap near-Gaussian blur.
         w = max(3, 2 * round((math.sqrt(6.0 * config.mask_blur**2 + 1.0) - 1.0) / 2.0) + 1)
-        p = w // 2
-        # Replicate padding: the BEV's outer border is not an invalid region.
-        b = F.avg_pool2d(F.pad(m, (p, p, p, p), mode="replicate"), w, stride=1)
-        b = F.avg_pool2d(F.pad(b, (p, p, p, p), mode="replicate"), w, stride=1)
+        b = _box_blur(_box_blur(m, w), w)
         t = (2.0 * b - 1.0).clamp(0.0, 1.0)
         m = t * t * (3.0 - 2.0 * t) * m
     S = mask.shape[-1]
     return m[:, 0] * _radial_window(S, config.window_alpha, m.dtype, m.device)
 
 
+def _magnitude(z: Tensor) -> Tensor:
+    """``|z|`` of a complex tensor; ~2.5x faster than ``z.abs()`` on CPU. The tiny floor keeps the
+    gradient finite at 0 (the DC term of a zero-mean image is exactly 0)."""
+    return (z.real.square() + z.imag.square() + 1e-30).sqrt()
+
+
 def _polar_spectrum(spectrum: Tensor, config: DpcConfig) -> Tensor:
     """Compressed magnitude in polar coordinates, zero mean and unit RMS per radius. -> ``(B, R, A)``."""
     B, S, W = spectrum.shape  # S here is the padded size; rfft2 layout
-    mag = spectrum.abs().reshape(B, S * W)
+    mag = _magnitude(spectrum).reshape(B, S * W)
     mag = mag / (mag.mean(dim=1, keepdim=True) + 1e-12)  # brightness/contrast invariant
     mag = torch.log1p(mag) if config.compression == "log" else torch.sqrt(mag + 1e-12)
     idx, w = _polar_sampler(S, config.angle_bins, config.radial_range, config.radial_samples, spectrum.device)
@@ -423,12 +436,12 @@ def _gaussian_offset(cm: Tensor, c0: Tensor, cp: Tensor) -> Tensor:
     return (0.5 * (lm - lp) / den).clamp(-0.5, 0.5)
 
 
-def _whiten(cross: Tensor, floor: float, dims: tuple[int, ...]) -> Tensor:
-    """Phase normalisation ``C / (|C| + floor * mean|C|)`` (pure phase for ``floor = 0``)."""
-    mag = cross.abs()
+def _whitening_gain(mag: Tensor, floor: float, dims: tuple[int, ...]) -> Tensor:
+    """Real gain ``1 / (|C| + floor * mean|C|)`` of the phase normalisation (pure phase for
+    ``floor = 0``) from ``mag = |C|``; the whitened spectrum is ``C * gain``."""
     if floor > 0:
-        return cross / (mag + floor * mag.mean(dim=dims, keepdim=True) + 1e-12)
-    return cross / (mag + 1e-12)
+        return 1.0 / (mag + floor * mag.mean(dim=dims, keepdim=True) + 1e-12)
+    return 1.0 / (mag + 1e-12)
 
 
 def estimate_rotation(prev: Prepared, curr: Prepared, config: DpcConfig) -> tuple[Tensor, Tensor, Tensor]:
@@ -441,7 +454,7 @@ def estimate_rotation(prev: Prepared, curr: Prepared, config: DpcConfig) -> tupl
     A = config.angle_bins
     cross = (curr.polar * prev.polar.conj()).sum(dim=1)  # (B, A//2+1): pooled over radii
     band, norm = _rotation_band(A, config.rotation_sigma, config.rotation_lowcut, prev.image.dtype, prev.image.device)
-    cross = cross / (cross.abs() + 1e-12) * band
+    cross = cross * (band / (_magnitude(cross) + 1e-12))
     corr = torch.fft.irfft(cross, n=A, dim=-1) / norm  # index j <-> angle j pi / A
     corr = torch.roll(corr, A // 2, dims=-1)  # index i <-> (i - A/2) pi / A
     log_prob = F.log_softmax(corr / config.rotation_temperature, dim=-1)
@@ -491,10 +504,12 @@ def translation_correlation(prev_spectrum: Tensor, curr_image: Tensor, config: D
     cross = torch.fft.rfft2(curr_image) * prev_spectrum.conj()
     band, mult = _translation_band(S, config.translation_sigma, config.translation_lowcut, curr_image.dtype,
                                    curr_image.device)
-    cross = _whiten(cross, config.whitening_floor, dims=(-2, -1)) * band
+    mag = _magnitude(cross)
+    gain = _whitening_gain(mag, config.whitening_floor, dims=(-2, -1)) * band
+    cross = cross * gain
     # Normalise so that a perfect match peaks at exactly 1 whatever the whitening (sum over the
     # full spectrum = half plane with the mirrored columns counted twice).
-    norm = ((cross.abs() * mult).sum(dim=(-2, -1)) / S**2)[:, None, None].clamp_min(1e-12)
+    norm = ((mag * gain * mult).sum(dim=(-2, -1)) / S**2)[:, None, None].clamp_min(1e-12)
     corr = torch.fft.irfft2(cross, s=(S, S)) / norm  # index n <-> shift n (mod S)
     return torch.fft.fftshift(corr, dim=(-2, -1))  # index i <-> shift i - S//2
 
@@ -540,6 +555,16 @@ def _window_2d(corr: Tensor, jr: Tensor, jc: Tensor, h: int) -> tuple[Tensor, Te
     return corr[batch, rows[:, :, None], cols[:, None, :]], d.to(corr.dtype)  # (B, n, n)
 
 
+@lru_cache(maxsize=8)
+def _quadratic_fit_3x3(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(9, 6)`` least-squares fit of ``a + b r + c k + d (r^2 - 2/3) + e (k^2 - 2/3) + f r k`` to
+    the 3x3 stencil ``r, k in {-1, 0, 1}`` (closed form: the basis is orthogonal there)."""
+    d = torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)
+    r, k = d[:, None].expand(3, 3).reshape(9), d[None, :].expand(3, 3).reshape(9)
+    basis = torch.stack([torch.ones(9, dtype=torch.float64), r, k, r**2 - 2 / 3, k**2 - 2 / 3, r * k], dim=1)
+    return (basis / (basis**2).sum(dim=0)).to(dtype=dtype, device=device)
+
+
 def _quadratic_peak_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> tuple[Tensor, Tensor]:
     """Vertex of a least-squares 2-D quadratic fit to ``log corr`` on the 3x3 around the peak.
 
@@ -548,29 +573,21 @@ def _quadratic_peak_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> tuple[Tensor, Te
     Returns:
         offsets ``(B, 2)`` in [-1, 1] and the fitted log peak height ``(B,)``.
     """
-    win, d = _window_2d(corr, jr, jc, 1)  # (B, 3, 3)
-    peak = win[:, 1, 1].abs().clamp_min(1e-12)[:, None, None]
-    L = torch.log(torch.clamp(win / peak, min=1e-6))
-    # LS fit L = a + b r + c k + d r^2 + e k^2 + f r k on the 3x3 stencil (closed form).
-    r = d[:, None].expand(3, 3)
-    k = d[None, :].expand(3, 3)
-    b = (L * r).sum(dim=(1, 2)) / 6.0
-    c = (L * k).sum(dim=(1, 2)) / 6.0
-    dd = (L * (r**2 - 2.0 / 3.0)).sum(dim=(1, 2)) / 2.0
-    ee = (L * (k**2 - 2.0 / 3.0)).sum(dim=(1, 2)) / 2.0
-    ff = (L * r * k).sum(dim=(1, 2)) / 4.0
+    win, _ = _window_2d(corr, jr, jc, 1)  # (B, 3, 3)
+    B = win.shape[0]
+    peak = win[:, 1, 1].abs().clamp_min(1e-12)
+    L = torch.log(torch.clamp(win.reshape(B, 9) / peak[:, None], min=1e-6))
+    a0, b, c, dd, ee, ff = (L @ _quadratic_fit_3x3(L.dtype, L.device)).unbind(-1)
     # Vertex: [2d f; f 2e] [r; k] = -[b; c]; the Hessian must be negative definite.
-    h11, h22, h12 = 2.0 * dd, 2.0 * ee, ff
-    h11 = torch.minimum(h11, torch.full_like(h11, -1e-6))
-    h22 = torch.minimum(h22, torch.full_like(h22, -1e-6))
-    det = h11 * h22 - h12**2
+    h11 = (2.0 * dd).clamp_max(-1e-6)
+    h22 = (2.0 * ee).clamp_max(-1e-6)
+    det = h11 * h22 - ff**2
     ok = det > 1e-9
     det = torch.where(ok, det, torch.ones_like(det))
-    orow = torch.where(ok, (-b * h22 + c * h12) / det, -b / h11).clamp(-1.0, 1.0)
-    ocol = torch.where(ok, (-c * h11 + b * h12) / det, -c / h22).clamp(-1.0, 1.0)
-    a0 = L.mean(dim=(1, 2))
+    orow = torch.where(ok, (c * ff - b * h22) / det, -b / h11).clamp(-1.0, 1.0)
+    ocol = torch.where(ok, (b * ff - c * h11) / det, -c / h22).clamp(-1.0, 1.0)
     log_height = (a0 + b * orow + c * ocol + dd * (orow**2 - 2.0 / 3.0) + ee * (ocol**2 - 2.0 / 3.0)
-                  + ff * orow * ocol + torch.log(peak[:, 0, 0]))
+                  + ff * orow * ocol + torch.log(peak))
     return torch.stack([orow, ocol], dim=-1), log_height
 
 
@@ -590,13 +607,17 @@ def _wrapped_spread(log_prob_a: Tensor, bins_a: Tensor, angle: Tensor) -> Tensor
 
 
 def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
-    """Second moment ``(B, 2, 2)`` of the translation distribution about ``shift`` (cyclic)."""
+    """Second moment ``(B, 2, 2)`` of the translation distribution about ``shift`` (cyclic).
+
+    The grid is separable (row offset by row, column offset by column), so the moments are
+    ``dr^T P dr``-type forms of the marginals: no ``(S, S)`` offset tensors."""
     S = log_prob_t.shape[-1]
     p = log_prob_t.exp()  # (B, S, S)
-    dr = torch.remainder(bins_t[None, :, :, 0] - shift[:, 0, None, None] + S / 2, S) - S / 2
-    dc = torch.remainder(bins_t[None, :, :, 1] - shift[:, 1, None, None] + S / 2, S) - S / 2
-    pr = p * dr
-    rr, rc, cc = (pr * dr).sum(dim=(1, 2)), (pr * dc).sum(dim=(1, 2)), (p * dc * dc).sum(dim=(1, 2))
+    dr = torch.remainder(bins_t[None, :, 0, 0] - shift[:, 0, None] + S / 2, S) - S / 2  # (B, S)
+    dc = torch.remainder(bins_t[None, 0, :, 1] - shift[:, 1, None] + S / 2, S) - S / 2  # (B, S)
+    rr = (p.sum(dim=2) * dr**2).sum(dim=1)
+    cc = (p.sum(dim=1) * dc**2).sum(dim=1)
+    rc = (dr[:, None, :] @ p @ dc[:, :, None])[:, 0, 0]
     return torch.stack([torch.stack([rr, rc], -1), torch.stack([rc, cc], -1)], -2)
 
 
