@@ -144,14 +144,28 @@ def test_batch_and_dtype_and_speed():
         print(f"\nproject_to_bev 1241x376 -> 100x100, supersample {ss}: {(time.perf_counter() - t0) / 5 * 1e3:.2f} ms")
 
 
+def test_uint8_image_equals_float_image():
+    """uint8 is sampled as is and the BEV scaled by 1/255: the same as projecting image / 255."""
+    cam = half_res_camera(torch.float32)
+    g = torch.Generator().manual_seed(3)
+    img8 = torch.randint(0, 256, (2, 1, cam.height_px, cam.width), generator=g, dtype=torch.uint8)
+    p, r = torch.tensor([0.01, -0.02]), torch.tensor([0.0, 0.015])
+    b8, m8 = project_to_bev(img8, cam, p, r, SPEC)
+    bf, mf = project_to_bev(img8.float() / 255.0, cam, p, r, SPEC)
+    diff = float((b8 - bf).abs().max())
+    print(f"\nuint8 vs float/255 BEV: max diff {diff:.1e}, valid {float(m8.mean()):.3f}")
+    assert b8.dtype == torch.float32 and torch.equal(m8, mf) and float(m8.mean()) > 0.5
+    assert diff < 1e-6 and float(bf.max()) > 0.5
+
+
 def test_bad_input_raises():
     cam = half_res_camera(torch.float32)
     z = torch.zeros(1)
     img = torch.rand(1, 1, cam.height_px, cam.width)
     with pytest.raises(ValueError, match="image must be"):
         project_to_bev(img[0], cam, z, z, SPEC)
-    with pytest.raises(ValueError, match="float"):
-        project_to_bev((img * 255).to(torch.uint8), cam, z, z, SPEC)
+    with pytest.raises(ValueError, match="float tensor in \\[0, 1\\] or uint8"):
+        project_to_bev((img * 255).to(torch.int32), cam, z, z, SPEC)
     with pytest.raises(ValueError, match="camera model is"):
         project_to_bev(img[..., :-1], cam, z, z, SPEC)
     with pytest.raises(ValueError, match="pitch and roll"):

@@ -83,7 +83,7 @@ def test_online_equals_batched_sequence(drive):
     batched = res.motion.double().numpy()
     diff = np.abs(online - batched).max()
     print(f"\nmax |online - batched| motion difference: {diff:.2e}")
-    assert diff < 1e-4
+    assert diff < 1e-6  # every stage is batch-size invariant: in practice exactly 0
     pr_online = np.array([s.pitch_roll_road for s in steps])
     assert np.abs(pr_online - res.pitch_roll_road.numpy()).max() < 1e-6
 

@@ -44,7 +44,7 @@ def timeit(fn, repeat: int) -> list[float]:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--frames", type=int, default=60, help="frames to time (default 60)")
+    p.add_argument("--frames", type=int, default=150, help="frames to time (default 150)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1, as bevo_node's torch_threads: tiny tensors lose to thread sync)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
@@ -110,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  BEV projection                 : median {statistics.median(bev_ms):7.2f} ms")
     print(f"  DPC prepare (window + FFTs)    : median {statistics.median(prep_ms):7.2f} ms")
     print(f"  DPC register (rot + trans)     : median {statistics.median(reg_ms):7.2f} ms")
+    stages = 10 * statistics.median(add_imu_ms) + sum(statistics.median(v) for v in (bev_ms, prep_ms, reg_ms))
+    print(f"  rest (image to tensor, motion and covariances, pose, result) : ~{statistics.median(per_frame) - stages:5.2f} ms")
     print(f"peak RSS {rss_mb:.0f} MB   (target: <= 3 ms per frame median on a 2-core CPU)")
     return 0
 

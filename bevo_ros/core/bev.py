@@ -126,7 +126,10 @@ def project_to_bev(
     """Inverse perspective mapping of the image onto the BEV grid.
 
     Args:
-        image: ``(B, 1, H, W)`` (or ``(B, C, H, W)``) float image, intensities in [0, 1].
+        image: ``(B, 1, H, W)`` (or ``(B, C, H, W)``) float image with intensities in [0, 1], or
+            uint8 in [0, 255]: that is sampled in ``pitch``'s float dtype and the BEV scaled by
+            1/255 (sampling is linear, so this equals projecting ``image / 255`` without a pass
+            over the whole image).
         camera: the camera model; ``(W, H)`` must match the image.
         pitch, roll: ``(B,)`` attitude of the base relative to the road plane, radians.
         spec: the BEV grid.
@@ -140,8 +143,8 @@ def project_to_bev(
     """
     if image.ndim != 4:
         raise ValueError(f"image must be (B, C, H, W), got {tuple(image.shape)}")
-    if not image.is_floating_point():
-        raise ValueError(f"image must be a float tensor in [0, 1], got {image.dtype}")
+    if not (image.is_floating_point() or image.dtype == torch.uint8):
+        raise ValueError(f"image must be a float tensor in [0, 1] or uint8, got {image.dtype}")
     B, C, H, W = image.shape
     if (W, H) != (camera.width, camera.height_px):
         raise ValueError(f"image is {W}x{H} but the camera model is {camera.width}x{camera.height_px}")
@@ -150,6 +153,10 @@ def project_to_bev(
         raise ValueError(f"batch mismatch: image has {B} items, pitch/roll have {pitch.shape[0]}")
     if downsample < 1:
         raise ValueError(f"downsample must be >= 1, got {downsample}")
+    scale = None
+    if image.dtype == torch.uint8:
+        scale = 1.0 / 255.0
+        image = image.to(pitch.dtype if pitch.is_floating_point() else torch.float32)
     pitch, roll = pitch.to(image.dtype), roll.to(image.dtype)
     size = None
     if downsample > 1:
@@ -161,7 +168,7 @@ def project_to_bev(
     samples = F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     bev = samples.reshape(B, C, m, S, S).mean(dim=2)  # the sub-sample mean: a box filter on the ground
     mask = valid.reshape(B, 1, m, S, S).all(dim=2).to(image.dtype)  # valid only if every sub-sample is
-    return bev * mask, mask
+    return (bev * mask if scale is None else bev * (mask * scale)), mask
 
 
 __all__ = ["bev_sampling_grid", "project_to_bev"]

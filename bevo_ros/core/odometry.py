@@ -110,7 +110,7 @@ class BevoOdometry:
         self.dukf = dukf
         self.dpc = dpc or DpcConfig()
         self.road_tilt_time_constant = road_tilt_time_constant
-        self.mounting_attitude = torch.tensor([mounting_attitude], dtype=torch.float64)
+        self.mounting_attitude = (float(mounting_attitude[0]), float(mounting_attitude[1]))
         self.max_imu_gap = max_imu_gap
         self.turn_compensation = turn_compensation
         self.max_pending_images = max_pending_images
@@ -128,10 +128,10 @@ class BevoOdometry:
         self._last_imu: float | None = None
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
-        self._pitch_roll_road = self.mounting_attitude.clone()
-        # (stamp, road-relative attitude, DUKF belief) per fused IMU sample: an image is projected
-        # with the attitude of the last IMU sample at or before its stamp, however late it arrives.
-        self._history: deque[tuple[float, torch.Tensor, tuple]] = deque(maxlen=4000)
+        # (stamp, road-relative (pitch, roll), DUKF belief) per fused IMU sample: an image is
+        # projected with the attitude of the last IMU sample at or before its stamp, however late
+        # it arrives.
+        self._history: deque[tuple[float, tuple[float, float], tuple]] = deque(maxlen=4000)
         self._pending: list[tuple[float, np.ndarray]] = []
         self._prev = None  # prepared BEV of the previous frame
         self._prev_stamp: float | None = None
@@ -180,9 +180,9 @@ class BevoOdometry:
         else:
             self._state = self.dukf.step_scalar(*self._state, g, a, stamp - self._last_imu, self._noise)
         self._last_imu = stamp
-        mean = torch.tensor([self._state[0]], dtype=torch.float64)
-        self._pitch_roll_road = self._road_tilt.update(stamp, mean) + self.mounting_attitude
-        self._history.append((stamp, self._pitch_roll_road, self._state))
+        pitch, roll = self._road_tilt.update(stamp, *self._state[0])
+        road = (pitch + self.mounting_attitude[0], roll + self.mounting_attitude[1])
+        self._history.append((stamp, road, self._state))
         out += self._release(lambda s: s <= stamp)
         return out
 
@@ -241,9 +241,10 @@ class BevoOdometry:
     @torch.no_grad()
     def _process(self, stamp: float, img: np.ndarray) -> OdometryStep:
         image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
-        image = image.to(self.dtype) / 255.0 if image.dtype == torch.uint8 else image.to(self.dtype)
-        pr_road, state = self._attitude_at(stamp)
-        pr_road = pr_road.to(self.device, self.dtype)
+        if image.dtype != torch.uint8:
+            image = image.to(self.dtype)
+        road, state = self._attitude_at(stamp)
+        pr_road = torch.tensor([road], dtype=self.dtype, device=self.device)
         bev, mask = project_to_bev(image[None, None], self.camera, pr_road[:, 0], pr_road[:, 1], self.spec)
         curr = prepare(bev, mask, self.dpc)
         first = self._prev is None
@@ -294,7 +295,7 @@ class BevoOdometry:
             twist_linear=lin,
             twist_angular=ang,
             twist_covariance=twist_cov,
-            pitch_roll_road=pr_road[0].double().cpu().numpy(),
+            pitch_roll_road=np.array(road),
             bev=bev[0, 0].cpu().numpy(),
             bev_mask=mask[0, 0].cpu().numpy(),
             peak_quality=quality,
@@ -302,7 +303,7 @@ class BevoOdometry:
             correlation=None if first else reg.translation_corr[0].detach().cpu().numpy(),
         )
 
-    def _attitude_at(self, stamp: float) -> tuple[torch.Tensor, tuple]:
+    def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple]:
         """Road-relative attitude and DUKF state of the last IMU sample at or before ``stamp``."""
         i = bisect.bisect_right(self._history, stamp, key=lambda h: h[0]) - 1
         _, pr_road, state = self._history[max(i, 0)]  # older than the whole history: its oldest entry

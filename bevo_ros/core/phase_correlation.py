@@ -290,11 +290,9 @@ def _translation_band(size: int, sigma: float, lowcut: float, dtype: torch.dtype
 
 
 @lru_cache(maxsize=32)
-def _base_grid(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """Pixel coordinates relative to the centre, ``(S, S, 2)`` as ``(row, col)``."""
-    i = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
-    rr, cc = torch.meshgrid(i, i, indexing="ij")
-    return torch.stack([rr, cc], dim=-1)
+def _normalised_axis(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Pixel centres in ``grid_sample(align_corners=False)`` units, ``(S,)``: ``(2 i + 1) / S - 1``."""
+    return ((2.0 * torch.arange(size, dtype=torch.float64) + 1.0) / size - 1.0).to(dtype=dtype, device=device)
 
 
 @lru_cache(maxsize=32)
@@ -334,12 +332,19 @@ def _check_pair(bev: Tensor, mask: Tensor) -> None:
 
 def _box_blur(x: Tensor, width: int) -> Tensor:
     """Mean over a ``width x width`` box, replicate padding (the BEV's outer border is not an
-    invalid region). ``(B, 1, H, W)`` -> same. Two separable 1-D convolutions: on CPU ~5x faster
-    than ``avg_pool2d`` with stride 1."""
+    invalid region). ``(B, 1, H, W)`` -> same. A sum of shifted slices per axis: equal to
+    ``avg_pool2d`` but ~3x faster on CPU, and unlike ``conv2d`` the same for any batch size (the
+    engine's one frame at a time and the batched training path must agree)."""
     p = width // 2
-    k = torch.full((1, 1, 1, width), 1.0 / width, dtype=x.dtype, device=x.device)
+    H, W = x.shape[-2:]
     x = F.pad(x, (p, p, p, p), mode="replicate")
-    return F.conv2d(F.conv2d(x, k), k.transpose(-1, -2))
+    rows = x[..., 0:H, :]
+    for k in range(1, width):
+        rows = rows + x[..., k : k + H, :]
+    out = rows[..., 0:W]
+    for k in range(1, width):
+        out = out + rows[..., k : k + W]
+    return out / (width * width)
 
 
 def soft_weight(mask: Tensor, config: DpcConfig) -> Tensor:
@@ -415,15 +420,14 @@ def rotate_about_centre(image: Tensor, angle: Tensor) -> Tensor:
     H, W = image.shape[-2:]
     if H != W:
         raise ValueError(f"image must be square, got {H}x{W}")
-    q = _base_grid(H, image.dtype, image.device)  # (S, S, 2) (row, col) about the centre
-    a = angle.to(image.dtype)
-    c, s = torch.cos(a)[:, None, None], torch.sin(a)[:, None, None]
-    r, k = q[..., 0], q[..., 1]
-    # R(-a) = [[c, s], [-s, c]]
-    src_r = c * r + s * k
-    src_c = -s * r + c * k
-    half = (H - 1) / 2.0
-    grid = torch.stack([(2.0 * (src_c + half) + 1.0) / W - 1.0, (2.0 * (src_r + half) + 1.0) / H - 1.0], dim=-1)
+    # In grid_sample's normalised (x = col, y = row) coordinates the centre is 0 and both axes
+    # share one scale (square image), so R(-angle) on (row, col) is [[c, -s], [s, c]] on (x, y):
+    # an outer sum of two axes, built on planar (B, S, S) tensors (cheaper than affine_grid's matmul).
+    lin = _normalised_axis(H, image.dtype, image.device)  # (S,)
+    a = angle.to(image.dtype)[:, None, None]
+    c, s = torch.cos(a), torch.sin(a)
+    x, y = lin[None, None, :], lin[None, :, None]
+    grid = torch.stack([c * x - s * y, s * x + c * y], dim=-1)  # (B, S, S, 2)
     return F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
 

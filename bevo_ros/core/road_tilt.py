@@ -139,29 +139,26 @@ def road_relative_attitude(
 
 
 class RoadTiltFilter:
-    """Stateful road-tilt separation for streaming use (the node, the odometry engine).
+    """Streaming road-tilt separation for one vehicle, in plain floats (the engine runs it on every
+    IMU message: microseconds, where tensor ops cost tens). The recurrence is exactly that of
+    :func:`road_relative_attitude`, which is the batched, differentiable form (training); a test
+    pins the two together.
 
     Args:
         time_constant: tau in seconds; <= 0, inf or None disables the low-pass (see module doc).
         static_offset: ``(2,)`` constant [pitch, roll] tilt (rad) to subtract, only with the
             low-pass disabled.
-
-    Differentiable: the stored tilt keeps the autograd graph of its inputs; call :meth:`detach`
-    between training windows (or use :func:`road_relative_attitude`).
     """
 
-    def __init__(
-        self, time_constant: float | Tensor | None, static_offset: Sequence[float] | Tensor | None = None
-    ) -> None:
-        self.time_constant = _check_time_constant(time_constant)
+    def __init__(self, time_constant: float | Tensor | None,
+                 static_offset: Sequence[float] | Tensor | None = None) -> None:
+        tau = _check_time_constant(time_constant)
+        self.time_constant = None if tau is None else float(tau)
         if self.time_constant is not None and static_offset is not None:
             raise ValueError("static_offset has no effect with the low-pass enabled; disable one of them")
-        self.static_offset = static_offset
-        if static_offset is not None:
-            _offset_tensor(static_offset, torch.zeros(2, dtype=torch.float64))  # validate early
-        self._tilt: Tensor | None = None
-        self._stamp: Tensor | None = None
-        self._elapsed: Tensor | None = None
+        offset = None if static_offset is None else _offset_tensor(static_offset, torch.zeros(2, dtype=torch.float64))
+        self.static_offset: tuple[float, float] | None = None if offset is None else tuple(offset.tolist())
+        self.reset()
 
     @property
     def enabled(self) -> bool:
@@ -169,61 +166,34 @@ class RoadTiltFilter:
         return self.time_constant is not None
 
     @property
-    def tilt(self) -> Tensor | None:
-        """Current road tilt estimate ``(B, 2)`` [pitch, roll] (rad); None before the first sample."""
+    def tilt(self) -> tuple[float, float] | None:
+        """Current road tilt estimate [pitch, roll] (rad); None before the first sample."""
         return self._tilt
 
     def reset(self) -> None:
         """Forget the tilt; the next sample re-initialises it."""
-        self._tilt = None
-        self._stamp = None
+        self._tilt: tuple[float, float] | None = None
+        self._stamp: float | None = None
+        self._elapsed: float | None = None
 
-    def detach(self) -> None:
-        """Cut the autograd graph held by the stored tilt."""
-        if self._tilt is not None:
-            self._tilt = self._tilt.detach()
-
-    def update(self, stamp_or_dt: float | Tensor, pitch_roll: Tensor, *, is_dt: bool = False) -> Tensor:
-        """Feed one sample.
-
-        Args:
-            stamp_or_dt: the sample's time stamp in seconds (default), or with ``is_dt=True`` the
-                seconds since the previous sample; a float or ``(B,)``. >= 0 steps only.
-            pitch_roll: ``(B, 2)`` gravity-referenced [pitch, roll], rad.
-
-        Returns:
-            ``(B, 2)`` attitude relative to the road plane.
-        """
-        _check_attitude(pitch_roll, ("B", 2), "pitch_roll")
-        b = pitch_roll.shape[0]
-        t = torch.as_tensor(stamp_or_dt, dtype=torch.float64, device=pitch_roll.device)
-        if t.dim() > 1 or t.numel() not in (1, b) or not bool(torch.isfinite(t).all()):
-            raise ValueError(f"stamp_or_dt must be a finite float or ({b},) tensor, got {stamp_or_dt!r}")
-        t = t.expand(b)
+    def update(self, stamp: float, pitch: float, roll: float) -> tuple[float, float]:
+        """Feed one sample: its stamp (s, not before the previous one) and the gravity-referenced
+        pitch and roll (rad). Returns the (pitch, roll) relative to the road plane."""
+        if not (math.isfinite(stamp) and math.isfinite(pitch) and math.isfinite(roll)):
+            raise ValueError(f"stamp, pitch and roll must be finite, got {stamp!r}, {pitch!r}, {roll!r}")
         if not self.enabled:
-            offset = _offset_tensor(self.static_offset, pitch_roll)
-            self._tilt = torch.zeros_like(pitch_roll) if offset is None else offset.expand(b, 2)
-            return pitch_roll - self._tilt
-        if self._tilt is not None and self._tilt.shape != pitch_roll.shape:
-            raise ValueError(f"batch size changed from {self._tilt.shape[0]} to {b}; call reset() first")
-        if self._tilt is None:
-            self._tilt = pitch_roll
-            self._stamp = None if is_dt else t
-            self._elapsed = None
-            return pitch_roll - self._tilt
-        if is_dt:
-            dt = t
-            self._stamp = None  # mixing: a later stamp has no reference
-        elif self._stamp is None:
-            raise ValueError("the filter was started with dt; keep passing dt (is_dt=True) or reset()")
+            self._tilt = self.static_offset or (0.0, 0.0)
+        elif self._tilt is None:
+            self._tilt = (pitch, roll)
         else:
-            dt = t - self._stamp
-            self._stamp = t
-        if bool((dt < 0).any()):
-            raise ValueError(f"time ran backwards (dt = {dt.min().item():.6f} s); call reset() after a jump")
-        # elapsed counts one sample period for the first sample (a running mean over samples).
-        self._elapsed = (2 * dt if self._elapsed is None else self._elapsed + dt)
-        alpha = lowpass_gain(dt.to(pitch_roll.dtype), self.time_constant,
-                             elapsed=self._elapsed.to(pitch_roll.dtype)).unsqueeze(-1)
-        self._tilt = self._tilt + alpha * (pitch_roll - self._tilt)
-        return pitch_roll - self._tilt
+            dt = stamp - self._stamp
+            if dt < 0:
+                raise ValueError(f"time ran backwards (dt = {dt:.6f} s); call reset() after a jump")
+            # elapsed counts one sample period for the first sample (a running mean over samples).
+            self._elapsed = 2.0 * dt if self._elapsed is None else self._elapsed + dt
+            alpha = -math.expm1(-dt / self.time_constant)  # lowpass_gain, in floats
+            alpha = max(alpha, dt / max(self._elapsed, 1e-12) if self._elapsed > 0 else 1.0)
+            tp, tr = self._tilt
+            self._tilt = (tp + alpha * (pitch - tp), tr + alpha * (roll - tr))
+        self._stamp = stamp
+        return pitch - self._tilt[0], roll - self._tilt[1]

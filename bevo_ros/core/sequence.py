@@ -106,7 +106,7 @@ def project_frames(
     bevs, masks = [], []
     for i in range(0, images.shape[0], chunk):
         img = images[i : i + chunk]
-        img = img.to(dtype) / 255.0 if img.dtype == torch.uint8 else img.to(dtype)
+        img = img if img.dtype == torch.uint8 else img.to(dtype)
         pr = pitch_roll_road[i : i + chunk]
         b, m = project_to_bev(img[:, None], cam, pr[:, 0], pr[:, 1], spec)
         bevs.append(b)
