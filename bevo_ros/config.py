@@ -72,7 +72,8 @@ class FilterSettings:
     max_imu_gap: float = 0.5
     # Static attitude of the base frame relative to the road when the vehicle rests on a level road
     # (rad; positive pitch = nose down). The road-tilt low-pass removes every constant, so the
-    # mounting tilt of the IMU/camera rig relative to the road must be given here.
+    # mounting tilt of the IMU/camera rig relative to the road must be given here (used only with
+    # the low-pass on: without it the gravity-referenced attitude already holds the mounting).
     mounting_pitch: float = 0.0
     mounting_roll: float = 0.0
     # Remove speed x turn rate (centripetal acceleration) from the accelerometer before the DUKF

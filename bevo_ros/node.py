@@ -113,8 +113,8 @@ DESCRIPTIONS = {
     "filter.road_tilt_time_constant": "low-pass time constant (s) separating road tilt from vehicle attitude; 0 disables",
     "filter.turn_compensation": "subtract speed x yaw rate (centripetal) from the accelerometer before the DUKF update",
     "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
-    "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration)",
-    "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration)",
+    "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
+    "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
     "learned_params_file": "learned O/Q YAML; relative paths resolve beside the parameters file, then the package",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
 }

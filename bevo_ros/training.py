@@ -214,7 +214,8 @@ def sequence_pass(
         gravity, road = frame_attitudes(
             dukf, imu_stamps, seq.gyro.to(dev), seq.accel.to(dev), frame_stamps,
             config.filter.road_tilt_time_constant, source,
-            None if given_pitch_roll_road is None else given_pitch_roll_road.to(dev), mounting, speed)
+            None if given_pitch_roll_road is None else given_pitch_roll_road.to(dev), mounting, speed,
+            config.filter.max_imu_gap)
     road_leaf = road.detach().requires_grad_(need_grad)
     gt = seq.gt_motion() if seq.gt_poses is not None else None
     targets = registration_targets(gt.to(dev), spec) if gt is not None else None

@@ -10,7 +10,7 @@ import torch
 from bevo_ros.config import BevoConfig, LearnedParams, build_odometry
 from bevo_ros.core.odometry import OutOfOrderError
 from bevo_ros.core.phase_correlation import DpcConfig
-from bevo_ros.core.sequence import run_sequence
+from bevo_ros.core.sequence import frame_attitudes, run_sequence
 from bevo_ros.synthetic import make_drive
 
 # Trust the gyro (the synthetic accelerometer vibrates by 0.3-0.7 m/s^2, i.e. 2-4 deg).
@@ -86,6 +86,63 @@ def test_online_equals_batched_sequence(drive):
     assert diff < 1e-6  # every stage is batch-size invariant: in practice exactly 0
     pr_online = np.array([s.pitch_roll_road for s in steps])
     assert np.abs(pr_online - res.pitch_roll_road.numpy()).max() < 1e-6
+
+
+def _batched(odo, d, images, imu_keep=None, **kwargs):
+    T = lambda a: torch.as_tensor(np.asarray(a))  # noqa: E731
+    k = slice(None) if imu_keep is None else imu_keep
+    with torch.no_grad():
+        return run_sequence(odo.dukf, d.camera.to(dtype=torch.float32), odo.spec, DpcConfig(), T(d.imu_stamps[k]),
+                            T(d.gyro[k]), T(d.accel[k]), T(d.frame_stamps), T(images),
+                            road_tilt_time_constant=odo.road_tilt_time_constant,
+                            mounting_attitude=odo.mounting_attitude, **kwargs)
+
+
+def test_online_equals_batched_across_an_imu_gap(drive):
+    """An IMU gap longer than max_imu_gap restarts the DUKF online; the batched path does the same."""
+    d, images = drive
+    t = d.imu_stamps - d.imu_stamps[0]
+    keep = ~((t > 1.0) & (t < 1.8))  # 0.8 s without IMU, frames keep coming
+    odo = engine(d)
+    steps, k = [], 0
+    for i in np.flatnonzero(keep):
+        steps += odo.add_imu(float(d.imu_stamps[i]), d.gyro[i], d.accel[i])
+        while k < len(images) and d.frame_stamps[k] <= d.imu_stamps[i]:
+            steps += odo.add_image(float(d.frame_stamps[k]), images[k])
+            k += 1
+    steps += odo.flush()
+    assert odo.counters.imu_gaps == 1 and len(steps) == len(images)
+    pr_online = np.array([s.pitch_roll_road for s in steps])
+    online = np.array([s.motion for s in steps[1:]])
+    res = _batched(odo, d, images, keep, max_imu_gap=odo.max_imu_gap)
+    no_restart = _batched(odo, d, images, keep)
+    diff_pr = np.abs(pr_online - res.pitch_roll_road.numpy()).max()
+    diff_motion = np.abs(online - res.motion.double().numpy()).max()
+    ignored = np.abs(pr_online - no_restart.pitch_roll_road.numpy()).max()
+    print(f"\n[0.8 s IMU gap] online vs batched: attitude {diff_pr:.1e} rad, motion {diff_motion:.1e}; "
+          f"batched without the restart: attitude off by {ignored:.1e} rad")
+    assert diff_pr < 1e-9 and diff_motion < 1e-6
+    assert ignored > 1e-4  # the restart matters: the test can fail
+
+
+def test_mounting_attitude_only_with_the_road_tilt_lowpass(drive):
+    """The low-pass removes every constant, so the mounting is added back; without it the
+    gravity-referenced attitude already holds the mounting: adding it would count it twice."""
+    d, images = drive
+    mount = (0.02, -0.01)
+    out = {}
+    for tau in (2.0, 0.0):
+        for m in ((0.0, 0.0), mount):
+            steps = feed(engine(d, road_tilt_time_constant=tau, mounting_pitch=m[0], mounting_roll=m[1]),
+                         d, images[:6])
+            out[tau, m] = np.array([s.pitch_roll_road for s in steps])
+    np.testing.assert_allclose(out[2.0, mount] - out[2.0, (0.0, 0.0)], np.tile(mount, (6, 1)), atol=1e-12)
+    np.testing.assert_array_equal(out[0.0, mount], out[0.0, (0.0, 0.0)])
+    odo = engine(d, road_tilt_time_constant=0.0, mounting_pitch=mount[0], mounting_roll=mount[1])
+    T = lambda a: torch.as_tensor(np.asarray(a))  # noqa: E731
+    _, road = frame_attitudes(odo.dukf, T(d.imu_stamps), T(d.gyro), T(d.accel), T(d.frame_stamps[:6]), 0.0,
+                              mounting_attitude=mount)
+    np.testing.assert_allclose(road.detach().numpy(), out[0.0, mount], atol=1e-12)
 
 
 def test_covariances_are_honest_shapes(drive):

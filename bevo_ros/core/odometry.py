@@ -21,7 +21,7 @@ from .geometry import BevSpec, CameraModel
 from .motion import motion_covariance_from_registration, vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
-from .road_tilt import RoadTiltFilter
+from .road_tilt import RoadTiltFilter, is_enabled
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 
@@ -81,7 +81,8 @@ class BevoOdometry:
         dpc: phase-correlation settings.
         road_tilt_time_constant: seconds; 0 disables road-tilt separation (gravity-referenced BEV).
         mounting_attitude: static (pitch, roll) of the base relative to the road at rest, rad; added to
-            the road-relative attitude (the road-tilt low-pass removes every constant).
+            the road-relative attitude when the road-tilt low-pass is on (it removes every
+            constant); with it off the gravity-referenced attitude already holds the mounting.
         max_imu_gap: longer IMU gaps re-initialise the filter from the accelerometer.
         turn_compensation: remove ``speed x turn rate`` from the accelerometer before the DUKF
             update, with the speed of the latest visual odometry step (see
@@ -111,6 +112,7 @@ class BevoOdometry:
         self.dpc = dpc or DpcConfig()
         self.road_tilt_time_constant = road_tilt_time_constant
         self.mounting_attitude = (float(mounting_attitude[0]), float(mounting_attitude[1]))
+        self._mounting = self.mounting_attitude if is_enabled(road_tilt_time_constant) else (0.0, 0.0)
         self.max_imu_gap = max_imu_gap
         self.turn_compensation = turn_compensation
         self.max_pending_images = max_pending_images
@@ -181,7 +183,7 @@ class BevoOdometry:
             self._state = self.dukf.step_scalar(*self._state, g, a, stamp - self._last_imu, self._noise)
         self._last_imu = stamp
         pitch, roll = self._road_tilt.update(stamp, *self._state[0])
-        road = (pitch + self.mounting_attitude[0], roll + self.mounting_attitude[1])
+        road = (pitch + self._mounting[0], roll + self._mounting[1])
         self._history.append((stamp, road, self._state))
         out += self._release(lambda s: s <= stamp)
         return out

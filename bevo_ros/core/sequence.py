@@ -16,7 +16,7 @@ from .dukf import DUKF, accel_to_pitch_roll, remove_turn_acceleration
 from .geometry import BevSpec, CameraModel
 from .motion import registration_from_vehicle_motion, vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, Registration, prepare, register_prepared
-from .road_tilt import road_relative_attitude
+from .road_tilt import is_enabled, road_relative_attitude
 
 Tensor = torch.Tensor
 
@@ -35,6 +35,7 @@ def imu_attitude(
     accel: Tensor,
     source: str = "dukf",
     speed: Tensor | None = None,
+    max_imu_gap: float | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Gravity-referenced [pitch, roll] at every IMU sample.
 
@@ -44,6 +45,8 @@ def imu_attitude(
         source: ``"dukf"`` (filtered, the paper) or ``"accel"`` (raw accelerometer angles:
             the "w/o DUKF" ablation).
         speed: ``(N,)`` forward speed for the turn compensation of the accelerometer (None: off).
+        max_imu_gap: seconds; after a longer gap the filter restarts from the accelerometer, as
+            the engine does (None: never).
 
     Returns:
         ``(N, 2)`` attitude and ``(N, 2, 2)`` covariance (None for ``"accel"``).
@@ -60,8 +63,15 @@ def imu_attitude(
         raise ValueError("IMU stamps must be strictly increasing")
     dt = dt.clone()
     dt[0] = 1.0  # unused: sample 0 initialises the filter
-    mean, cov, _ = dukf.filter(gyro.to(dtype)[None], accel.to(dtype)[None], dt[None])
-    return mean[0], cov[0]
+    starts = [0]
+    if max_imu_gap is not None:
+        starts += (torch.nonzero(dt[1:] > max_imu_gap).flatten() + 1).tolist()
+    means, covs = [], []
+    for a, b in zip(starts, starts[1:] + [dt.numel()]):  # each stretch starts a fresh filter
+        mean, cov, _ = dukf.filter(gyro[a:b].to(dtype)[None], accel[a:b].to(dtype)[None], dt[None, a:b])
+        means.append(mean[0])
+        covs.append(cov[0])
+    return torch.cat(means), torch.cat(covs)
 
 
 def imu_speeds(imu_stamps: Tensor, frame_stamps: Tensor, motion: Tensor) -> Tensor:
@@ -145,6 +155,7 @@ def run_sequence(
     given_pitch_roll_road: Tensor | None = None,
     mounting_attitude: tuple[float, float] = (0.0, 0.0),
     turn_compensation: bool = False,
+    max_imu_gap: float | None = None,
 ) -> SequenceResult:
     """BEVO over a recording; differentiable in the DUKF's O and Q.
 
@@ -155,10 +166,13 @@ def run_sequence(
         source: ``"dukf"``, ``"accel"`` (w/o DUKF) or ``"given"`` (``given_pitch_roll_road``, e.g.
             ground truth: the "w/ GT" ablation; used as is, without ``mounting_attitude``).
         mounting_attitude: static (pitch, roll) of the base on the road, added to the filtered
-            road-relative attitude (as :class:`~bevo_ros.core.odometry.BevoOdometry` does).
+            road-relative attitude when the road-tilt low-pass is on (it removes every constant;
+            without it the gravity-referenced attitude holds the mounting already), as
+            :class:`~bevo_ros.core.odometry.BevoOdometry` does.
         turn_compensation: remove speed x turn rate from the accelerometer like the engine does;
             the speeds come from a first, gradient-free pass (online they come from the previous
             frame's estimate, so the two differ only by what that first pass changes).
+        max_imu_gap: longer IMU gaps restart the filter (the engine's ``max_imu_gap``).
     """
     if source not in ATTITUDE_SOURCES:
         raise ValueError(f"source must be one of {ATTITUDE_SOURCES}, got {source!r}")
@@ -166,10 +180,11 @@ def run_sequence(
     if turn_compensation and source != "given":
         with torch.no_grad():
             first = run_sequence(dukf, camera, spec, dpc, imu_stamps, gyro, accel, frame_stamps, images,
-                                 road_tilt_time_constant, source, None, mounting_attitude, turn_compensation=False)
+                                 road_tilt_time_constant, source, None, mounting_attitude, turn_compensation=False,
+                                 max_imu_gap=max_imu_gap)
         speed = imu_speeds(imu_stamps, frame_stamps, first.motion)
     gravity, road = frame_attitudes(dukf, imu_stamps, gyro, accel, frame_stamps, road_tilt_time_constant, source,
-                                    given_pitch_roll_road, mounting_attitude, speed)
+                                    given_pitch_roll_road, mounting_attitude, speed, max_imu_gap)
     return _register_frames(images, camera, road, gravity, spec, dpc)
 
 
@@ -177,11 +192,12 @@ def frame_attitudes(dukf: DUKF | None, imu_stamps: Tensor, gyro: Tensor, accel: 
                     road_tilt_time_constant: float, source: str = "dukf",
                     given_pitch_roll_road: Tensor | None = None,
                     mounting_attitude: tuple[float, float] = (0.0, 0.0),
-                    speed: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                    speed: Tensor | None = None, max_imu_gap: float | None = None) -> tuple[Tensor, Tensor]:
     """Gravity-referenced and road-relative ``[pitch, roll]`` at the frames, ``(F, 2)`` each, as the
-    engine computes them (differentiable for ``"dukf"``): the filter over every IMU sample, the
-    road-tilt low-pass, then the static mounting attitude; ``"given"`` is used as is. ``speed``
-    (``(N,)``, see :func:`imu_speeds`) turns on the turn compensation of the accelerometer."""
+    engine computes them (differentiable for ``"dukf"``): the filter over every IMU sample
+    (restarted after gaps longer than ``max_imu_gap``), the road-tilt low-pass, then the static
+    mounting attitude (only with the low-pass on); ``"given"`` is used as is. ``speed`` (``(N,)``,
+    see :func:`imu_speeds`) turns on the turn compensation of the accelerometer."""
     if source == "given":
         if given_pitch_roll_road is None or given_pitch_roll_road.shape != (frame_stamps.shape[0], 2):
             raise ValueError("source='given' needs given_pitch_roll_road of shape (F, 2)")
@@ -190,9 +206,10 @@ def frame_attitudes(dukf: DUKF | None, imu_stamps: Tensor, gyro: Tensor, accel: 
     idx = frame_imu_indices(imu_stamps, frame_stamps)
     if bool((idx < 0).any()):
         raise ValueError("every frame needs an IMU sample at or before its stamp; trim the frames")
-    attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source, speed)
+    attitude, _ = imu_attitude(dukf, imu_stamps, gyro, accel, source, speed, max_imu_gap)
     road = road_attitude_at_frames(attitude, imu_stamps, idx, road_tilt_time_constant)
-    road = road + torch.tensor(mounting_attitude, dtype=road.dtype, device=road.device)
+    if is_enabled(road_tilt_time_constant):
+        road = road + torch.tensor(mounting_attitude, dtype=road.dtype, device=road.device)
     return attitude[idx], road
 
 
