@@ -232,6 +232,28 @@ def test_float64_and_batch_consistency(big):
     assert torch.allclose(one.angle, r64.angle[1:], atol=1e-9) and torch.allclose(one.shift, r64.shift[1:], atol=1e-7)
 
 
+def test_textureless_bev_is_no_information(big):
+    """A uniform BEV (night, a lens cap) has an all-zero spectrum: the result must say "no
+    information" (flat distributions, quality 0), not a confident zero motion, and gradients stay
+    finite for training."""
+    dpc = DpcConfig()
+    mask = torch.ones(1, 1, S, S, dtype=torch.float64)
+    for value in (0.0, 0.5):
+        flat = torch.full((1, 1, S, S), value, dtype=torch.float64, requires_grad=True)
+        reg = register_prepared(prepare(flat, mask, dpc), prepare(flat, mask, dpc), dpc)
+        (grad,) = torch.autograd.grad(reg.rotation_quality.sum() + reg.angle_std.sum(), flat)
+        rq, std, q = (float(v.detach()) for v in (reg.rotation_quality, reg.angle_std, reg.quality))
+        print(f"\nuniform BEV {value}: rotation quality {rq:.3f}, angle std {math.degrees(std):.1f} deg, "
+              f"translation quality {q:.3f}")
+        assert rq < 0.05 and q < 0.05
+        assert math.degrees(std) > 30.0  # ~uniform over the 180 degrees
+        assert bool(torch.isfinite(grad).all())
+    # A textured BEV registers with a sharp peak: the same checks fail there.
+    tex = big.reshape(3 * S, 3 * S)[S : 2 * S, S : 2 * S].double().reshape(1, 1, S, S)
+    reg = register_prepared(prepare(tex, mask, dpc), prepare(tex, mask, dpc), dpc)
+    assert float(reg.rotation_quality) > 0.5 and math.degrees(float(reg.angle_std)) < 1.0
+
+
 def test_bad_input_raises():
     x = torch.rand(2, 1, S, S)
     m = torch.ones_like(x)

@@ -120,12 +120,12 @@ def make_synthetic_bag(path: Path, seconds: float, seed: int, bumps: float, nois
 def reference_attitude(seq, mode, config):
     """``(F, 2)`` [pitch, roll] road-relative reference for "w/ GT" (float64 tensor).
 
-    Modes that lose the static part (imu-highpass, road-poses, zero) get the configured mounting
-    attitude added, exactly as the engine adds it to the filtered attitude; "imu" and the
-    simulator's truth are absolute already."""
+    Modes that lose the static part (road-poses, zero; imu-highpass when the low-pass is on) get the
+    configured mounting attitude added, exactly as the engine adds it to the filtered attitude;
+    "imu" and the simulator's truth are absolute already."""
     import torch
 
-    from bevo_ros.core.road_tilt import road_relative_attitude
+    from bevo_ros.core.road_tilt import is_enabled, road_relative_attitude
     from bevo_ros.datasets import road_relative_gt
 
     if not isinstance(mode, str):  # the simulator's own road-relative attitude of these frames
@@ -141,7 +141,8 @@ def reference_attitude(seq, mode, config):
         return seq.gt_pitch_roll.double().clone()
     dt = torch.diff(seq.frame_stamps.double(), prepend=seq.frame_stamps[:1].double())
     tau = config.filter.road_tilt_time_constant
-    return road_relative_attitude(seq.gt_pitch_roll.double()[None], dt[None], tau)[0] + mounting
+    highpass = road_relative_attitude(seq.gt_pitch_roll.double()[None], dt[None], tau)[0]
+    return highpass + mounting if is_enabled(tau) else highpass  # no low-pass: the static part is still in
 
 
 def planar_poses(motion) -> np.ndarray:

@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     scalar_ms = timeit(lambda: odo.dukf.step_scalar(*scalar_state, (0.01, 0.02, 0.03), (0.1, 0.2, 9.8), 0.01, noise), 2000)
     add_imu_ms = []
     stamp0 = float(drive.imu_stamps[-1]) + 10.0  # after the drive: a fresh stretch of the same engine
-    for k in range(500):
+    for k in range(min(500, len(drive.gyro))):
         t = time.perf_counter()
         odo.add_imu(stamp0 + 0.01 * k, drive.gyro[k], drive.accel[k])
         add_imu_ms.append((time.perf_counter() - t) * 1e3)

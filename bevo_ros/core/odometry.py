@@ -21,7 +21,7 @@ from .geometry import BevSpec, CameraModel
 from .motion import motion_covariance_from_registration, vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
-from .road_tilt import RoadTiltFilter, is_enabled
+from .road_tilt import RoadTiltFilter
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 
@@ -112,7 +112,6 @@ class BevoOdometry:
         self.dpc = dpc or DpcConfig()
         self.road_tilt_time_constant = road_tilt_time_constant
         self.mounting_attitude = (float(mounting_attitude[0]), float(mounting_attitude[1]))
-        self._mounting = self.mounting_attitude if is_enabled(road_tilt_time_constant) else (0.0, 0.0)
         self.max_imu_gap = max_imu_gap
         self.turn_compensation = turn_compensation
         self.max_pending_images = max_pending_images
@@ -122,7 +121,8 @@ class BevoOdometry:
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
-        """Forget everything but the settings: the trajectory restarts at identity."""
+        """Forget everything but the settings (changed settings take effect here): the trajectory
+        restarts at identity."""
         # DUKF belief as plain floats, (pitch, roll) and (P00, P01, P11): the per-message path
         # runs DUKF.step_scalar (microseconds); training runs the same math on tensors.
         self._state: tuple[tuple[float, float], tuple[float, float, float]] | None = None
@@ -130,6 +130,7 @@ class BevoOdometry:
         self._last_imu: float | None = None
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
+        self._mounting = self.mounting_attitude if self._road_tilt.enabled else (0.0, 0.0)
         # (stamp, road-relative (pitch, roll), DUKF belief) per fused IMU sample: an image is
         # projected with the attitude of the last IMU sample at or before its stamp, however late
         # it arrives.

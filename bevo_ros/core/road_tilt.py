@@ -150,10 +150,11 @@ class RoadTiltFilter:
             low-pass disabled.
     """
 
-    def __init__(self, time_constant: float | Tensor | None,
+    def __init__(self, time_constant: float | None,
                  static_offset: Sequence[float] | Tensor | None = None) -> None:
         tau = _check_time_constant(time_constant)
-        self.time_constant = None if tau is None else float(tau)
+        # A tensor is read as its value: this streaming form is not differentiable.
+        self.time_constant = None if tau is None else float(tau.detach() if isinstance(tau, Tensor) else tau)
         if self.time_constant is not None and static_offset is not None:
             raise ValueError("static_offset has no effect with the low-pass enabled; disable one of them")
         offset = None if static_offset is None else _offset_tensor(static_offset, torch.zeros(2, dtype=torch.float64))
