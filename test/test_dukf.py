@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from bevo_ros.core.dukf import DUKF, DukfState, accel_to_pitch_roll, merwe_weights
+from bevo_ros.core.dukf import DUKF, DukfState, accel_to_pitch_roll, merwe_weights, steady_state_variance
 from bevo_ros.core.geometry import rotation_from_rpy
 
 G = 9.80665
@@ -249,6 +249,27 @@ def test_process_noise_is_rate_independent():
     print(f"\n[rate independence] variance after 1 s at 10/100/400 Hz: {got}")
     want = (1e-4 + dukf.process_var.detach()).tolist()  # the float32-stored O, exactly
     np.testing.assert_allclose(got, [want] * 3, rtol=1e-12)
+
+
+def test_steady_state_variance_is_where_the_filter_settles():
+    """The closed-form fixed point of the Riccati equation == the DUKF's variance after a long run
+    (level, at rest), at KITTI's 10 Hz and a 100 Hz IMU, for the default and other O/Q."""
+    for o, q in ((1e-6, 5e-2), (1e-4, 1e-2)):
+        dukf = DUKF(process_var=(o, o), measurement_var=(q, q)).double()
+        for rate in (10.0, 100.0):
+            n = int(2.5 * math.sqrt(q / (o / rate)))  # 2.5 of the filter's time constants: within ~1 %
+            dt = torch.full((1, n), 1.0 / rate, dtype=torch.float64)
+            accel = torch.tensor([0.0, 0.0, 9.81], dtype=torch.float64).expand(1, n, 3)
+            with torch.no_grad():
+                _, cov, _ = dukf.filter(torch.zeros(1, n, 3, dtype=torch.float64), accel, dt)
+            got = float(cov[0, -1, 0, 0])
+            (o_, _), (q_, _) = dukf.noise_floats()
+            want = steady_state_variance(o_, q_, 1.0 / rate)
+            print(f"\n[steady state] O {o:g} Q {q:g} at {rate:g} Hz: DUKF {math.degrees(math.sqrt(got)):.4f} deg "
+                  f"after {n} steps, closed form {math.degrees(math.sqrt(want)):.4f} deg")
+            assert got == pytest.approx(want, rel=0.02)
+    with pytest.raises(ValueError):
+        steady_state_variance(0.0, 1e-2, 0.01)
 
 
 def test_float32_long_run_stays_spd_and_batch_consistent():

@@ -159,6 +159,24 @@ def test_covariances_are_honest_shapes(drive):
     assert 0.0 < last.peak_quality <= 1.0
 
 
+def test_forward_variance_includes_the_attitude_scale_error(drive):
+    """On a bumpy drive the forward error is mostly BEV scale from pitch errors, which the
+    correlation spread cannot see: the engine adds it, so e^2 / var stays O(1) on every axis
+    (without the term dx came out ~1000x overconfident)."""
+    d, images = drive
+    steps = feed(engine(d), d, images)
+    err = np.array([s.motion for s in steps[1:]]) - d.relative_motion
+    ratios = []
+    for e, s in zip(err, steps[1:]):
+        c, sn = math.cos(s.motion[2]), math.sin(s.motion[2])
+        rot = np.array([[c, sn, 0.0], [-sn, c, 0.0], [0.0, 0.0, 1.0]])
+        cov = rot.T @ s.twist_covariance[np.ix_([0, 1, 5], [0, 1, 5])] @ rot * s.dt**2  # back to the step
+        ratios.append(e**2 / np.diag(cov))
+    ratio = np.mean(ratios, axis=0)
+    print(f"\nmean e^2 / var (dx, dy, dyaw) on the bumpy drive: {ratio.round(2)} (1 = consistent)")
+    assert np.all(ratio < 20) and np.all(ratio > 0.05)
+
+
 def test_bad_input_raises_clear_errors(drive):
     d, images = drive
     odo = engine(d)

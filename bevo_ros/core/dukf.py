@@ -34,6 +34,7 @@ __all__ = [
     "DUKF",
     "accel_to_pitch_roll",
     "remove_turn_acceleration",
+    "steady_state_variance",
     "merwe_weights",
     "euler_motion",
     "additive_motion",
@@ -77,6 +78,22 @@ class DukfState:
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "DukfState":
         return DukfState(self.mean.to(device=device, dtype=dtype), self.cov.to(device=device, dtype=dtype))
+
+
+def steady_state_variance(process_density: float, measurement_var: float, dt: float) -> float:
+    """Posterior variance (rad^2) one axis of the filter settles to at a fixed IMU period ``dt``.
+
+    Near level and at small rates the DUKF is a random walk (variance ``O dt`` per step) measured
+    directly with variance ``Q``; the Riccati equation then has the closed-form fixed point
+    ``P- = O dt / 2 + sqrt((O dt)^2 / 4 + O dt Q)``, ``P = P- Q / (P- + Q)``. This is the filter's
+    long-run uncertainty, without the start transient (whose constant error the road-tilt
+    high-pass removes from the attitude the BEV uses).
+    """
+    if not (process_density > 0 and measurement_var > 0 and dt > 0):
+        raise ValueError(f"need O, Q, dt > 0, got {process_density}, {measurement_var}, {dt}")
+    w = process_density * dt
+    prior = 0.5 * w + math.sqrt(0.25 * w * w + w * measurement_var)
+    return prior * measurement_var / (prior + measurement_var)
 
 
 def accel_to_pitch_roll(accel: Tensor) -> Tensor:

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 
 from .bev import project_to_bev
-from .dukf import DUKF
+from .dukf import DUKF, steady_state_variance
 from .geometry import BevSpec, CameraModel
-from .motion import motion_covariance_from_registration, vehicle_motion_from_registration
+from .motion import motion_covariance_from_registration, pitch_scale_sensitivity, vehicle_motion_from_registration
 from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
@@ -106,8 +106,8 @@ class BevoOdometry:
     ) -> None:
         self.device = torch.device(device)
         self.dtype = torch.float32
-        self.camera = camera.to(self.device, self.dtype)
         self.spec = spec
+        self.set_camera(camera)
         self.dukf = dukf
         self.dpc = dpc or DpcConfig()
         self.road_tilt_time_constant = road_tilt_time_constant
@@ -128,6 +128,7 @@ class BevoOdometry:
         self._state: tuple[tuple[float, float], tuple[float, float, float]] | None = None
         self._noise = self.dukf.noise_floats()
         self._last_imu: float | None = None
+        self._imu_dt = 0.01  # the latest IMU period (s), for the steady-state attitude variance
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
         self._mounting = self.mounting_attitude if self._road_tilt.enabled else (0.0, 0.0)
@@ -146,6 +147,7 @@ class BevoOdometry:
     def set_camera(self, camera: CameraModel) -> None:
         """Replace the camera model (e.g. from the first CameraInfo); keeps the trajectory."""
         self.camera = camera.to(self.device, self.dtype)
+        self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.height)
 
     @property
     def pitch_roll(self) -> np.ndarray | None:
@@ -181,7 +183,8 @@ class BevoOdometry:
             c = init.cov[0].tolist()
             self._state = (tuple(init.mean[0].tolist()), (c[0][0], c[0][1], c[1][1]))
         else:
-            self._state = self.dukf.step_scalar(*self._state, g, a, stamp - self._last_imu, self._noise)
+            self._imu_dt = stamp - self._last_imu
+            self._state = self.dukf.step_scalar(*self._state, g, a, self._imu_dt, self._noise)
         self._last_imu = stamp
         pitch, roll = self._road_tilt.update(stamp, *self._state[0])
         road = (pitch + self._mounting[0], roll + self._mounting[1])
@@ -259,7 +262,7 @@ class BevoOdometry:
         else:
             reg = register_prepared(self._prev, curr, self.dpc)
             motion = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
-            motion_cov = self._motion_covariance(reg)
+            motion_cov = self._motion_covariance(reg, motion, state)
             quality = float(reg.quality[0])
         motion_t, motion_cov_t = torch.from_numpy(motion), torch.from_numpy(motion_cov)
         self._pose_cov = propagate_covariance_se2(self._pose, self._pose_cov, motion_t, motion_cov_t)
@@ -312,9 +315,21 @@ class BevoOdometry:
         _, pr_road, state = self._history[max(i, 0)]  # older than the whole history: its oldest entry
         return pr_road, state
 
-    def _motion_covariance(self, reg) -> np.ndarray:
-        """(dx, dy, dyaw) covariance from the correlation distributions' spread (first order)."""
-        return motion_covariance_from_registration(reg, self.spec)[0].double().cpu().numpy()
+    def _motion_covariance(self, reg, motion: np.ndarray, state: tuple) -> np.ndarray:
+        """(dx, dy, dyaw) covariance: the correlation distributions' spread (first order) plus what
+        the attitude uncertainty does to the BEV's scale, the dominant error on a car: a pitch off
+        by ``d`` scales the forward motion by ``1 + k d`` (:func:`pitch_scale_sensitivity`), so
+        ``var(dx) += (k dx)^2 var(pitch)``. ``var(pitch)`` is the DUKF's, capped at its steady
+        state (:func:`~bevo_ros.core.dukf.steady_state_variance`): right after a start the filter
+        is unsure of the absolute pitch, but that error is a constant the road-tilt high-pass
+        removes. (Roll mostly shears the BEV; its first-order effect on forward motion is small
+        and not modelled.)
+        """
+        cov = motion_covariance_from_registration(reg, self.spec)[0].double().cpu().numpy()
+        (o, _), (q, _) = self._noise
+        pitch_var = min(state[1][0], steady_state_variance(o, q, max(self._imu_dt, 1e-4)))
+        cov[0, 0] += (self._scale_per_pitch * motion[0]) ** 2 * pitch_var
+        return cov
 
 
 __all__ = ["BevoOdometry", "OdometryStep", "OutOfOrderError", "Counters", "Z_VARIANCE"]
