@@ -15,6 +15,7 @@ from bevo_ros.core.motion import (
     motion_jacobian,
     pitch_scale_sensitivity,
     registration_from_vehicle_motion,
+    roll_yaw_sensitivity,
     vehicle_motion_from_registration,
 )
 from bevo_ros.core.phase_correlation import DpcConfig, register
@@ -141,23 +142,36 @@ def test_bad_input_raises():
         registration_from_vehicle_motion(torch.zeros(2, 2), SPEC)
 
 
-def test_pitch_scale_sensitivity_matches_reprojection():
-    """A pitch error d scales the BEV's forward motion by 1 + k d with k = 2 X / h: re-project
-    rendered frames of a smooth drive with the true attitude +- 0.01 rad and measure k."""
+def test_attitude_sensitivities_match_reprojection():
+    """A pitch error d scales the BEV's forward motion by 1 + k_p d (k_p = 2 X / h); a roll error
+    shears it into a yaw error of about dx d / (2 h), and about the BEV centre a lateral one,
+    d(dy) = -C_x d(dyaw). Re-project rendered frames of a smooth drive with the true attitude
+    +- 0.01 rad and measure all three."""
     from bevo_ros.core.sequence import project_frames, register_consecutive
 
     d = syn.make_drive(seed=4, duration=1.0, bumps=0.0, render="lazy")
     images = torch.as_tensor(np.stack([np.asarray(d.image(i)) for i in range(len(d.frame_stamps))]))
     road = torch.as_tensor(d.pitch_roll_road, dtype=torch.float32)
     spec = BevSpec()
-    dx = {}
-    for dp in (-0.01, 0.01):
-        bev, mask = project_frames(images, d.camera, road + torch.tensor([dp, 0.0]), spec)
+
+    def motion(delta: tuple[float, float]) -> torch.Tensor:
+        bev, mask = project_frames(images, d.camera, road + torch.tensor(delta), spec)
         reg = register_consecutive(bev, mask, DpcConfig())
-        dx[dp] = vehicle_motion_from_registration(reg.angle, reg.shift, spec)[:, 0].double()
-    measured = float(((dx[-0.01] - dx[0.01]) / 0.02 / (0.5 * (dx[-0.01] + dx[0.01]))).mean())
-    k = pitch_scale_sensitivity(spec, float(d.camera.T_base_cam[0, 3]), d.camera.height)
-    print(f"\nd ln(dx) / d pitch: measured {measured:.2f} per rad, 2 X / h = {k:.2f}")
-    assert measured == pytest.approx(k, rel=0.1)  # positive pitch (nose down) shrinks the motion
+        return vehicle_motion_from_registration(reg.angle, reg.shift, spec).double()
+
+    m0 = motion((0.0, 0.0))
+    per_pitch = (motion((0.01, 0.0)) - motion((-0.01, 0.0))) / 0.02 / m0[:, :1]  # per rad, per metre of dx
+    per_roll = (motion((0.0, 0.01)) - motion((0.0, -0.01))) / 0.02 / m0[:, :1]
+    k_p = pitch_scale_sensitivity(spec, float(d.camera.T_base_cam[0, 3]), d.camera.height)
+    k_r = roll_yaw_sensitivity(d.camera.height)
+    pitch_dx, roll_yaw, roll_dy = (float(v) for v in (per_pitch[:, 0].mean(), per_roll[:, 2].mean(),
+                                                       per_roll[:, 1].mean()))
+    print(f"\nper rad and metre: d(dx)/dpitch {pitch_dx:.2f} (model -{k_p:.2f}); d(dyaw)/droll {roll_yaw:.3f} "
+          f"(model -{k_r:.3f}); d(dy)/droll {roll_dy:.2f} (model C_x k_r = {spec.centre[0] * k_r:.2f})")
+    assert pitch_dx == pytest.approx(-k_p, rel=0.1)  # positive pitch (nose down) shrinks the motion
+    assert -1.1 * k_r < roll_yaw < -0.5 * k_r  # at most the isotropic-texture value: conservative
+    assert roll_dy == pytest.approx(-spec.centre[0] * roll_yaw, rel=0.2)
     with pytest.raises(ValueError):
         pitch_scale_sensitivity(spec, 100.0, 1.65)
+    with pytest.raises(ValueError):
+        roll_yaw_sensitivity(0.0)

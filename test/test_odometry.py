@@ -159,10 +159,10 @@ def test_covariances_are_honest_shapes(drive):
     assert 0.0 < last.peak_quality <= 1.0
 
 
-def test_forward_variance_includes_the_attitude_scale_error(drive):
-    """On a bumpy drive the forward error is mostly BEV scale from pitch errors, which the
-    correlation spread cannot see: the engine adds it, so e^2 / var stays O(1) on every axis
-    (without the term dx came out ~1000x overconfident)."""
+def test_motion_covariance_includes_the_attitude_errors(drive):
+    """On a bumpy drive the forward error is mostly BEV scale from pitch errors (and roll shears the
+    BEV into yaw), which the correlation spread cannot see: the engine adds both, so e^2 / var
+    stays O(1) on every axis (without them dx came out ~1000x overconfident)."""
     d, images = drive
     steps = feed(engine(d), d, images)
     err = np.array([s.motion for s in steps[1:]]) - d.relative_motion

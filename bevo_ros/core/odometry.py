@@ -18,7 +18,8 @@ import torch
 from .bev import project_to_bev
 from .dukf import DUKF, steady_state_variance
 from .geometry import BevSpec, CameraModel
-from .motion import motion_covariance_from_registration, pitch_scale_sensitivity, vehicle_motion_from_registration
+from .motion import (motion_covariance_from_registration, pitch_scale_sensitivity, roll_yaw_sensitivity,
+                     vehicle_motion_from_registration)
 from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
@@ -148,6 +149,7 @@ class BevoOdometry:
         """Replace the camera model (e.g. from the first CameraInfo); keeps the trajectory."""
         self.camera = camera.to(self.device, self.dtype)
         self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.height)
+        self._yaw_per_roll = roll_yaw_sensitivity(camera.height)
 
     @property
     def pitch_roll(self) -> np.ndarray | None:
@@ -317,19 +319,24 @@ class BevoOdometry:
 
     def _motion_covariance(self, reg, motion: np.ndarray, state: tuple) -> np.ndarray:
         """(dx, dy, dyaw) covariance: the correlation distributions' spread (first order) plus what
-        the attitude uncertainty does to the BEV's scale, the dominant error on a car: a pitch off
-        by ``d`` scales the forward motion by ``1 + k d`` (:func:`pitch_scale_sensitivity`), so
-        ``var(dx) += (k dx)^2 var(pitch)``. ``var(pitch)`` is the DUKF's, capped at its steady
-        state (:func:`~bevo_ros.core.dukf.steady_state_variance`): right after a start the filter
-        is unsure of the absolute pitch, but that error is a constant the road-tilt high-pass
-        removes. (Roll mostly shears the BEV; its first-order effect on forward motion is small
-        and not modelled.)
+        the attitude uncertainty does to the BEV, the dominant error on a car, ``G P G^T`` with
+        ``G = dx [[-k_p, 0], [0, C_x k_r], [0, -k_r]]`` over (pitch, roll): a pitch error scales
+        the forward motion (:func:`pitch_scale_sensitivity`), a roll error shears the BEV into a
+        yaw error, and about the BEV centre a lateral one (:func:`roll_yaw_sensitivity`).
+        ``P`` is the DUKF's attitude covariance with each variance capped at its steady state
+        (:func:`~bevo_ros.core.dukf.steady_state_variance`): right after a start the filter is
+        unsure of the absolute attitude, but that error is a constant the road-tilt high-pass
+        removes.
         """
         cov = motion_covariance_from_registration(reg, self.spec)[0].double().cpu().numpy()
-        (o, _), (q, _) = self._noise
-        pitch_var = min(state[1][0], steady_state_variance(o, q, max(self._imu_dt, 1e-4)))
-        cov[0, 0] += (self._scale_per_pitch * motion[0]) ** 2 * pitch_var
-        return cov
-
+        (c00, c01, c11) = state[1]
+        dt = max(self._imu_dt, 1e-4)
+        (o_p, o_r), (q_p, q_r) = self._noise
+        s_p = math.sqrt(min(1.0, steady_state_variance(o_p, q_p, dt) / c00))
+        s_r = math.sqrt(min(1.0, steady_state_variance(o_r, q_r, dt) / c11))
+        att = np.array([[c00 * s_p * s_p, c01 * s_p * s_r], [c01 * s_p * s_r, c11 * s_r * s_r]])
+        dx, k_r = motion[0], self._yaw_per_roll
+        G = dx * np.array([[-self._scale_per_pitch, 0.0], [0.0, self.spec.centre[0] * k_r], [0.0, -k_r]])
+        return cov + G @ att @ G.T
 
 __all__ = ["BevoOdometry", "OdometryStep", "OutOfOrderError", "Counters", "Z_VARIANCE"]
