@@ -152,15 +152,23 @@ def _coerce(value: Any, default: Any, name: str, source: str) -> Any:
                           + (f" of length {len(default)}" if isinstance(default, list) else "")) from None
 
 
+def read_yaml(path: Path, what: str) -> Any:
+    """The YAML document in ``path``; a ConfigError naming ``what`` (e.g. "checkpoint"), the file
+    and the problem if it is missing, unreadable or not YAML."""
+    try:
+        return yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{what} not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{what} {path} cannot be read: {exc}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{what} {path} is not valid YAML: {exc}") from None
+
+
 def load_params_file(path: str | os.PathLike, node_name: str = "bevo_node") -> dict[str, Any]:
     """Read a ROS 2 parameters YAML and return the node's parameters flattened to "a.b" keys."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"parameters file not found: {path}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"parameters file {path} is not valid YAML: {exc}") from None
+    doc = read_yaml(path, "parameters file")
     if not isinstance(doc, dict):
         raise ConfigError(f"parameters file {path}: expected a mapping at the top level")
     for key in (node_name, f"/{node_name}", "/**", "**"):
@@ -240,14 +248,7 @@ def save_learned_params(params: LearnedParams, path: str | os.PathLike) -> Path:
 def load_learned_params(path: str | os.PathLike) -> LearnedParams:
     """Load and validate; raises ConfigError naming the file and the problem."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"learned-parameters file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"learned-parameters file {path} cannot be read: {exc}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"learned-parameters file {path} is not valid YAML: {exc}") from None
+    doc = read_yaml(path, "learned-parameters file")
     if not isinstance(doc, dict):
         raise ConfigError(f"learned-parameters file {path}: expected a mapping, got {type(doc).__name__}")
     if doc.get("format") != LEARNED_FORMAT:

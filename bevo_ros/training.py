@@ -45,7 +45,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from bevo_ros.config import BevoConfig, LearnedParams, atomic_write_text, provenance, save_learned_params
+from bevo_ros.config import BevoConfig, LearnedParams, atomic_write_text, provenance, read_yaml, save_learned_params
 from bevo_ros.core.dukf import DUKF
 from bevo_ros.core.geometry import BevSpec, wrap_angle
 from bevo_ros.core.loss import registration_kl_loss
@@ -461,15 +461,8 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    import yaml
-
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ValueError(f"checkpoint not found: {path}") from None
-    except yaml.YAMLError as exc:
-        raise ValueError(f"checkpoint {path} is not valid YAML: {exc}") from None
+    doc = read_yaml(path, "checkpoint")  # ConfigError is a ValueError
     if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a BEVO training checkpoint (format {CHECKPOINT_FORMAT!r})")
     for key in ("epoch", "current", "best"):

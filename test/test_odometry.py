@@ -69,25 +69,6 @@ def test_tracks_the_synthetic_drive_and_is_order_independent(drive):
         np.testing.assert_allclose(sa.rpy, sb.rpy, atol=1e-9)
 
 
-def test_online_equals_batched_sequence(drive):
-    """The per-message engine and the batched training path agree (same functions, same IMU rule)."""
-    d, images = drive
-    steps = feed(engine(d), d, images)
-    online = np.array([s.motion for s in steps[1:]])
-    odo = engine(d)
-    T = lambda a: torch.as_tensor(np.asarray(a))  # noqa: E731
-    with torch.no_grad():
-        res = run_sequence(odo.dukf, d.camera.to(dtype=torch.float32), odo.spec, DpcConfig(), T(d.imu_stamps),
-                           T(d.gyro), T(d.accel), T(d.frame_stamps), T(images),
-                           road_tilt_time_constant=odo.road_tilt_time_constant)
-    batched = res.motion.double().numpy()
-    diff = np.abs(online - batched).max()
-    print(f"\nmax |online - batched| motion difference: {diff:.2e}")
-    assert diff < 1e-6  # every stage is batch-size invariant: in practice exactly 0
-    pr_online = np.array([s.pitch_roll_road for s in steps])
-    assert np.abs(pr_online - res.pitch_roll_road.numpy()).max() < 1e-6
-
-
 def _batched(odo, d, images, imu_keep=None, **kwargs):
     T = lambda a: torch.as_tensor(np.asarray(a))  # noqa: E731
     k = slice(None) if imu_keep is None else imu_keep
@@ -96,6 +77,20 @@ def _batched(odo, d, images, imu_keep=None, **kwargs):
                             T(d.gyro[k]), T(d.accel[k]), T(d.frame_stamps), T(images),
                             road_tilt_time_constant=odo.road_tilt_time_constant,
                             mounting_attitude=odo.mounting_attitude, **kwargs)
+
+
+def test_online_equals_batched_sequence(drive):
+    """The per-message engine and the batched training path agree (same functions, same IMU rule)."""
+    d, images = drive
+    steps = feed(engine(d), d, images)
+    online = np.array([s.motion for s in steps[1:]])
+    res = _batched(engine(d), d, images)
+    batched = res.motion.double().numpy()
+    diff = np.abs(online - batched).max()
+    print(f"\nmax |online - batched| motion difference: {diff:.2e}")
+    assert diff < 1e-6  # every stage is batch-size invariant: in practice exactly 0
+    pr_online = np.array([s.pitch_roll_road for s in steps])
+    assert np.abs(pr_online - res.pitch_roll_road.numpy()).max() < 1e-6
 
 
 def test_online_equals_batched_across_an_imu_gap(drive):
@@ -139,7 +134,7 @@ def test_mounting_attitude_only_with_the_road_tilt_lowpass(drive):
     np.testing.assert_allclose(out[2.0, mount] - out[2.0, (0.0, 0.0)], np.tile(mount, (6, 1)), atol=1e-12)
     np.testing.assert_array_equal(out[0.0, mount], out[0.0, (0.0, 0.0)])
     odo = engine(d, road_tilt_time_constant=0.0, mounting_pitch=mount[0], mounting_roll=mount[1])
-    T = lambda a: torch.as_tensor(np.asarray(a))  # noqa: E731
+    T = torch.as_tensor
     _, road = frame_attitudes(odo.dukf, T(d.imu_stamps), T(d.gyro), T(d.accel), T(d.frame_stamps[:6]), 0.0,
                               mounting_attitude=mount)
     np.testing.assert_allclose(road.detach().numpy(), out[0.0, mount], atol=1e-12)
