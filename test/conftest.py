@@ -12,6 +12,12 @@ REPO = Path(__file__).resolve().parents[1]
 KITTI_ROOT = Path(os.environ.get("BEVO_KITTI_ROOT", REPO.parent / "shared" / "data" / "kitti"))
 
 
+def domain_id_for(module_index: int) -> int:
+    """A test module's own ROS_DOMAIN_ID: ``BEVO_TEST_DOMAIN_BASE`` (default 60) + its index, so
+    two checkouts testing side by side on one host keep their DDS traffic apart."""
+    return int(os.environ.get("BEVO_TEST_DOMAIN_BASE", "60")) + module_index
+
+
 def in_ci() -> bool:
     return os.environ.get("CI", "").lower() in ("1", "true", "yes")
 

@@ -18,7 +18,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
-DOMAIN_ID = "73"
+from conftest import domain_id_for  # noqa: E402
+
+DOMAIN_ID = str(domain_id_for(13))
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]
 
 COPY_IGNORE = shutil.ignore_patterns(".venv", ".git", "__pycache__", "*.egg-info", ".pytest_cache", "build",

@@ -31,7 +31,9 @@ from std_srvs.srv import Trigger  # noqa: E402
 from bevo_ros.config import ConfigError  # noqa: E402
 from bevo_ros.ros_conversions import rpy_from_quaternion, stamp_to_sec  # noqa: E402
 
-DOMAIN_ID = 71
+from conftest import domain_id_for  # noqa: E402
+
+DOMAIN_ID = domain_id_for(11)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 

@@ -24,7 +24,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import Image, Imu  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-DOMAIN_ID = 72
+from conftest import domain_id_for  # noqa: E402
+
+DOMAIN_ID = domain_id_for(12)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 

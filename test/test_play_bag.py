@@ -17,7 +17,9 @@ pytestmark = pytest.mark.ros
 
 REPO = Path(__file__).resolve().parents[1]
 PLAY = REPO / "tools" / "play_bag.py"
-DOMAIN_ID = 61
+from conftest import domain_id_for  # noqa: E402
+
+DOMAIN_ID = domain_id_for(1)
 N_IMU, N_FRAMES = 40, 8
 T0 = 1_700_000_000_000_000_000  # ns
 

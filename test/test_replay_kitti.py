@@ -18,7 +18,9 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
-DOMAIN_ID = 76
+from conftest import domain_id_for  # noqa: E402
+
+DOMAIN_ID = domain_id_for(16)
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = [pytest.mark.ros, pytest.mark.kitti, pytest.mark.timeout(300)]
 
