@@ -463,6 +463,15 @@ class _Bumps:
             out[sl] += a * (1.0 - u * u) ** 4
         return out
 
+    def deriv(self, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=np.float64)
+        out = np.zeros(t.shape)
+        for a, c, w in zip(self.a, self.c, self.w):
+            sl = _window(t, c - w, c + w)
+            u = (t[sl] - c) / w
+            out[sl] += a * -8.0 * u * (1.0 - u * u) ** 3 / w
+        return out
+
     @staticmethod
     def _antideriv(u: np.ndarray) -> np.ndarray:
         u = np.clip(u, -1.0, 1.0)
@@ -498,6 +507,128 @@ class _Gabors:
         return out
 
 
+# Profiles: speed and yaw rate of a drive, each a callable of time with ``deriv(t)`` and
+# ``integral(t, start=0.0)`` (= start + integral from 0 to t), exact in closed form.
+
+
+@dataclass
+class _Affine:
+    """``mid + half * f(t)`` of a profile ``f`` (the random drive's speed)."""
+
+    mid: float
+    half: float
+    f: _Sines
+
+    def __call__(self, t):
+        return self.mid + self.half * self.f(t)
+
+    def deriv(self, t):
+        return self.half * self.f.deriv(t)
+
+    def integral(self, t, start: float = 0.0):
+        return start + self.mid * np.asarray(t, dtype=np.float64) + self.half * self.f.integral(t)
+
+
+@dataclass
+class _Sum:
+    """The sum of profiles (the random drive's yaw rate: curves + wander)."""
+
+    parts: tuple
+
+    def __call__(self, t):
+        out = self.parts[0](t)
+        for p in self.parts[1:]:
+            out = out + p(t)
+        return out
+
+    def deriv(self, t):
+        out = self.parts[0].deriv(t)
+        for p in self.parts[1:]:
+            out = out + p.deriv(t)
+        return out
+
+    def integral(self, t, start: float = 0.0):
+        out = start
+        for p in self.parts:
+            out = out + p.integral(t)
+        return out
+
+
+def _smoothstep_antiderivs() -> list[np.polynomial.Polynomial]:
+    """``[S', S, int S, int int S]`` on ``[0, 1]`` of the C4 smooth step ``S' = 630 u^4 (1 - u)^4``."""
+    u = np.polynomial.Polynomial([0.0, 1.0])
+    out = [630.0 * u**4 * (1.0 - u) ** 4]
+    for _ in range(3):
+        out.append(out[-1].integ())  # lower bound 0: zero at u = 0
+    return out
+
+
+_STEP = _smoothstep_antiderivs()
+
+
+_STEP_AT1 = [1.0] + [float(p(1.0)) for p in _STEP[2:]]  # Phi_0(1) = 1 (exactly), Phi_1(1), Phi_2(1)
+
+
+def _step_phi(j: int, u: np.ndarray) -> np.ndarray:
+    """``Phi_j(u)``: ``j = -1, 0, 1, 2`` -> the smooth step's derivative, itself, its first and second
+    antiderivatives; 0 before ``u = 0``, continued exactly after ``u = 1`` (where ``S = 1``)."""
+    u = np.asarray(u, dtype=np.float64)
+    inside = _STEP[j + 1](np.clip(u, 0.0, 1.0))
+    if j < 0:
+        return inside  # S' vanishes at both ends
+    e = np.maximum(u - 1.0, 0.0)
+    beyond = sum(_STEP_AT1[j - i] * e**i / math.factorial(i) for i in range(j + 1))
+    return np.where(u > 1.0, beyond, inside)
+
+
+@dataclass
+class _Ramps:
+    """A piecewise-smooth profile: holds joined by C4 smooth steps (closed-form derivative and integral).
+
+    ``order = 0``: the value steps, ``f = base + sum_k delta_k S((t - t_k) / d_k)`` (speed changes, curve
+    entries). ``order = 1``: the derivative steps, ``f' = sum_k delta_k S(...)``, ``f(-inf) = base``
+    (acceleration held at a level: braking). Constant before the first step.
+    """
+
+    base: float
+    t: np.ndarray  # (K,) step starts, s
+    d: np.ndarray  # (K,) step durations, s
+    delta: np.ndarray  # (K,) step heights
+    order: int = 0
+
+    def _terms(self, j: int, t) -> np.ndarray:
+        t = np.asarray(t, dtype=np.float64)
+        out = np.zeros(t.shape)
+        for tk, dk, ak in zip(self.t, self.d, self.delta):
+            out += ak * dk ** (self.order + j) * _step_phi(self.order + j, (t - tk) / dk)
+        return out
+
+    def __call__(self, t):
+        return self.base + self._terms(0, t)
+
+    def deriv(self, t):
+        return self._terms(-1, t)
+
+    def integral(self, t, start: float = 0.0):
+        t = np.asarray(t, dtype=np.float64)
+        return start + self.base * t + self._terms(1, t) - self._terms(1, np.zeros(()))
+
+
+def _levels(start: float, changes: Sequence[tuple[float, float, float]]) -> _Ramps:
+    """Value steps from ``start``: ``changes = [(t_start, duration, new_level), ...]`` in time order."""
+    lv = [start] + [c[2] for c in changes]
+    return _Ramps(float(start), np.array([c[0] for c in changes], float), np.array([c[1] for c in changes], float),
+                  np.diff(np.asarray(lv, float)), 0)
+
+
+def _accel_levels(v0: float, changes: Sequence[tuple[float, float, float]]) -> _Ramps:
+    """Speed from acceleration steps: ``changes = [(t_start, duration, new_acceleration), ...]``, speed ``v0``
+    before the first."""
+    lv = [0.0] + [c[2] for c in changes]
+    return _Ramps(float(v0), np.array([c[0] for c in changes], float), np.array([c[1] for c in changes], float),
+                  np.diff(np.asarray(lv, float)), 1)
+
+
 _DEG = math.pi / 180.0
 
 
@@ -505,12 +636,9 @@ _DEG = math.pi / 180.0
 class _Motion:
     """Analytic drive signals of relative time ``t`` (seconds from the first stamp)."""
 
-    speed_mid: float
-    speed_half: float
-    speed_sines: _Sines  # normalised: amplitudes sum to 1
+    speed_profile: "_Profile"  # v(t) >= 0, m/s
     yaw0: float
-    curves: _Bumps
-    yaw_wander: _Sines
+    yaw_rate_profile: "_Profile"  # rad/s; yaw = yaw0 + its integral
     pitch_sines: _Sines
     roll_sines: _Sines
     pitch_bumps: _Gabors
@@ -525,16 +653,16 @@ class _Motion:
     cam_height: float
 
     def speed(self, t):
-        return self.speed_mid + self.speed_half * self.speed_sines(t)
+        return self.speed_profile(t)
 
     def speed_dot(self, t):
-        return self.speed_half * self.speed_sines.deriv(t)
+        return self.speed_profile.deriv(t)
 
     def yaw_rate(self, t):
-        return self.curves(t) + self.yaw_wander(t)
+        return self.yaw_rate_profile(t)
 
     def yaw(self, t):
-        return self.yaw0 + self.curves.integral(t) + self.yaw_wander.integral(t)
+        return self.yaw_rate_profile.integral(t, self.yaw0)
 
     def pitch_rel(self, t):
         return self.pitch_sines(t) + self.pitch_bumps(t) - self.load_pitch * self.speed_dot(t)
@@ -621,8 +749,8 @@ def _random_motion(rng: np.random.Generator, t_lo: float, t_hi: float, *, speed_
         slope0, camber0 = (0.0, 0.0) if road_tilt is False else (float(road_tilt[0]), float(road_tilt[1]))
         slope_s = camber_s = _Sines(np.zeros(1), np.ones(1), np.zeros(1))
     return _Motion(
-        speed_mid=mid, speed_half=half, speed_sines=speed_sines, yaw0=start_yaw, curves=curves,
-        yaw_wander=wander, pitch_sines=pitch_sines, roll_sines=roll_sines, pitch_bumps=pitch_bumps,
+        speed_profile=_Affine(mid, half, speed_sines), yaw0=start_yaw, yaw_rate_profile=_Sum((curves, wander)),
+        pitch_sines=pitch_sines, roll_sines=roll_sines, pitch_bumps=pitch_bumps,
         roll_bumps=roll_bumps, load_pitch=0.3 * _DEG * bumps, load_roll=0.5 * _DEG * bumps,
         slope0=slope0, camber0=camber0, slope_sines=slope_s, camber_sines=camber_s,
         t_base_cam=camera.T_base_cam[:3, 3].detach().cpu().double().numpy(), cam_height=float(camera.height),
