@@ -42,7 +42,7 @@ from bevo_ros.core.geometry import BevSpec, CameraModel, camera_pose_on_road
 __all__ = [
     "GRAVITY", "ImuNoise", "LazyImages", "RenderOptions", "RoadGround", "SyntheticDrive", "base_poses_4x4",
     "camera_pose_world", "camera_poses_4x4", "default_ground", "ground_intensity", "ground_patch",
-    "kitti_like_camera", "make_drive", "render_frame", "render_view", "true_bev",
+    "kitti_like_camera", "make_drive", "PRESETS", "preset_drive", "render_frame", "render_view", "true_bev",
 ]
 
 Tensor = torch.Tensor
@@ -573,7 +573,10 @@ def _step_phi(j: int, u: np.ndarray) -> np.ndarray:
     """``Phi_j(u)``: ``j = -1, 0, 1, 2`` -> the smooth step's derivative, itself, its first and second
     antiderivatives; 0 before ``u = 0``, continued exactly after ``u = 1`` (where ``S = 1``)."""
     u = np.asarray(u, dtype=np.float64)
-    inside = _STEP[j + 1](np.clip(u, 0.0, 1.0))
+    uc = np.clip(u, 0.0, 1.0)
+    if j == 0:  # S(u) = 1 - S(1 - u): accurate near both ends, so 0 <= S <= 1 (no reversing speed)
+        return np.where(uc > 0.5, 1.0 - _STEP[1](1.0 - uc), _STEP[1](uc))
+    inside = _STEP[j + 1](uc)
     if j < 0:
         return inside  # S' vanishes at both ends
     e = np.maximum(u - 1.0, 0.0)
@@ -893,6 +896,84 @@ class SyntheticDrive:
         return render_frame(self, index)
 
 
+# ---------------------------------------------------------------------------------------------
+# Named drives (presets)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Preset:
+    """A named drive: fixed speed and yaw-rate profiles; suspension, road tilt, noise stay seeded."""
+
+    description: str
+    duration: float  # s, the whole manoeuvre (a longer drive holds the last state)
+    speed: _Ramps
+    yaw_rate: _Ramps
+    bumps_gain: float = 1.0  # times the ``bumps`` argument
+    vibration_gain: float = 1.0  # times ImuNoise.accel_vibration
+    bump_rate: float = 0.0  # extra short bump events per second (potholes, joints)
+
+
+def _stop_and_go_speed() -> _Ramps:
+    # 9 m/s <-> 1 m/s (0.1 m per 10 Hz frame) in 6 s (peak 3.3 m/s^2), the second dip a full stop.
+    changes, t = [], 1.0
+    for low, hold in ((1.0, 1.5), (0.0, 2.0), (1.0, 1.5)):
+        changes += [(t, 6.0, low), (t + 6.0 + hold, 6.0, 9.0)]
+        t += 12.0 + hold + 1.5
+    return _levels(9.0, changes)
+
+
+_PRESETS: dict[str, _Preset] = {
+    "curve": _Preset(
+        "sustained left curve of 100 m radius at 15 m/s (2.25 m/s^2 lateral, 0.15 rad/s = 8.6 deg/s) "
+        "from t = 4 s to 12 s; straight 2 s, 2 s smooth entry and exit, straight to 16 s",
+        16.0, _levels(15.0, []), _levels(0.0, [(2.0, 2.0, 0.15), (12.0, 2.0, 0.0)])),
+    "braking": _Preset(
+        "straight, 15 m/s until t = 2 s, then -5 m/s^2 braking (0.5 s smooth onset and release) down to "
+        "2 m/s at t = 5.1 s, held to 8 s",
+        8.0, _accel_levels(15.0, [(2.0, 0.5, -5.0), (4.6, 0.5, 0.0)]), _levels(0.0, [])),
+    "bend_start": _Preset(
+        "starts inside a left bend: 12 m/s at 0.18 rad/s (2.16 m/s^2 centripetal at the first sample); "
+        "leaves it over t = 3..5 s while speeding up to 14 m/s by t = 7 s; 10 s",
+        10.0, _levels(12.0, [(3.0, 4.0, 14.0)]), _levels(0.18, [(3.0, 2.0, 0.0)])),
+    "stop_and_go": _Preset(
+        "stop-and-go: 9 m/s down to 1 m/s (0.1 m per 10 Hz frame), to a full 2 s stop, and to 1 m/s "
+        "again, 6 s ramps (<= 3.7 m/s^2), two gentle turns; 46 s",
+        46.0, _stop_and_go_speed(), _levels(0.0, [(9.0, 3.0, 0.1), (13.0, 3.0, 0.0), (25.0, 3.0, -0.08),
+                                                  (29.0, 3.0, 0.0)])),
+    "bumpy": _Preset(
+        "bumpy road: suspension 2.5x, extra short bumps (1 per s), vibration 2x; 7-10 m/s with gentle "
+        "curves (<= 0.06 rad/s); 20 s",
+        20.0, _levels(8.0, [(4.0, 4.0, 10.0), (12.0, 4.0, 7.0), (17.0, 3.0, 8.0)]),
+        _levels(0.0, [(2.0, 3.0, 0.06), (7.0, 3.0, -0.05), (13.0, 3.0, 0.04), (17.0, 3.0, 0.0)]),
+        bumps_gain=2.5, vibration_gain=2.0, bump_rate=1.0),
+}
+
+PRESETS: dict[str, str] = {name: p.description for name, p in _PRESETS.items()}
+"""Named deterministic drives for :func:`make_drive` ``(preset=...)``: name -> description."""
+
+
+def _with_preset(m: _Motion, p: _Preset, rng: np.random.Generator, t_lo: float, t_hi: float, bumps: float) -> _Motion:
+    """The seeded random motion with the preset's speed and yaw rate (and its extra bumps)."""
+    out = replace(m, speed_profile=p.speed, yaw_rate_profile=p.yaw_rate)
+    n = int(round(p.bump_rate * (t_hi - t_lo)))
+    if n:
+        c, s, f = rng.uniform(t_lo, t_hi, n), rng.uniform(0.06, 0.15, n), rng.uniform(1.5, 4.0, n)
+        sign = lambda: rng.choice([-1.0, 1.0], n)  # noqa: E731
+        pa = sign() * rng.uniform(0.4, 1.2, n) * _DEG * bumps
+        ra = sign() * rng.uniform(0.3, 0.9, n) * _DEG * bumps
+        ph = rng.uniform(0, 2 * math.pi, (2, n))
+        cat = lambda g, a, ff, p_: _Gabors(*(np.concatenate([x, y]) for x, y in  # noqa: E731
+                                             zip((g.a, g.c, g.s, g.f, g.p), (a, c, s, ff, p_))))
+        out = replace(out, pitch_bumps=cat(m.pitch_bumps, pa, f, ph[0]), roll_bumps=cat(m.roll_bumps, ra, f, ph[1]))
+    return out
+
+
+def preset_drive(name: str, seed: int = 0, duration: float | None = None, **kw) -> SyntheticDrive:
+    """``make_drive(seed, duration, preset=name, **kw)``: a named drive (see :data:`PRESETS`)."""
+    return make_drive(seed, duration, preset=name, **kw)
+
+
 def _check_positive(**kw) -> None:
     for k, v in kw.items():
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -901,7 +982,7 @@ def _check_positive(**kw) -> None:
 
 def make_drive(
     seed: int = 0,
-    duration: float = 20.0,
+    duration: float | None = None,
     frame_rate: float = 10.0,
     imu_rate: float = 100.0,
     bumps: float = 1.0,
@@ -919,12 +1000,14 @@ def make_drive(
     start_pose: tuple[float, float, float] | None = None,
     render_options: RenderOptions | None = None,
     ground_seed: int | None = None,
+    preset: str | None = None,
 ) -> SyntheticDrive:
     """Simulate a drive: trajectory, IMU at ``imu_rate`` and camera frames at ``frame_rate``.
 
     Args:
         seed: everything (motion, noise, texture unless ``ground_seed``) is deterministic by seed.
-        duration: seconds; frames at ``t0 + k / frame_rate``, IMU at ``t0 + k / imu_rate``.
+        duration: seconds (default 20, or the preset's length); frames at ``t0 + k / frame_rate``,
+            IMU at ``t0 + k / imu_rate``.
         bumps: scale of the road-relative pitch/roll (suspension oscillation, bump events,
             load transfer). 0 = rigid body flat on the road.
         road_tilt: True = slowly varying slope/camber; False = none; ``(slope, camber)`` radians
@@ -936,10 +1019,20 @@ def make_drive(
         speed_variation: 0 = constant speed ``mean(speed_range)``; 1 = the full range.
         curvature: scale of the curves' yaw rates; 0 = straight line.
         start_pose: world ``(x, y, yaw)`` at the first frame; default random.
+        preset: a named, deterministic manoeuvre (:data:`PRESETS`: ``curve``, ``braking``,
+            ``bend_start``, ``stop_and_go``, ``bumpy``): it fixes speed and yaw rate (``speed_range``,
+            ``speed_variation``, ``curvature``, ``max_yaw_rate``, ``max_lateral_accel`` are then unused);
+            suspension, bumps, road tilt, start pose and noise still follow ``seed`` and the other
+            arguments. None = the seeded random drive.
 
     Returns:
         a :class:`SyntheticDrive`.
     """
+    if preset is not None and preset not in _PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(_PRESETS)}")
+    pre_set = _PRESETS[preset] if preset is not None else None
+    if duration is None:
+        duration = pre_set.duration if pre_set is not None else 20.0
     _check_positive(duration=duration, frame_rate=frame_rate, imu_rate=imu_rate)
     for name, sd in (("seed", seed), ("ground_seed", 0 if ground_seed is None else ground_seed)):
         if isinstance(sd, bool) or not isinstance(sd, (int, np.integer)) or sd < 0:
@@ -967,6 +1060,10 @@ def make_drive(
         imu_noise, noisy = ImuNoise().scaled(float(noise)), float(noise) > 0
     else:
         raise ValueError(f"noise must be a bool, a scale >= 0 or an ImuNoise, got {noise!r}")
+    if pre_set is not None:
+        bumps = bumps * pre_set.bumps_gain
+        if pre_set.vibration_gain != 1.0:
+            imu_noise = replace(imu_noise, accel_vibration=imu_noise.accel_vibration * pre_set.vibration_gain)
     camera = camera if camera is not None else kitti_like_camera()
     options = render_options if render_options is not None else RenderOptions()
     if not noisy:
@@ -984,6 +1081,9 @@ def make_drive(
         curvature=curvature, max_yaw_rate=max_yaw_rate, max_lateral_accel=max_lateral_accel, bumps=bumps,
         road_tilt=road_tilt, camera=camera, start_yaw=float(start_pose[2]),
     )
+    v_ref = speed_range[1]  # vibration envelope: relative to the fastest speed
+    if pre_set is not None:
+        motion = _with_preset(motion, pre_set, np.random.default_rng([int(seed), 5]), -pre, t_imu[-1] + post, bumps)
     # Dense grid (>= 1 kHz, containing every IMU stamp) for the position integral.
     sub = max(1, int(math.ceil(1000.0 / imu_rate)))
     h = 1.0 / (imu_rate * sub)
@@ -992,6 +1092,11 @@ def make_drive(
     t_dense = j * h
     xy_dense = _integrate_xy(motion, t_dense, (float(start_pose[0]), float(start_pose[1])), j_pre)
     xy_imu = xy_dense[j_pre + np.arange(n_imu) * sub]
+    if pre_set is not None:
+        v_dense = motion.speed(t_dense)
+        if v_dense.min() < 0:  # a preset bug, never the user's
+            raise AssertionError(f"preset {preset!r} reverses (speed {v_dense.min():.3g} m/s)")
+        v_ref = float(v_dense.max())
 
     yaw = motion.yaw(t_imu)
     r_grav = motion.r_grav_base(t_imu)
@@ -1013,7 +1118,7 @@ def make_drive(
             nrng.normal(0, imu_noise.accel_bias_walk * math.sqrt(dt), (n_imu, 3)), 0)
         # Vibration: engine harmonics (speed-dependent amplitude) + broadband road roughness.
         vib = np.zeros((n_imu, 3))
-        env = 0.5 + 0.5 * motion.speed(t_imu) / max(speed_range[1], 1e-3)
+        env = 0.5 + 0.5 * motion.speed(t_imu) / max(v_ref, 1e-3)
         nyq = 0.5 * imu_rate
         for axis, gain in enumerate((0.7, 0.7, 1.5)):
             for _ in range(3):
