@@ -958,10 +958,10 @@ def _with_preset(m: _Motion, p: _Preset, rng: np.random.Generator, t_lo: float, 
     out = replace(m, speed_profile=p.speed, yaw_rate_profile=p.yaw_rate)
     n = int(round(p.bump_rate * (t_hi - t_lo)))
     if n:
-        c, s, f = rng.uniform(t_lo, t_hi, n), rng.uniform(0.06, 0.15, n), rng.uniform(1.5, 4.0, n)
+        c, s, f = rng.uniform(t_lo, t_hi, n), rng.uniform(0.1, 0.25, n), rng.uniform(1.0, 2.5, n)
         sign = lambda: rng.choice([-1.0, 1.0], n)  # noqa: E731
-        pa = sign() * rng.uniform(0.4, 1.2, n) * _DEG * bumps
-        ra = sign() * rng.uniform(0.3, 0.9, n) * _DEG * bumps
+        pa = sign() * rng.uniform(0.2, 0.6, n) * _DEG * bumps
+        ra = sign() * rng.uniform(0.2, 0.5, n) * _DEG * bumps
         ph = rng.uniform(0, 2 * math.pi, (2, n))
         cat = lambda g, a, ff, p_: _Gabors(*(np.concatenate([x, y]) for x, y in  # noqa: E731
                                              zip((g.a, g.c, g.s, g.f, g.p), (a, c, s, ff, p_))))
