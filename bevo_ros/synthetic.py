@@ -18,6 +18,9 @@ Model of the drive (all signals are smooth analytic functions of time, so the IM
   ``v_grav = Rz(yaw) Ry(slope) Rx(camber) [v, 0, dz/dt]``; its time derivative is the kinematic
   acceleration of the accelerometer model (rotating the whole world plane by the tilt instead would
   create huge spurious accelerations far from the origin);
+* speed and yaw rate are seeded random (sines, curve events) or a named preset (:data:`PRESETS`:
+  sustained curve, hard braking, start inside a bend, stop-and-go, bumpy road) built from C4 smooth
+  steps with closed-form integrals; the suspension, road tilt and noise stay seeded either way;
 * gyro = body angular velocity of ``R_grav_base`` (5-point central differences of the analytic
   rotation, error ~1e-9 rad/s), accel = specific force ``R_grav_base^T (a_grav + [0, 0, g])``
   (error ~3e-8 m/s^2).
@@ -30,7 +33,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
-from typing import Sequence
+from typing import Protocol, Sequence
 
 import cv2
 import numpy as np
@@ -507,8 +510,17 @@ class _Gabors:
         return out
 
 
-# Profiles: speed and yaw rate of a drive, each a callable of time with ``deriv(t)`` and
-# ``integral(t, start=0.0)`` (= start + integral from 0 to t), exact in closed form.
+# Profiles: speed and yaw rate of a drive, exact in closed form (the IMU and poses stay consistent).
+
+
+class _Profile(Protocol):
+    """A signal of relative time ``t (N,)``: value, time derivative, ``start + integral from 0 to t``."""
+
+    def __call__(self, t: np.ndarray) -> np.ndarray: ...
+
+    def deriv(self, t: np.ndarray) -> np.ndarray: ...
+
+    def integral(self, t: np.ndarray, start: float = 0.0) -> np.ndarray: ...
 
 
 @dataclass
@@ -639,9 +651,9 @@ _DEG = math.pi / 180.0
 class _Motion:
     """Analytic drive signals of relative time ``t`` (seconds from the first stamp)."""
 
-    speed_profile: "_Profile"  # v(t) >= 0, m/s
+    speed_profile: _Profile  # v(t) >= 0, m/s
     yaw0: float
-    yaw_rate_profile: "_Profile"  # rad/s; yaw = yaw0 + its integral
+    yaw_rate_profile: _Profile  # rad/s; yaw = yaw0 + its integral
     pitch_sines: _Sines
     roll_sines: _Sines
     pitch_bumps: _Gabors
@@ -954,19 +966,20 @@ PRESETS: dict[str, str] = {name: p.description for name, p in _PRESETS.items()}
 
 
 def _with_preset(m: _Motion, p: _Preset, rng: np.random.Generator, t_lo: float, t_hi: float, bumps: float) -> _Motion:
-    """The seeded random motion with the preset's speed and yaw rate (and its extra bumps)."""
+    """The seeded random motion with the preset's speed and yaw rate (and its extra short bumps)."""
     out = replace(m, speed_profile=p.speed, yaw_rate_profile=p.yaw_rate)
     n = int(round(p.bump_rate * (t_hi - t_lo)))
-    if n:
-        c, s, f = rng.uniform(t_lo, t_hi, n), rng.uniform(0.1, 0.25, n), rng.uniform(1.0, 2.5, n)
-        sign = lambda: rng.choice([-1.0, 1.0], n)  # noqa: E731
-        pa = sign() * rng.uniform(0.2, 0.6, n) * _DEG * bumps
-        ra = sign() * rng.uniform(0.2, 0.5, n) * _DEG * bumps
-        ph = rng.uniform(0, 2 * math.pi, (2, n))
-        cat = lambda g, a, ff, p_: _Gabors(*(np.concatenate([x, y]) for x, y in  # noqa: E731
-                                             zip((g.a, g.c, g.s, g.f, g.p), (a, c, s, ff, p_))))
-        out = replace(out, pitch_bumps=cat(m.pitch_bumps, pa, f, ph[0]), roll_bumps=cat(m.roll_bumps, ra, f, ph[1]))
-    return out
+    if not n:
+        return out
+    c, s, f = rng.uniform(t_lo, t_hi, n), rng.uniform(0.1, 0.25, n), rng.uniform(1.0, 2.5, n)
+    pitch_a = rng.choice([-1.0, 1.0], n) * rng.uniform(0.2, 0.6, n) * _DEG * bumps
+    roll_a = rng.choice([-1.0, 1.0], n) * rng.uniform(0.2, 0.5, n) * _DEG * bumps
+    phase = rng.uniform(0, 2 * math.pi, (2, n))
+
+    def more(g: _Gabors, a: np.ndarray, ph: np.ndarray) -> _Gabors:
+        return _Gabors(*(np.concatenate([x, y]) for x, y in zip((g.a, g.c, g.s, g.f, g.p), (a, c, s, f, ph))))
+
+    return replace(out, pitch_bumps=more(m.pitch_bumps, pitch_a, phase[0]), roll_bumps=more(m.roll_bumps, roll_a, phase[1]))
 
 
 def preset_drive(name: str, seed: int = 0, duration: float | None = None, **kw) -> SyntheticDrive:
