@@ -3,6 +3,10 @@ it projects the engine's BEV and recovers known motions (not a stub that merely 
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -99,3 +103,15 @@ def test_step_recovers_the_motion_between_rendered_frames(ref_module, camera):
     assert abs(math.degrees(est[2] - motion[2])) <= 0.25
     ref.reset()
     assert ref.step(images[1]) is None
+
+
+def test_bench_core_prints_the_ratio():
+    """The benchmark runs end to end (subprocess: it wraps engine functions to time them)."""
+    repo = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(repo) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, str(repo / "tools" / "bench_core.py"), "--frames", "4", "--passes", "1"],
+                         capture_output=True, text=True, timeout=300, env=env, cwd=repo)
+    assert out.returncode == 0, out.stderr
+    ratio = [line for line in out.stdout.splitlines() if line.startswith("RATIO engine full step / OpenCV reference")]
+    assert len(ratio) == 1 and float(ratio[0].split(":")[1].split("x")[0]) > 0
+    assert "engine mode:" in out.stdout and "OpenCV reference (BEV + 2 PC)" in out.stdout
