@@ -80,6 +80,10 @@ class FilterSettings:
     # update, with the visual odometry's latest speed. Off by default: it cuts the synthetic roll
     # error from 5.7 to 0.6 deg RMS, but the odometry got worse there (pitch), see the issue notes.
     turn_compensation: bool = False
+    # IMU plausibility limits (core/validation.py ImuLimits): samples beyond them are dropped
+    # with the reason. Specific-force norm (m/s^2, 8 g) and any gyro axis (rad/s, ~2000 deg/s).
+    max_acceleration: float = 78.45
+    max_angular_rate: float = 35.0
 
 
 @dataclass
@@ -177,7 +181,16 @@ def read_yaml(path: Path, what: str) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{what} {path} cannot be read: {exc}") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{what} {path} is not valid YAML: {exc}") from None
+        raise ConfigError(f"{what} {path} is not valid YAML: {yaml_error_line(exc)}") from None
+
+
+def yaml_error_line(exc: Exception) -> str:
+    """A YAML parser error on one line: ``line L, column C: problem`` (PyYAML's own text spans
+    several lines with an excerpt of the file)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or getattr(exc, "context", None) or str(exc)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return where + " ".join(str(problem).split())
 
 
 def load_params_file(path: str | os.PathLike, node_name: str = "bevo_node") -> dict[str, Any]:
@@ -378,6 +391,10 @@ def camera_model(settings: CameraSettings, K=None, width: int | None = None, hei
         raise ConfigError("camera.base_T_camera: rotation part is not orthonormal")
     if settings.height <= 0:
         raise ConfigError(f"camera.height must be > 0 m, got {settings.height}")
+    from bevo_ros.core.validation import intrinsics_problem
+
+    if (problem := intrinsics_problem(np.asarray(K, dtype=np.float64), width, height_px)) is not None:
+        raise ConfigError(f"camera intrinsics are not plausible: {problem}")
     return CameraModel(torch.tensor(np.array(K, dtype=np.float64)).reshape(3, 3), int(width), int(height_px), T,
                        float(settings.height))
 
@@ -407,7 +424,8 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
                 motion_model=config.filter.motion_model).double()
     vehicle = VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate)
     spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
-    return BevoOdometry(
+    limits = imu_limits(config)
+    odometry = BevoOdometry(
         camera=camera if camera is not None else camera_model(config.camera),
         spec=spec,
         dukf=dukf,
@@ -421,3 +439,16 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         suspension_gradients=learned.suspension_gradients,
         initial_attitude_std=config.odometry.initial_attitude_std,
     )
+    odometry.imu_limits = limits
+    return odometry
+
+
+def imu_limits(config: BevoConfig):
+    """The engine's IMU plausibility limits from ``filter.max_acceleration/max_angular_rate``."""
+    from bevo_ros.core.validation import ImuLimits
+
+    f = config.filter
+    for name in ("max_acceleration", "max_angular_rate"):
+        if getattr(f, name) <= 0:
+            raise ConfigError(f"filter.{name} must be > 0, got {getattr(f, name)}")
+    return ImuLimits(f.max_acceleration, f.max_angular_rate)

@@ -23,6 +23,7 @@ from .motion import (motion_covariance_from_registration, pitch_scale_sensitivit
 from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
+from .validation import ImplausibleImuError, ImuLimits, imu_problem
 from .vehicle_dynamics import compensate_floats, suspension_attitude
 from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 
@@ -113,6 +114,8 @@ class BevoOdometry:
             accelerometer read in a bend is not locked in.
     """
 
+    imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
+
     def __init__(
         self,
         camera: CameraModel,
@@ -201,12 +204,15 @@ class BevoOdometry:
     def add_imu(self, stamp: float, gyro, accel) -> list[OdometryStep]:
         """Fuse one IMU sample; returns the images it released (processed in stamp order).
 
-        Raises ValueError for non-finite data and OutOfOrderError for stamps not after the last.
+        Raises ValueError for non-finite data, ImplausibleImuError (a ValueError) for readings
+        outside ``self.imu_limits`` and OutOfOrderError for stamps not after the last.
         """
         g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
         a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
         if not (math.isfinite(stamp) and all(math.isfinite(v) for v in g + a)):
             raise ValueError("IMU sample contains NaN or inf")
+        if (problem := imu_problem(g, a, self.imu_limits)) is not None:
+            raise ImplausibleImuError(*problem)
         if math.hypot(*a) < 1e-6:
             raise ValueError("IMU linear acceleration is zero: no gravity, no attitude")
         if self._last_imu is not None and stamp <= self._last_imu:
