@@ -171,6 +171,12 @@ class VehicleFilter:
         d_t = d_r = float("nan")
         if have:
             x, P, acc_t, d_t = _scalar_update(x, P, 0, forward / dt, forward_var / (dt * dt), n.gate, informative)
+            # A rejected informative measurement may be the model's fault (a braking onset harder
+            # than the jerk noise allows): widen the speed/acceleration belief so that a lasting
+            # disagreement opens the gate within a few frames instead of locking the filter out.
+            widen = informative & ~acc_t if isinstance(acc_t, Tensor) else (informative and not acc_t)
+            k = _where(widen, 4.0 * x[0] * 0 + 4.0, 1.0 + 0 * x[0]) if isinstance(acc_t, Tensor) else (4.0 if widen else 1.0)
+            P = [[P[i][j] * (k if i < 2 and j < 2 else 1.0) for j in range(3)] for i in range(3)]
         if have and rotation is not None:
             z_b = (gyro_yaw - rotation) / dt
             r_b = (rotation_var + n.gyro_yaw_density * dt) / (dt * dt)
