@@ -37,18 +37,17 @@ import torch.nn.functional as F
 
 from .aerial_map import AerialMap
 from .geometry import BevSpec
-from .mosaic import MosaicBuffer, _gaussian_blur, compose_mosaic
-from .phase_correlation import DpcConfig, Registration, _window_2d, register
+from .mosaic import MosaicBuffer, _gaussian_blur, compose_mosaic, mosaic_anchor
+from .phase_correlation import (DpcConfig, Registration, _quadratic_peak_2d, _window_2d, estimate_rotation,
+                                estimate_translation, overlap_envelope, prepare, rotate_about_centre,
+                                translation_correlation)
 
 Tensor = torch.Tensor
 
 APPEARANCES = ("raw", "lcn", "gradient")
 # Phase correlation for map matching: a wide flat window (the mosaic is a long strip, the
-# radial Hann of frame-to-frame matching would keep only its middle), pure phase whitening, and
-# the Fourier-magnitude angle refined by direct alignment (it is disturbed by the content the
-# map and the mosaic do not share).
-MAP_DPC = DpcConfig(window_alpha=0.25, mask_blur=2.0, rotation_refine_iters=3, rotation_refine_step=1.0,
-                    radial_range=(0.04, 0.35), translation_sigma=1.0)
+# radial Hann of frame-to-frame matching would keep only its middle) and pure phase whitening.
+MAP_DPC = DpcConfig(window_alpha=0.25, mask_blur=2.0, radial_range=(0.04, 0.35), translation_sigma=1.0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -131,6 +130,8 @@ class MapMatchConfig:
         position_std_floor, yaw_std_floor: metres / radians added (in quadrature) to the
             correlation spread: the mosaic's own distortion and the map's registration error.
         covariance_scale: multiplies the correlation-spread covariance.
+        rotation_search, rotation_step: degrees, the grid refinement of the rotation
+            (:func:`register_grid`).
         spread_window: half-width (pixels / angle bins) of the window about the peaks in which the
             spread is taken.
     """
@@ -143,9 +144,11 @@ class MapMatchConfig:
     dpc: DpcConfig = MAP_DPC
     min_quality: float = 0.12
     position_std_floor: float = 0.15
-    yaw_std_floor: float = math.radians(0.2)
+    yaw_std_floor: float = math.radians(0.3)
     covariance_scale: float = 1.0
     spread_window: int = 4
+    rotation_search: float = 4.0
+    rotation_step: float = 0.5
 
     def __post_init__(self) -> None:
         if self.appearance not in APPEARANCES:
@@ -162,18 +165,17 @@ class MapMeasurement:
         correction: ``(B, 3)`` ``(dx, dy, dyaw)``: the true map pose of the mosaic centre is
             ``predicted (+) correction`` (metres / radians, in the predicted pose's frame).
         covariance: ``(B, 3, 3)`` of the correction.
-        quality, rotation_quality: ``(B,)`` correlation peak heights in [0, 1].
+        quality: ``(B,)`` translation correlation peak height in [0, 1] (phase coherence).
         overlap: ``(B,)`` fraction of the mosaic's coverage that the map crop covers.
-        registration: the phase-correlation result; ``crop``/``mosaic``: the compared images
-            (after :func:`appearance`), ``(B, 1, S, S)``.
+        correlation: ``(B, S, S)`` the translation correlation (fftshifted; the debug heat-map).
+        crop, mosaic: the compared images (after :func:`appearance`), ``(B, 1, S, S)``.
     """
 
     correction: Tensor
     covariance: Tensor
     quality: Tensor
-    rotation_quality: Tensor
     overlap: Tensor
-    registration: Registration
+    correlation: Tensor
     crop: Tensor
     mosaic: Tensor
 
@@ -184,14 +186,55 @@ def _dilate(mask: Tensor, pixels: int) -> Tensor:
     return F.max_pool2d(mask, 2 * pixels + 1, stride=1, padding=pixels)
 
 
-def _local_spread(reg: Registration, window: int) -> tuple[Tensor, Tensor]:
+def register_grid(prev: Tensor, curr: Tensor, mask_prev: Tensor, mask_curr: Tensor, config: DpcConfig,
+                  half_range: float, step: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Rotation then translation of ``curr`` against ``prev`` (``(B, 1, S, S)``), the rotation
+    refined on a grid.
+
+    The Fourier-magnitude angle (:func:`~bevo_ros.core.phase_correlation.estimate_rotation`) is
+    the global, translation-free estimate; content that the map and the mosaic do not share
+    disturbs it by about a degree. Around it, the translation correlation's peak height is
+    evaluated at ``2 n + 1`` angles ``step`` apart (``n = half_range / step``, one batched FFT) and
+    the angle is the vertex of a log-parabola through the best one and its neighbours: a long
+    strip's peak falls off within a degree, so this is several times more precise.
+
+    Returns:
+        angle ``(B,)``, shift ``(B, 2)``, rotation log-probabilities ``(B, A)`` (Fourier stage),
+        translation correlation and log-probabilities ``(B, S, S)`` at the angle.
+    """
+    p_prev, p_curr = prepare(prev, mask_prev, config), prepare(curr, mask_curr, config)
+    angle0, _, rlog = estimate_rotation(p_prev, p_curr, config)
+    envelope = overlap_envelope(p_prev.weight_spectrum, p_curr.weight_spectrum) if config.envelope_correction else None
+    B, S = curr.shape[0], curr.shape[-1]
+    n = max(1, int(round(half_range / step)))
+    k = torch.arange(-n, n + 1, dtype=angle0.dtype, device=angle0.device)
+    cand = (angle0[:, None] + step * k).reshape(-1)  # (B * (2n+1),)
+    m = 2 * n + 1
+    der = rotate_about_centre(p_curr.image[:, None].repeat_interleave(m, dim=0), -cand)[:, 0]
+    corr = translation_correlation(p_prev.spectrum.repeat_interleave(m, dim=0), der, config)
+    if envelope is not None:  # only where the weights overlap well: far shifts of a strip would blow up
+        corr = corr / envelope.repeat_interleave(m, dim=0).clamp_min(0.5)
+    j = corr.reshape(B * m, S * S).argmax(dim=-1)
+    _, log_h = _quadratic_peak_2d(corr, j // S, j % S)
+    log_h = log_h.reshape(B, m)
+    best = log_h.argmax(dim=-1).clamp(1, m - 2)
+    lm, l0, lp = (log_h.gather(-1, (best + o)[:, None])[:, 0] for o in (-1, 0, 1))
+    den = lm - 2.0 * l0 + lp
+    concave = den < -1e-9
+    off = torch.where(concave, 0.5 * (lm - lp) / torch.where(concave, den, -torch.ones_like(den)), torch.zeros_like(den))
+    angle = angle0 + step * ((best - n).to(angle0.dtype) + off.clamp(-1.0, 1.0))
+    derotated = rotate_about_centre(p_curr.image[:, None], -angle)[:, 0]
+    shift, tcorr, tlog = estimate_translation(p_prev.spectrum, derotated, config, envelope)
+    return angle, shift, rlog, tcorr, tlog
+
+
+def _local_spread(rotation_log_prob: Tensor, translation_log_prob: Tensor, window: int) -> tuple[Tensor, Tensor]:
     """Spread of the correlation distributions in a window about their peaks: the peak's width
     (sharpness and height), not the far-off noise floor that dominates the global spread of a
     large search grid. -> angle variance ``(B,)`` rad^2, shift covariance ``(B, 2, 2)`` px^2."""
-    B, S, _ = reg.translation_log_prob.shape
-    flat = reg.translation_log_prob.reshape(B, -1)
-    j = flat.argmax(dim=-1)
-    win, d = _window_2d(reg.translation_log_prob, j // S, j % S, window)
+    B, S, _ = translation_log_prob.shape
+    j = translation_log_prob.reshape(B, -1).argmax(dim=-1)
+    win, d = _window_2d(translation_log_prob, j // S, j % S, window)
     p = torch.softmax(win.reshape(B, -1), dim=-1).reshape(win.shape)
     pr, pc = p.sum(dim=2), p.sum(dim=1)
     mr, mc = (pr * d).sum(-1), (pc * d).sum(-1)
@@ -199,10 +242,10 @@ def _local_spread(reg: Registration, window: int) -> tuple[Tensor, Tensor]:
     rr, cc = (pr * dr**2).sum(-1), (pc * dc**2).sum(-1)
     rc = (p * dr[:, :, None] * dc[:, None, :]).sum(dim=(1, 2))
     shift_cov = torch.stack([torch.stack([rr, rc], -1), torch.stack([rc, cc], -1)], -2)
-    A = reg.rotation_log_prob.shape[-1]
-    ja = reg.rotation_log_prob.argmax(dim=-1)
+    A = rotation_log_prob.shape[-1]
+    ja = rotation_log_prob.argmax(dim=-1)
     k = torch.arange(-window, window + 1, device=ja.device)
-    wa = reg.rotation_log_prob.gather(-1, (ja[:, None] + k) % A)
+    wa = rotation_log_prob.gather(-1, (ja[:, None] + k) % A)
     pa = torch.softmax(wa, dim=-1)
     kf = k.to(pa.dtype)
     ma = (pa * kf).sum(-1)
@@ -236,20 +279,22 @@ def measure(mosaic: Tensor, coverage: Tensor, aerial: AerialMap, predicted: Tens
     sigma = config.appearance_sigma / r
     a_crop = appearance(crop, crop_mask, config.appearance, sigma)
     a_mos = appearance(mosaic, cov_mask, config.appearance, sigma)
-    reg = register(a_crop, a_mos, crop_mask, cov_mask, config.dpc)
+    angle, shift, rlog, tcorr, tlog = register_grid(a_crop, a_mos, crop_mask, cov_mask, config.dpc,
+                                                    math.radians(config.rotation_search), math.radians(config.rotation_step))
     # curr(q) = prev(c + R(-angle)(q - c) - shift) with BEV axes (row = -x, col = -y): the mosaic
     # point v is the crop point R(-angle) v + mpp * shift (in x, y), i.e. the mosaic's true pose
     # is the predicted one (+) (mpp * shift, -angle).
-    correction = torch.stack([r * reg.shift[:, 0], r * reg.shift[:, 1], -reg.angle], dim=-1)
+    correction = torch.stack([r * shift[:, 0], r * shift[:, 1], -angle], dim=-1)
     B = mosaic.shape[0]
     cov = torch.zeros(B, 3, 3, dtype=mosaic.dtype, device=mosaic.device)
-    angle_var, shift_cov = _local_spread(reg, config.spread_window)
+    angle_var, shift_cov = _local_spread(rlog, tlog, config.spread_window)
     cov[:, :2, :2] = config.covariance_scale * r * r * shift_cov
     cov[:, 2, 2] = config.covariance_scale * angle_var
     floor = torch.tensor([config.position_std_floor**2] * 2 + [config.yaw_std_floor**2], dtype=cov.dtype,
                          device=cov.device)
     cov = cov + torch.diag(floor)
-    return MapMeasurement(correction, cov, reg.quality, reg.rotation_quality, overlap, reg, a_crop, a_mos)
+    quality = tcorr.amax(dim=(-1, -2)).clamp(0.0, 1.0)
+    return MapMeasurement(correction, cov, quality, overlap, tcorr, a_crop, a_mos)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -269,25 +314,53 @@ def _erfinv(y: float) -> float:
 
 
 class MapPoseFilter:
-    """EKF on the SE(2) base pose ``(x, y, yaw)`` in the map frame (numpy float64, one vehicle).
+    """EKF on the SE(2) base pose in the map frame, with the odometry's scale and yaw drift
+    (numpy float64, one vehicle).
+
+    State ``[x, y, yaw, scale, yaw_drift]``: the odometry increment ``(dx, dy, dyaw)`` moves the
+    pose by ``(scale dx, scale dy, dyaw + yaw_drift * distance)``. A monocular BEV's scale hangs
+    on the camera pitch (README) and its yaw on the roll, both slowly varying: without these two
+    states the pose lags behind the map measurements by the drift accumulated between updates.
 
     Args:
         gate: Mahalanobis-squared threshold of the update (3 dof).
-        odom_noise: ``(fraction, fraction, rad/m)``: std of the x/y increment per metre driven (as a
-            fraction of it) and of yaw per metre, added to each increment's own covariance.
+        odom_noise: ``(fraction, fraction, rad/sqrt(m))``: std of the x/y increment per metre
+            driven (as a fraction of it) and the yaw random walk per metre, added to each
+            increment's own covariance.
+        scale_std, yaw_drift_std: prior std of the scale (fraction) and of the yaw drift (rad/m);
+            ``*_walk``: their random walks per sqrt(metre).
     """
 
-    def __init__(self, gate: float = chi2_threshold(0.999), odom_noise=(0.02, 0.02, math.radians(0.05))) -> None:
+    def __init__(self, gate: float = chi2_threshold(0.999), odom_noise=(0.02, 0.02, math.radians(0.05)),
+                 scale_std: float = 0.05, yaw_drift_std: float = math.radians(0.05), scale_walk: float = 2e-4,
+                 yaw_drift_walk: float = math.radians(2e-4)) -> None:
         self.gate = float(gate)
         self.odom_noise = tuple(float(v) for v in odom_noise)
-        self.x: np.ndarray | None = None
-        self.P = np.eye(3)
+        self.prior = (float(scale_std), float(yaw_drift_std))
+        self.walk = (float(scale_walk), float(yaw_drift_walk))
+        self.state: np.ndarray | None = None
+        self.cov = np.eye(5)
 
     @property
     def initialised(self) -> bool:
-        return self.x is not None
+        return self.state is not None
+
+    @property
+    def x(self) -> np.ndarray | None:
+        """The pose ``(3,)`` (a view: x, y, yaw)."""
+        return None if self.state is None else self.state[:3]
+
+    @property
+    def P(self) -> np.ndarray:
+        """The pose covariance ``(3, 3)``."""
+        return self.cov[:3, :3]
+
+    def reset(self) -> None:
+        self.state = None
 
     def initialise(self, pose, cov) -> None:
+        """Start at ``pose (3,)`` with ``cov (3, 3)``; the scale and drift keep their estimates
+        when re-initialised (they belong to the odometry, not to the pose)."""
         pose = np.asarray(pose, dtype=np.float64).reshape(3)
         cov = np.asarray(cov, dtype=np.float64).reshape(3, 3)
         if not (np.isfinite(pose).all() and np.isfinite(cov).all()):
@@ -295,31 +368,44 @@ class MapPoseFilter:
         cov = 0.5 * (cov + cov.T)
         if np.linalg.eigvalsh(cov).min() <= 0:
             raise ValueError("initial covariance must be positive definite")
-        self.x = pose.copy()
-        self.x[2] = wrap(self.x[2])
-        self.P = cov
+        old = self.state
+        self.state = np.concatenate([pose, [1.0, 0.0] if old is None else old[3:]])
+        self.state[2] = wrap(self.state[2])
+        C = np.zeros((5, 5))
+        C[:3, :3] = cov
+        C[3:, 3:] = np.diag(np.square(self.prior)) if old is None else self.cov[3:, 3:]
+        self.cov = C
 
     def predict(self, motion, motion_cov=None) -> None:
         """Apply one odometry increment ``(dx, dy, dyaw)`` (base frame) with its ``(3, 3)`` covariance."""
-        if self.x is None:
+        if self.state is None:
             return
         m = np.asarray(motion, dtype=np.float64).reshape(3)
         Q = np.zeros((3, 3)) if motion_cov is None else np.asarray(motion_cov, dtype=np.float64).reshape(3, 3)
         dist = math.hypot(m[0], m[1])
         fx, fy, fyaw = self.odom_noise
         Q = Q + np.diag([(fx * dist) ** 2, (fy * dist) ** 2, fyaw**2 * dist])
-        c, s = math.cos(self.x[2]), math.sin(self.x[2])
-        Fj = np.array([[1.0, 0.0, -s * m[0] - c * m[1]], [0.0, 1.0, c * m[0] - s * m[1]], [0.0, 0.0, 1.0]])
-        G = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        self.x = se2_compose(self.x, m)
-        P = Fj @ self.P @ Fj.T + G @ Q @ G.T
-        self.P = 0.5 * (P + P.T)
+        x, y, yaw, k, b = self.state
+        c, s = math.cos(yaw), math.sin(yaw)
+        dx, dy = k * m[0], k * m[1]
+        Fj = np.eye(5)
+        Fj[0, 2], Fj[1, 2] = -s * dx - c * dy, c * dx - s * dy
+        Fj[0, 3], Fj[1, 3] = c * m[0] - s * m[1], s * m[0] + c * m[1]
+        Fj[2, 4] = dist
+        G = np.zeros((5, 3))
+        G[:2, :2] = k * np.array([[c, -s], [s, c]])
+        G[2, 2] = 1.0
+        self.state = np.array([x + c * dx - s * dy, y + s * dx + c * dy, wrap(yaw + m[2] + b * dist), k, b])
+        P = Fj @ self.cov @ Fj.T + G @ Q @ G.T
+        P[3, 3] += self.walk[0] ** 2 * dist
+        P[4, 4] += self.walk[1] ** 2 * dist
+        self.cov = 0.5 * (P + P.T)
 
     def innovation(self, z, R) -> tuple[np.ndarray, np.ndarray, float]:
         """``(nu (3,), S (3, 3), d2)`` of a full-pose measurement ``z`` with covariance ``R``."""
-        nu = np.asarray(z, dtype=np.float64) - self.x
+        nu = np.asarray(z, dtype=np.float64) - self.state[:3]
         nu[2] = wrap(nu[2])
-        S = self.P + np.asarray(R, dtype=np.float64)
+        S = self.cov[:3, :3] + np.asarray(R, dtype=np.float64)
         return nu, S, float(nu @ np.linalg.solve(S, nu))
 
     def update(self, z, R) -> tuple[bool, float]:
@@ -327,12 +413,14 @@ class MapPoseFilter:
         nu, S, d2 = self.innovation(z, R)
         if not (math.isfinite(d2) and d2 <= self.gate):
             return False, d2
-        K = self.P @ np.linalg.inv(S)
-        self.x = self.x + K @ nu
-        self.x[2] = wrap(self.x[2])
-        IK = np.eye(3) - K
-        P = IK @ self.P @ IK.T + K @ np.asarray(R) @ K.T  # Joseph form
-        self.P = 0.5 * (P + P.T)
+        H = np.zeros((3, 5))
+        H[:, :3] = np.eye(3)
+        K = self.cov @ H.T @ np.linalg.inv(S)
+        self.state = self.state + K @ nu
+        self.state[2] = wrap(self.state[2])
+        IK = np.eye(5) - K @ H
+        P = IK @ self.cov @ IK.T + K @ np.asarray(R) @ K.T  # Joseph form
+        self.cov = 0.5 * (P + P.T)
         return True, d2
 
 
@@ -353,6 +441,9 @@ class LocalizerConfig:
         gate_probability: of the Mahalanobis gate (3 dof).
         odom_noise: see :class:`MapPoseFilter`.
         lost_after: consecutive rejected measurements after which the status is "lost".
+        mosaic_distortion: scale of the covariance the mosaic inherits from the odometry's noise
+            between its keyframes (0 = ignore).
+        mosaic_scale_correction: place the keyframes with the filter's odometry scale estimate.
     """
 
     match: MapMatchConfig = field(default_factory=MapMatchConfig)
@@ -360,10 +451,12 @@ class LocalizerConfig:
     keyframe_spacing: float = 2.0
     update_distance: float = 4.0
     min_mosaic_length: float = 10.0
-    min_overlap: float = 0.8
+    min_overlap: float = 0.5
     gate_probability: float = 0.999
     odom_noise: tuple[float, float, float] = (0.02, 0.02, math.radians(0.05))
     lost_after: int = 5
+    mosaic_distortion: float = 1.0
+    mosaic_scale_correction: bool = False
 
 
 @dataclass
@@ -418,6 +511,7 @@ class MapLocalizer:
         self.pose_odom: np.ndarray | None = None
         self.last_measurement: MapMeasurement | None = None
         self._since_update = 0.0
+        self._odom_variance = np.zeros(2)  # accumulated (position, yaw) variance of the odometry
 
     @property
     def status(self) -> str:
@@ -429,7 +523,7 @@ class MapLocalizer:
 
     def reset(self) -> None:
         """Forget the pose and the mosaic (the odometry was reset)."""
-        self.filter.x = None
+        self.filter.reset()
         self.mosaic.reset()
         self.pose_odom = None
         self._since_update = 0.0
@@ -460,13 +554,17 @@ class MapLocalizer:
         motion = np.asarray(motion, dtype=np.float64).reshape(3)
         self.filter.predict(motion, motion_cov)
         dist = math.hypot(motion[0], motion[1])
+        if motion_cov is not None:
+            mc = np.asarray(motion_cov, dtype=np.float64).reshape(3, 3)
+            self._odom_variance += [mc[0, 0] + mc[1, 1], mc[2, 2]]
         self.mosaic.advance(dist)
         self._since_update += dist
         if bev is not None:
             dev = self.device
             b = torch.as_tensor(np.asarray(bev, dtype=np.float32), device=dev)
             m = torch.ones_like(b) if mask is None else torch.as_tensor(np.asarray(mask, dtype=np.float32), device=dev)
-            self.mosaic.offer(torch.as_tensor(self.pose_odom, dtype=torch.float32, device=dev), b, m)
+            self.mosaic.offer(torch.as_tensor(self.pose_odom, dtype=torch.float32, device=dev), b, m,
+                              tuple(self._odom_variance))
         out = LocalizerStep(None, None, None, status=self.status)
         if self.filter.initialised and self._since_update >= self.config.update_distance \
                 and self.mosaic.covered_length >= self.config.min_mosaic_length and len(self.mosaic.frames) >= 2:
@@ -477,10 +575,43 @@ class MapLocalizer:
         out.status = self.status
         return out
 
+    def step_odometry(self, step, use_bev: bool = True) -> LocalizerStep:
+        """:meth:`step` from a :class:`~bevo_ros.core.odometry.OdometryStep` (the engine's output):
+        odom pose from its position/yaw, the increment's covariance from its twist covariance
+        (x, y, yaw rows) times ``dt^2``, its BEV and mask when ``use_bev``."""
+        pose = np.array([step.position[0], step.position[1], step.rpy[2]], dtype=np.float64)
+        idx = [0, 1, 5]
+        cov = np.asarray(step.twist_covariance, dtype=np.float64)[np.ix_(idx, idx)] * float(step.dt) ** 2
+        if not np.isfinite(cov).all():
+            cov = None
+        return self.step(pose, step.motion, cov, step.bev if use_bev else None, step.bev_mask if use_bev else None)
+
+    def _mosaic_distortion(self, poses: Tensor, anchor: Tensor) -> np.ndarray:
+        """Covariance ``(3, 3)`` the mosaic inherits from the odometry between its keyframes and
+        now (each keyframe is placed relative to the current base): the mean over keyframes of
+        the accumulated position and yaw variances, the yaw one also acting over the keyframe's
+        distance from the mosaic centre. Scaled by ``config.mosaic_distortion``."""
+        k = self.config.mosaic_distortion
+        if k <= 0:
+            return np.zeros((3, 3))
+        var = np.array([kf.variance for _, kf in self.mosaic.frames])  # (K, 2)
+        rel = np.clip(self._odom_variance[None] - var, 0.0, None)
+        d2 = ((poses[:, :2] - anchor[None, :2]).double().cpu().numpy() ** 2).sum(-1)
+        pos = float(np.mean(0.5 * rel[:, 0] + d2 * rel[:, 1]))
+        return k * np.diag([pos, pos, float(np.mean(rel[:, 1]))])
+
     def _measure_and_update(self, out: LocalizerStep) -> None:
         cfg = self.config.match
         bevs, masks, poses = self.mosaic.stacked()
-        anchor_odom = self.mosaic.anchor()
+        if self.config.mosaic_scale_correction:
+            # The keyframes relative to the current base with the estimated odometry scale (right
+            # when the scale error is not in the BEVs themselves; a monocular BEV's pitch error
+            # magnifies the BEV content as much as the motion, so it is off by default).
+            rel = se2_between(self.pose_odom, poses.double().cpu().numpy())
+            rel[:, :2] *= self.filter.state[3]
+            poses = torch.as_tensor(se2_compose(np.broadcast_to(self.pose_odom, rel.shape), rel),
+                                    dtype=torch.float32, device=self.device)
+        anchor_odom = mosaic_anchor(poses, self.spec)
         mos, cov = compose_mosaic(bevs, masks, poses, anchor_odom, self.spec, cfg.size, cfg.resolution)
         a_odom = anchor_odom.double().cpu().numpy()
         lever = se2_between(a_odom, self.pose_odom)  # anchor -> current base
@@ -489,7 +620,9 @@ class MapLocalizer:
         # Overlap from the crop mask is cheap to check before the FFTs.
         _, inside = self.map.crop(pred_t, cfg.size, cfg.resolution)
         covm = (cov > 0.5).float()
-        if float((covm * inside).sum() / covm.sum().clamp_min(1.0)) < self.config.min_overlap:
+        overlap = float((covm * inside).sum() / covm.sum().clamp_min(1.0))
+        self.last_overlap = overlap
+        if overlap < self.config.min_overlap:
             self.counters.skipped_no_map += 1
             out.reason = "outside_map"
             return
@@ -508,7 +641,7 @@ class MapLocalizer:
         J = np.eye(3)
         J[:2, :2] = Ra
         J[:2, 2] = Ra @ np.array([-lever[1], lever[0]])
-        R = J @ R_delta @ J.T
+        R = J @ R_delta @ J.T + self._mosaic_distortion(poses, anchor_odom)
         out.measurement, out.measurement_covariance = z, R
         if out.quality < cfg.min_quality:
             self.counters.rejected_quality += 1

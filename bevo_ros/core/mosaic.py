@@ -90,6 +90,7 @@ class Keyframe:
     pose: Tensor  # (3,) odom
     bev: Tensor  # (1, S, S)
     mask: Tensor  # (1, S, S)
+    variance: tuple[float, float] = (0.0, 0.0)  # accumulated odometry (position m^2, yaw rad^2) at this keyframe
 
 
 class MosaicBuffer:
@@ -118,12 +119,14 @@ class MosaicBuffer:
         """Account for ``distance`` metres driven (every odometry step, BEV or not)."""
         self.path += abs(float(distance))
 
-    def offer(self, pose: Tensor, bev: Tensor, mask: Tensor) -> bool:
-        """Keep this frame if it is ``spacing`` beyond the last keyframe. ``bev, mask (S, S)``."""
+    def offer(self, pose: Tensor, bev: Tensor, mask: Tensor, variance: tuple[float, float] = (0.0, 0.0)) -> bool:
+        """Keep this frame if it is ``spacing`` beyond the last keyframe. ``bev, mask (S, S)``;
+        ``variance``: the odometry's accumulated (position, yaw) variance at this frame, so that
+        the mosaic's distortion can be told from the keyframes' differences."""
         if self.path - self._last_path < self.spacing - 1e-9:
             return False
         self.frames.append((self.path, Keyframe(pose.detach().clone(), bev.reshape(1, *bev.shape[-2:]),
-                                                mask.reshape(1, *mask.shape[-2:]))))
+                                                mask.reshape(1, *mask.shape[-2:]), tuple(variance))))
         self._last_path = self.path
         while self.frames and self.path - self.frames[0][0] > self.length + 1e-9:
             self.frames.popleft()
@@ -140,14 +143,80 @@ class MosaicBuffer:
         return torch.stack([k.bev for k in kf]), torch.stack([k.mask for k in kf]), torch.stack([k.pose for k in kf])
 
     def anchor(self) -> Tensor:
-        """Centre of the mosaic: the middle of the ground the keyframes saw, with the newest
-        keyframe's heading (so the map crop is nearly aligned with the road ahead). -> ``(3,)``."""
-        _, _, poses = self.stacked()
-        near, far = self.spec.forward_offset, self.spec.forward_offset + self.spec.size * self.spec.metres_per_pixel
-        heading = torch.stack([torch.cos(poses[:, 2]), torch.sin(poses[:, 2])], dim=-1)
-        # Midway between the oldest BEV's near edge and the newest BEV's far edge: the mosaic's extent.
-        mid = 0.5 * (poses[0, :2] + near * heading[0] + poses[-1, :2] + far * heading[-1])
-        return torch.cat([mid, poses[-1, 2:3]])
+        """:func:`mosaic_anchor` of the keyframes. -> ``(3,)``."""
+        return mosaic_anchor(self.stacked()[2], self.spec)
 
 
-__all__ = ["Keyframe", "MosaicBuffer", "antialias_bev", "compose_mosaic"]
+def mosaic_anchor(poses: Tensor, spec: BevSpec) -> Tensor:
+    """Centre of a mosaic of keyframes at ``poses (K, 3)`` (oldest first): the middle of the ground
+    they saw, with the newest keyframe's heading (so the map crop is nearly aligned with the road
+    ahead). -> ``(3,)``."""
+    near, far = spec.forward_offset, spec.forward_offset + spec.size * spec.metres_per_pixel
+    heading = torch.stack([torch.cos(poses[:, 2]), torch.sin(poses[:, 2])], dim=-1)
+    # Midway between the oldest BEV's near edge and the newest BEV's far edge: the mosaic's extent.
+    mid = 0.5 * (poses[0, :2] + near * heading[0] + poses[-1, :2] + far * heading[-1])
+    return torch.cat([mid, poses[-1, 2:3]])
+
+
+
+
+def mosaic_to_map(bevs: Tensor, masks: Tensor, poses: Tensor, spec: BevSpec, resolution: float,
+                  margin: float = 2.0, chunk: int = 16):
+    """Compose BEVs at known poses into a map (a "previous drive" map from ground truth).
+
+    Args:
+        bevs, masks: ``(F, 1, S, S)``.
+        poses: ``(F, 3)`` base poses ``(x, y, yaw)`` in the map frame (e.g. ground truth).
+        resolution: metres per pixel of the map.
+        margin: metres around the BEVs' footprints.
+
+    Returns:
+        an :class:`~bevo_ros.core.aerial_map.AerialMap` (grey) whose ``valid`` mask marks the
+        pixels some BEV covered.
+    """
+    from .aerial_map import AerialMap
+
+    near, far = spec.forward_offset, spec.forward_offset + spec.size * spec.metres_per_pixel
+    half = spec.size * spec.metres_per_pixel / 2.0
+    corners = torch.tensor([[near, -half], [near, half], [far, -half], [far, half]], dtype=poses.dtype,
+                           device=poses.device)
+    world = transform_points(poses, corners).reshape(-1, 2)
+    lo = world.min(dim=0).values - margin
+    hi = world.max(dim=0).values + margin
+    W = int(math.ceil(float(hi[0] - lo[0]) / resolution))
+    H = int(math.ceil(float(hi[1] - lo[1]) / resolution))
+    origin = (float(lo[0]), float(lo[1]), 0.0)
+    col = torch.arange(W, dtype=poses.dtype, device=poses.device)
+    row = torch.arange(H, dtype=poses.dtype, device=poses.device)
+    gx = lo[0] + (col + 0.5) * resolution
+    gy = lo[1] + (H - row - 0.5) * resolution
+    num = torch.zeros(H, W, dtype=bevs.dtype, device=bevs.device)
+    den = torch.zeros_like(num)
+    bevs, masks = antialias_bev(bevs, masks, spec, resolution)
+    S, mpp = spec.size, spec.metres_per_pixel
+    for k in range(bevs.shape[0]):
+        # Only the window around this BEV's footprint.
+        fp = transform_points(poses[k:k + 1], corners)[0]
+        c0 = max(0, int((float(fp[:, 0].min()) - float(lo[0])) / resolution) - 1)
+        c1 = min(W, int((float(fp[:, 0].max()) - float(lo[0])) / resolution) + 2)
+        r0 = max(0, int(H - (float(fp[:, 1].max()) - float(lo[1])) / resolution) - 1)
+        r1 = min(H, int(H - (float(fp[:, 1].min()) - float(lo[1])) / resolution) + 2)
+        x, y, yaw = poses[k]
+        qx = gx[None, c0:c1] - x
+        qy = gy[r0:r1, None] - y
+        c, s = torch.cos(yaw), torch.sin(yaw)
+        bx, by = c * qx + s * qy, -s * qx + c * qy
+        brow = S - 0.5 - (bx - spec.forward_offset) / mpp
+        bcol = (S - 1) / 2.0 - by / mpp
+        grid = torch.stack([(2.0 * bcol + 1.0) / S - 1.0, (2.0 * brow + 1.0) / S - 1.0], dim=-1)[None].to(bevs.dtype)
+        val = F.grid_sample(bevs[k:k + 1], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0]
+        w = F.grid_sample(masks[k:k + 1], grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0, 0]
+        w = (w - 0.5).clamp_min(0.0) * 2.0
+        num[r0:r1, c0:c1] += w * val
+        den[r0:r1, c0:c1] += w
+    image = (num / den.clamp_min(1e-6)).clamp(0.0, 1.0)
+    valid = (den > 0.5).to(bevs.dtype)
+    return AerialMap(image[None], resolution, origin, valid[None])
+
+
+__all__ = ["Keyframe", "MosaicBuffer", "antialias_bev", "compose_mosaic", "mosaic_anchor", "mosaic_to_map"]
