@@ -301,16 +301,19 @@ def measure(mosaic: Tensor, coverage: Tensor, aerial: AerialMap, predicted: Tens
 # Filter
 # ------------------------------------------------------------------------------------------------
 def chi2_threshold(probability: float, dof: int = 3) -> float:
-    """Chi-square quantile (Wilson-Hilferty approximation, < 1 % off for dof >= 2)."""
+    """Chi-square quantile: bisection on the CDF ``P(dof / 2, x / 2)`` (regularised lower
+    incomplete gamma, ``torch.special.gammainc``)."""
     if not 0.0 < probability < 1.0:
         raise ValueError(f"gate probability must be in (0, 1), got {probability}")
-    z = math.sqrt(2.0) * _erfinv(2.0 * probability - 1.0)
-    k = float(dof)
-    return k * (1.0 - 2.0 / (9.0 * k) + z * math.sqrt(2.0 / (9.0 * k))) ** 3
-
-
-def _erfinv(y: float) -> float:
-    return float(torch.erfinv(torch.tensor(y, dtype=torch.float64)))
+    a = torch.tensor(dof / 2.0, dtype=torch.float64)
+    lo, hi = 0.0, 10.0 * dof + 100.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if float(torch.special.gammainc(a, torch.tensor(mid / 2.0, dtype=torch.float64))) < probability:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 class MapPoseFilter:
