@@ -30,7 +30,7 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import LocalizerConfig, MapLocalizer, se2_compose, wrap
 from bevo_ros.synthetic import RoadGround, SyntheticDrive, ground_patch, kitti_like_camera, make_drive
 
-__all__ = ["LocalizationDrive", "MapAppearance", "bev_footprint", "frame_bev", "localization_demo",
+__all__ = ["HARSH_APPEARANCE", "LocalizationDrive", "MapAppearance", "SAME_APPEARANCE", "bev_footprint", "frame_bev", "localization_demo",
            "make_localization_drive", "render_aerial_map", "run_localization", "simulate_odometry"]
 
 
@@ -63,6 +63,10 @@ class MapAppearance:
     cars: float = 2.0
     missing_markings: float = 0.15
 
+
+# A harsher map: low sun (deep, large shadows), strong gamma, uneven light, noisier, blurrier.
+HARSH_APPEARANCE = MapAppearance(gamma=2.2, gain=0.9, offset=0.02, illumination=0.3, shadows=0.75, shadow_cover=0.35,
+                                 blur=0.35, noise=0.04, repaved=2.0, cars=4.0, missing_markings=0.3)
 
 SAME_APPEARANCE = MapAppearance(gamma=1.0, gain=1.0, offset=0.0, tint=None, illumination=0.0, shadows=0.0, blur=0.0,
                                 noise=0.0, repaved=0.0, cars=0.0, missing_markings=0.0)
@@ -129,37 +133,39 @@ def render_aerial_map(ground: RoadGround, path_xy: np.ndarray, resolution: float
     img = cm * img + (1.0 - cm) * field_tex
     area_m = len(path_xy) and float(np.linalg.norm(np.diff(path_xy, axis=0), axis=1).sum())
     n100 = max(area_m / 100.0, 1.0)
-    # Changed ground: erased lane markings (painted over with the local asphalt), re-paved patches, cars.
+    # Changed ground: erased lane markings (painted over with the local asphalt), re-paved patches,
+    # parked cars; each kind drawn into one mask first (one pass over the image per kind).
     if a.missing_markings > 0 and ground.path is not None:
         seg = ground.path
         L = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(seg, axis=0), axis=1))])
-        n_gaps = int(a.missing_markings * L[-1] / 15.0)
-        med = cv2.medianBlur((np.clip(img, 0, 1) * 255).astype(np.uint8), 2 * int(0.5 / resolution) + 1) / 255.0
-        for s0 in rng.uniform(0, L[-1], n_gaps):
+        erased = np.zeros((H, W), np.uint8)
+        for s0 in rng.uniform(0, L[-1], int(a.missing_markings * L[-1] / 15.0)):
             i0, i1 = np.searchsorted(L, [s0, s0 + 15.0])
             p = np.round(to_px(seg[i0:max(i1, i0 + 2)]) * 16).astype(np.int32)
-            m = np.zeros((H, W), np.uint8)
-            cv2.polylines(m, [p], False, 1, thickness=int(14.0 / resolution), shift=4)
-            img = np.where(m > 0, med, img)
+            cv2.polylines(erased, [p], False, 1, thickness=int(14.0 / resolution), shift=4)
+        if erased.any():
+            med = cv2.medianBlur((np.clip(img, 0, 1) * 255).astype(np.uint8), 2 * int(0.5 / resolution) + 1) / 255.0
+            img = np.where(erased > 0, med, img)
+    paint = np.zeros((H, W), np.float32)  # new intensity + 1 where changed, 0 elsewhere
+
+    def draw_box(centre: np.ndarray, size_px: tuple[float, float], angle_deg: float, value: float) -> None:
+        c = to_px(centre[None])[0]
+        box = ((float(c[0]), float(c[1])), size_px, angle_deg)
+        cv2.fillPoly(paint, [np.round(cv2.boxPoints(box)).astype(np.int32)], float(value) + 1.0)
+
     for _ in range(rng.poisson(a.repaved * n100)):
         c = path_xy[rng.integers(len(path_xy))] + rng.normal(0, 2.0, 2)
         size = rng.uniform(3.0, 10.0, 2) / resolution
-        box = ((float(to_px(c[None])[0, 0]), float(to_px(c[None])[0, 1])), (float(size[0]), float(size[1])),
-               float(rng.uniform(0, 180)))
-        m = np.zeros((H, W), np.uint8)
-        cv2.fillPoly(m, [np.round(cv2.boxPoints(box)).astype(np.int32)], 1)
-        img = np.where(m > 0, rng.uniform(0.2, 0.45) + 0.01 * rng.normal(size=(H, W)), img)
+        draw_box(c, (float(size[0]), float(size[1])), float(rng.uniform(0, 180)), rng.uniform(0.2, 0.45))
     heading = np.gradient(path_xy, axis=0)
     for _ in range(rng.poisson(a.cars * n100)):
         i = rng.integers(len(path_xy))
         h = heading[i] / max(np.linalg.norm(heading[i]), 1e-9)
-        side = rng.choice([-1.0, 1.0]) * rng.uniform(4.0, 7.5)
-        c = path_xy[i] + side * np.array([-h[1], h[0]])
-        box = ((float(to_px(c[None])[0, 0]), float(to_px(c[None])[0, 1])), (4.5 / resolution, 1.9 / resolution),
-               -math.degrees(math.atan2(h[1], h[0])))
-        m = np.zeros((H, W), np.uint8)
-        cv2.fillPoly(m, [np.round(cv2.boxPoints(box)).astype(np.int32)], 1)
-        img = np.where(m > 0, rng.choice([0.08, 0.2, 0.6, 0.9]), img)
+        c = path_xy[i] + rng.choice([-1.0, 1.0]) * rng.uniform(4.0, 7.5) * np.array([-h[1], h[0]])
+        draw_box(c, (4.5 / resolution, 1.9 / resolution), -math.degrees(math.atan2(h[1], h[0])),
+                 rng.choice([0.08, 0.2, 0.6, 0.9]))
+    changed = paint > 0
+    img[changed] = paint[changed] - 1.0
     # Photometry: another exposure and gamma, smooth illumination, shadows.
     img = np.clip(img, 0.0, 1.0)
     img = a.offset + a.gain * img**a.gamma
@@ -306,8 +312,7 @@ def run_localization(ld: LocalizationDrive, aerial: AerialMap, initial_pose, ini
     est[0], covs[0] = loc.filter.x, loc.filter.P
     loc.pose_odom = ld.odom[0]
     steps = []
-    t_update, n_update = 0.0, 0
-    t0 = time.perf_counter()
+    t_update, n_update, t_total = 0.0, 0, 0.0
     for i in range(1, F_):
         # Render a BEV only when the localiser would keep it (the real engine has one every frame).
         d = math.hypot(*ld.motion[i - 1, :2])
@@ -316,13 +321,14 @@ def run_localization(ld: LocalizationDrive, aerial: AerialMap, initial_pose, ini
             bev, mask = frame_bev(ld.drive, i, spec, rng, bev_noise)
         ts = time.perf_counter()
         s = loc.step(ld.odom[i], ld.motion[i - 1], ld.motion_cov[i - 1], bev, mask)
+        dt = time.perf_counter() - ts
+        t_total += dt
         if s.measured:
-            t_update += time.perf_counter() - ts
+            t_update += dt
             n_update += 1
         est[i], covs[i] = s.pose, s.covariance
         steps.append(s)
-    total = time.perf_counter() - t0
-    return LocalizationRun(est, ld.odometry_in_map(), ld.gt, covs, steps, loc.counters, total / max(F_ - 1, 1),
+    return LocalizationRun(est, ld.odometry_in_map(), ld.gt, covs, steps, loc.counters, t_total / max(F_ - 1, 1),
                            t_update / max(n_update, 1))
 
 
@@ -347,7 +353,7 @@ def localization_demo(out_dir: str | Path, length: float = 600.0, seed: int = 1)
     ox, oy, _ = aerial.origin
     W, H = aerial.extent
     ax.imshow(img if img.shape[-1] == 3 else img[..., 0], cmap="gray", extent=(ox, ox + W, oy, oy + H))
-    ax.plot(run.gt[:, 0], run.gt[:, 1], "g-", lw=1.5, label="ground truth")
+    ax.plot(run.gt[:, 0], run.gt[:, 1], "-", color="lime", lw=3.0, alpha=0.8, label="ground truth")
     ax.plot(run.odometry[:, 0], run.odometry[:, 1], "r--", lw=1.2, label="odometry only (BEVO)")
     ax.plot(run.estimate[:, 0], run.estimate[:, 1], "b-", lw=1.0, label="BEVO+ (map)")
     pad = 40.0
@@ -363,5 +369,11 @@ def localization_demo(out_dir: str | Path, length: float = 600.0, seed: int = 1)
     fig.savefig(png, dpi=110, bbox_inches="tight")
     plt.close(fig)
     c = run.counters
+    table = ("| BEVO+ (synthetic, heterogeneous map, start 3 m / 5 deg off) | frames | path (m) | position RMS (m) | "
+             "yaw RMS (deg) | end error (m) | map updates accepted |\n|---|---|---|---|---|---|---|\n"
+             f"| odometry only | {len(ld.gt)} | {ld.length:.0f} | {err['odom_pos_rms']:.2f} | {err['odom_yaw_rms_deg']:.2f} | "
+             f"{err['odom_end_error']:.2f} | - |\n"
+             f"| BEVO+ (map) | {len(ld.gt)} | {ld.length:.0f} | {err['pos_rms']:.2f} | {err['yaw_rms_deg']:.2f} | "
+             f"{float(np.linalg.norm(run.estimate[-1, :2] - run.gt[-1, :2])):.2f} | {c.accepted}/{c.measurements} |\n")
     return {"length_m": ld.length, "frames": len(ld.gt), **err, "accepted": c.accepted, "measurements": c.measurements,
-            "plot": str(png)}
+            "plot": str(png), "table": table}

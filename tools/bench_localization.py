@@ -25,8 +25,8 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import LocalizerConfig, MapMatchConfig, measure, se2_between, se2_compose
 from bevo_ros.core.mosaic import compose_mosaic, mosaic_anchor
 from bevo_ros.core.phase_correlation import DpcConfig, register
-from bevo_ros.synthetic_map import (SAME_APPEARANCE, MapAppearance, frame_bev, make_localization_drive,
-                                    render_aerial_map, run_localization)
+from bevo_ros.synthetic_map import (HARSH_APPEARANCE, SAME_APPEARANCE, MapAppearance, frame_bev,
+                                    make_localization_drive, render_aerial_map, run_localization)
 
 SPEC = BevSpec()
 
@@ -52,7 +52,8 @@ def appearance_table(seed: int, trials: int) -> list[tuple[str, str, float, floa
     of identical appearance."""
     ld = make_localization_drive(seed=seed, length=60.0 + trials * 8.0)
     maps = {"same appearance": render_aerial_map(ld.drive.ground, ld.gt[:, :2], appearance=SAME_APPEARANCE),
-            "heterogeneous": render_aerial_map(ld.drive.ground, ld.gt[:, :2], appearance=MapAppearance(), seed=seed)}
+            "heterogeneous": render_aerial_map(ld.drive.ground, ld.gt[:, :2], appearance=MapAppearance(), seed=seed),
+            "harsh": render_aerial_map(ld.drive.ground, ld.gt[:, :2], appearance=HARSH_APPEARANCE, seed=seed)}
     rng = np.random.default_rng(seed)
     cases = []
     for t in range(trials):
@@ -67,9 +68,8 @@ def appearance_table(seed: int, trials: int) -> list[tuple[str, str, float, floa
     rows = []
     for map_name, aerial in maps.items():
         grey = aerial.grey()
-        for mode, whitening in (("raw", 0.5), ("raw", 0.0), ("lcn", 0.0), ("gradient", 0.0)):
-            cfg = MapMatchConfig(appearance=mode, dpc=MapMatchConfig().dpc.__class__(
-                **{**MapMatchConfig().dpc.__dict__, "whitening_floor": whitening}))
+        for mode, whitening in VARIANTS:
+            cfg = _match_config(mode, whitening)
             errs = []
             for bevs, masks, poses, pert in cases:
                 anchor = mosaic_anchor(poses, SPEC)
@@ -85,12 +85,38 @@ def appearance_table(seed: int, trials: int) -> list[tuple[str, str, float, floa
     return rows
 
 
+VARIANTS = (("raw", 0.5), ("raw", 0.0), ("lcn", 0.0), ("gradient", 0.0))
+
+
+def _match_config(mode: str, whitening: float) -> MapMatchConfig:
+    base = MapMatchConfig()
+    return MapMatchConfig(appearance=mode, dpc=type(base.dpc)(**{**base.dpc.__dict__, "whitening_floor": whitening}))
+
+
+def filter_table(seed: int, length: float) -> list[tuple[str, str, float, float, int, int]]:
+    """The whole localiser per representation on a drive of ``length`` m, 3 m / 5 deg start."""
+    ld = make_localization_drive(seed=seed, length=length)
+    start = se2_compose(ld.gt[0], np.array([3 / math.sqrt(2), -3 / math.sqrt(2), math.radians(5)]))
+    rows = []
+    for map_name, app in (("heterogeneous", MapAppearance()), ("harsh", HARSH_APPEARANCE)):
+        aerial = render_aerial_map(ld.drive.ground, ld.gt[:, :2], appearance=app, seed=seed)
+        for mode, whitening in VARIANTS:
+            cfg = LocalizerConfig(match=_match_config(mode, whitening))
+            run = run_localization(ld, aerial, start, config=cfg, seed=seed)
+            e = run.errors(start=len(ld.gt) // 10)
+            label = f"{mode}, " + ("phase-only" if whitening == 0 else f"whitening floor {whitening}")
+            rows.append((map_name, label, e["pos_rms"], e["yaw_rms_deg"], run.counters.accepted,
+                         run.counters.measurements))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="bench_localization.py", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--length", type=float, default=2000.0, help="synthetic drive length, m (default 2000)")
+    p.add_argument("--length", type=float, default=2000.0, help="synthetic drive length, m (default 2000; 0 skips)")
     p.add_argument("--seed", type=int, default=2)
     p.add_argument("--trials", type=int, default=24, help="measurements per appearance variant (default 24)")
+    p.add_argument("--filter-length", type=float, default=400.0, help="drive of the per-representation runs, m")
     p.add_argument("--no-appearance", action="store_true", help="skip the appearance comparison")
     p.add_argument("--device", default="cpu")
     args = p.parse_args(argv)
@@ -100,11 +126,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"reference: one plain BEV-to-BEV phase correlation (100x100): {ref:.2f} ms")
 
     t = time.perf_counter()
-    ld = make_localization_drive(seed=args.seed, length=args.length)
+    ld = make_localization_drive(seed=args.seed, length=max(args.length, 50.0))
     aerial = render_aerial_map(ld.drive.ground, ld.gt[:, :2], appearance=MapAppearance(), seed=args.seed)
     print(f"drive {ld.length:.0f} m, {len(ld.gt)} frames; map {aerial.width}x{aerial.height} px at "
           f"{aerial.resolution} m/px ({time.perf_counter() - t:.1f} s to make)")
-    for name, off in (("3 m / 5 deg initial error", np.array([3 / math.sqrt(2), -3 / math.sqrt(2), math.radians(5)])),
+    for name, off in () if args.length <= 0 else (("3 m / 5 deg initial error", np.array([3 / math.sqrt(2), -3 / math.sqrt(2), math.radians(5)])),
                       ("50 m off (wrong place)", np.array([0.0, 50.0, 0.0]))):
         t = time.perf_counter()
         run = run_localization(ld, aerial, se2_compose(ld.gt[0], off), config=LocalizerConfig(), seed=args.seed,
@@ -130,6 +156,11 @@ def main(argv: list[str] | None = None) -> int:
         print("|---|---|---|---|---|")
         for map_name, label, ok, pe, ye in appearance_table(args.seed, args.trials):
             print(f"| {map_name} | {label} | {100 * ok:.0f} % | {pe:.3f} | {ye:.2f} |")
+        print(f"\nappearance choices through the whole localiser ({args.filter_length:.0f} m drive, 3 m / 5 deg start)")
+        print("| map | representation | position RMS (m) | yaw RMS (deg) | map updates accepted |")
+        print("|---|---|---|---|---|")
+        for map_name, label, pe, ye, acc, n in filter_table(args.seed + 1, args.filter_length):
+            print(f"| {map_name} | {label} | {pe:.3f} | {ye:.3f} | {acc}/{n} |")
     return 0
 
 
