@@ -252,6 +252,8 @@ def convert(src: Source, args) -> dict[str, int]:
 
     size = None
     with bag.BagWriter(args.output, storage=args.storage, overwrite=args.overwrite) as writer:
+        for partial in writer.removed_partials:  # left by a killed earlier run
+            print(f"kitti_to_bag: removed {partial}, the partial output of an interrupted run", file=sys.stderr)
         for stamp, _, kind, i in tqdm(events, desc="kitti_to_bag", unit="msg", disable=args.quiet, file=sys.stderr):
             if kind == "imu":
                 gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
