@@ -251,7 +251,8 @@ class BevoNode(Node):
         self._last_gap = 0.0
         self._path = collections.deque(maxlen=max(1, s.path_max_length))
         self._last_diag = (time.monotonic(), collections.Counter())
-        self._time_guard = TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward, s.time_jump_confirmations)
+        self._time_guards = {kind: TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward,
+                                                 s.time_jump_confirmations) for kind in ("imu", "image")}
         self._image_size: tuple[int, int] | None = None  # (width, height) of the last decoded image
 
         if self.config.camera.has_intrinsics():
@@ -487,30 +488,47 @@ class BevoNode(Node):
                 j += 1
 
     def _gated(self, kind: str, item: tuple) -> None:
-        """Hand one received ``(msg, arrival)`` to its handler through the time-jump guard: a lone
-        outlier stamp is dropped, a confirmed jump back resets the odometry first."""
+        """Count one received ``(msg, arrival)`` and hand it to its handler through the stream's
+        time-jump guard: a lone outlier stamp is dropped, a confirmed jump back resets first."""
         self.counts["imu_in" if kind == "imu" else "images_in"] += 1
-        v = self._time_guard.check(stamp_to_sec(item[0].header.stamp), (kind, item))
-        for k, (msg, _) in v.outliers:
-            label = "IMU" if k == "imu" else k
-            self._drop("stamp_outlier", f"{label} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the timeline "
-                                        f"({self._time_guard.ref:.6f}) by more than max_time_jump_back/forward and no "
-                                        f"other message confirmed the jump (time_jump_confirmations="
-                                        f"{self.settings.time_jump_confirmations})")
+        self._gate(kind, item)
+
+    def _gate(self, kind: str, item: tuple) -> None:
+        guard = self._time_guards[kind]
+        v = guard.check(stamp_to_sec(item[0].header.stamp), item)
+        self._drop_outliers(kind, v.outliers)
         if v.accept:
-            (self._handle_imu if kind == "imu" else self._handle_image)(*item)
+            self._dispatch(kind, item)
             return
         if v.jump is None:
             return  # held until confirmed or found to be an outlier
         self.events[f"time_jump_{v.jump}"] += 1
+        release = [(kind, it) for it in v.release]
         if v.jump == "back":
             self._reset()
+            for other, g in self._time_guards.items():  # the other inputs move to the new timeline too
+                if g is not guard:
+                    more, outliers = g.rebase(guard.ref)
+                    self._drop_outliers(other, outliers)
+                    release += [(other, it) for it in more]
+            release.sort(key=lambda r: (stamp_to_sec(r[1][0].header.stamp), r[0] != "imu"))
         self._log(f"time_jump_{v.jump}", f"time jumped {v.jump} by {v.jump_size:.3f} s (confirmed by {len(v.release)} "
-                                         "messages; bag restarted?): "
+                                         f"{'IMU' if kind == 'imu' else kind} messages; bag restarted?): "
                                          + ("odometry reset, the trajectory restarts at identity" if v.jump == "back"
                                             else "continuing on the new timeline"))
-        for k, it in v.release:
-            (self._handle_imu if k == "imu" else self._handle_image)(*it)
+        for k, it in release:
+            self._dispatch(k, it)
+
+    def _dispatch(self, kind: str, item: tuple) -> None:
+        (self._handle_imu if kind == "imu" else self._handle_image)(*item)
+
+    def _drop_outliers(self, kind: str, items: list) -> None:
+        label = "IMU" if kind == "imu" else kind
+        for msg, _ in items:
+            self._drop("stamp_outlier", f"{label} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the {label} "
+                                        f"timeline ({self._time_guards[kind].ref:.6f}) by more than "
+                                        "max_time_jump_back/forward and no other message confirmed the jump "
+                                        f"(time_jump_confirmations={self.settings.time_jump_confirmations})")
 
     # ------------------------------------------------------------------ per message
     def _on_imu(self, msg, arrival: float = 0.0) -> None:  # counted in _gated
@@ -642,8 +660,9 @@ class BevoNode(Node):
                 self.events["clock_jump_reset"] += 1
                 self._log("clock_jump_reset", "ROS time jumped backwards (bag restarted?): resetting the odometry")
                 self._reset()
-                for kind, item in self._time_guard.reset():  # held messages: judged again on the new timeline
-                    self._gated(kind, item)
+                for kind, guard in self._time_guards.items():  # held messages: judged again on the new timeline
+                    for item in guard.reset():
+                        self._gate(kind, item)
 
             self._jump_handle = self.get_clock().create_jump_callback(threshold, post_callback=self._guard(
                 "clock_jump", on_jump))
