@@ -23,6 +23,7 @@ setup(
     entry_points={
         "console_scripts": [
             "bevo_node = bevo_ros.node:main",
+            "bevo_localizer = bevo_ros.localizer_node:main",
         ],
     },
 )
