@@ -3,7 +3,7 @@
 * A stationary vehicle stays put (per-frame motion < 0.2 m) under absurd IMU samples (1e30,
   100 g: dropped with the reason by the engine, so the node and run_bag agree), absurd
   CameraInfo (rejected by the node, the last good calibration kept) and one black frame
-  (expected to fail until the engine's texture gate lands with issue 9).
+  (rejected by the fused engine's texture gate, issue 9).
 * A lone outlier stamp is dropped; it does not reset the trajectory. Reset logs are throttled.
 * A live bevo_node survives a few thousand adversarial messages, then gives odometry for valid
   data and answers ~/reset; SIGINT/SIGTERM while data streams exit 0 without a traceback.
@@ -73,9 +73,9 @@ def overrides() -> dict:
     return camera_overrides(small_drive(duration=1.2).camera)
 
 
-def run_engine(messages: list[tuple]) -> tuple[list, collections.Counter]:
+def run_engine(messages: list[tuple], **extra) -> tuple[list, collections.Counter]:
     """The engine as the node and run_bag build it; ValueErrors are drops, counted by reason."""
-    config = BevoConfig.from_flat(overrides())
+    config = BevoConfig.from_flat({**overrides(), **extra})
     odo = build_odometry(config, load_learned_params(resolve_path(config.learned_params_file)),
                          camera_model(config.camera))
     steps, drops = [], collections.Counter()
@@ -91,13 +91,14 @@ def step_lengths(positions: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.diff(np.asarray(positions)[:, :2], axis=0), axis=1)
 
 
+@pytest.mark.parametrize("mode", ["fused", "paper"])
 @pytest.mark.parametrize("value", [1e30, 100 * G], ids=["1e30", "100g"])
-def test_absurd_imu_samples_are_dropped_and_a_stationary_vehicle_stays_put(value):
+def test_absurd_imu_samples_are_dropped_and_a_stationary_vehicle_stays_put(value, mode):
     still = stationary()
     burst = [("imu", T0 + 1.0 + k * (2.0 / 300) + 1e-4, np.zeros(3), np.array([value, 0.0, G])) for k in range(300)]
     lone = [("imu", T0 + 3.2 + 1e-4, np.zeros(3), np.array([0.0, 0.0, value])),
             ("imu", T0 + 3.5 + 1e-4, np.array([0.0, 0.0, value]), np.array([0.0, 0.0, G]))]
-    steps, drops = run_engine(merged(still, burst, lone))
+    steps, drops = run_engine(merged(still, burst, lone), **{"odometry.mode": mode})
     frames = sum(m[0] == "image" for m in still)
     assert len(steps) == frames  # nothing lost
     lengths = step_lengths([s.position for s in steps])
@@ -105,8 +106,8 @@ def test_absurd_imu_samples_are_dropped_and_a_stationary_vehicle_stays_put(value
     assert drops == {"imu_accel_range": 301, "imu_gyro_range": 1}, drops
 
 
-@pytest.mark.xfail(strict=False, reason="engine gate lands with issue 9")
 def test_a_black_frame_leaves_a_stationary_vehicle_still():
+    """The fused engine's texture gate (issue 9): the frame is rejected, the pose carried."""
     still = stationary()
     t_black = T0 + 2.0
     msgs = [m if not (m[0] == "image" and abs(m[1] - t_black) < 1e-9) else ("image", m[1], np.zeros_like(m[2]))
