@@ -778,80 +778,11 @@ def _params_file_from_args(argv: list[str]) -> str | None:
     return found
 
 
-class _StopRequest:
-    """SIGINT/SIGTERM only set a flag the spin loop checks: the node then stops between two
-    callbacks, destroys its entities and shuts ROS down in that order. (rclpy's own handler shuts
-    the context down at once, under a running executor: a subscription taken at that moment
-    raised ``RuntimeError`` out of ``rclpy.spin`` with exit 1 and a traceback.)"""
-
-    SIGNALS = ("SIGINT", "SIGTERM")
-
-    def __init__(self) -> None:
-        import signal
-
-        self.requested = False
-        self._previous = {}
-        for name in self.SIGNALS:
-            sig = getattr(signal, name)
-            self._previous[sig] = signal.signal(sig, self._on_signal)
-
-    def _on_signal(self, signum, frame) -> None:  # noqa: ARG002 - signal handler signature
-        self.requested = True
-
-    def restore(self) -> None:
-        import signal
-
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
 def main(args: list[str] | None = None) -> int:
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
+    from bevo_ros.ros_process import run_node
 
-    argv = list(sys.argv if args is None else args)
-    stop = _StopRequest()
-    try:
-        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as exc:  # noqa: BLE001 - e.g. an unreadable --params-file
-        stop.restore()
-        print(f"[FATAL] [{NODE_NAME}]: cannot initialise ROS 2: {' '.join(str(exc).split())}", file=sys.stderr)
-        return EXIT_CONFIG_ERROR
-    logger = rclpy.logging.get_logger(NODE_NAME)
-    node = executor = None
-    try:
-        try:
-            node = BevoNode(params_file=_params_file_from_args(argv))
-        except ConfigError as exc:
-            logger.fatal(f"refusing to start: {' '.join(str(exc).split())}")  # one line
-            return EXIT_CONFIG_ERROR
-        except Exception as exc:  # noqa: BLE001 - a clear line, no traceback
-            logger.fatal(f"refusing to start: {type(exc).__name__}: {' '.join(str(exc).split())}")
-            return EXIT_CONFIG_ERROR
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        try:
-            while not stop.requested and rclpy.ok():
-                executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s when idle
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        except Exception:  # noqa: BLE001
-            if not (stop.requested or not rclpy.ok()):
-                raise
-            # raised by rclpy while the process is being stopped: nothing left to do but stop
-        if stop.requested:
-            logger.info("stopping (signal received)")
-    finally:
-        try:
-            if executor is not None:
-                executor.shutdown(timeout_sec=1.0)
-            if node is not None:
-                node.destroy_node()
-        finally:
-            rclpy.try_shutdown()
-            stop.restore()
-    return 0
+    return run_node(lambda argv: BevoNode(params_file=_params_file_from_args(argv)), NODE_NAME, args,
+                    refuse=(ConfigError,))
 
 
 if __name__ == "__main__":
