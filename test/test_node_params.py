@@ -62,7 +62,9 @@ def test_kitti_yaml_loads_through_rcl_into_the_node():
             for f in dataclasses.fields(NodeSettings):
                 assert getattr(node.settings, f.name) == flat[f.name], f.name
             assert node.learned_path == (REPO / "params" / "learned_default.yaml").resolve()
-            assert (node.camera.width, node.camera.height_px) == (1226, 370)
+            # CameraInfo first: no camera until it arrives (the 1226x370 parameters are the fallback)
+            assert node.camera is None and node.calibration is None
+            assert (config.camera.width, config.camera.height_px) == (1226, 370)
         finally:
             node.destroy_node()
     finally:
