@@ -286,9 +286,11 @@ class BevoNode(Node):
         self._first_image_wait: float | None = None  # steady time of the first image seen without calibration
         self._camera_frame = ""  # header.frame_id of the images (for /tf_static)
         self._imu_frame_warned: set[str] = set()
-        self._R_base_imu: dict[str, np.ndarray | None] = {}  # IMU frame -> rotation into base_frame
+        self._R_base_imu: dict[str, tuple[int, np.ndarray | None]] = {}  # IMU frame -> (tf version, R_base_imu)
         self._extrinsics_source = "parameters camera.base_T_camera"
+        self._tf_version = -1  # /tf_static tree version the camera was built with
         self.static_tf: StaticTransforms | None = None  # made with the interfaces below
+        self._imu_backlog: collections.deque = collections.deque(maxlen=max(s.imu_qos_depth, 1000))
         self._info_sub = None
         monotonic = time.monotonic
         self.monitors = {"imu": SensorMonitor("IMU", s.imu_topic, s.imu_timeout, s.sensor_late_factor, clock=monotonic),
@@ -458,16 +460,21 @@ class BevoNode(Node):
         frame = frame.lstrip("/")
         if not frame or frame == base.lstrip("/"):
             return None
-        key = (frame, self.static_tf.version if self.static_tf is not None else 0)
-        cached = self._R_base_imu.get(key[0])
-        if cached is not None and cached[0] == key[1]:
+        cached = self._R_base_imu.get(frame)
+        version = 0
+        if self.static_tf is not None:
+            if cached is None or cached[1] is None:
+                self.static_tf.poll()  # still unknown: a /tf_static already received counts now
+            version = self.static_tf.version
+        if cached is not None and cached[0] == version:
             return cached[1]
         T = self.static_tf.lookup(base, frame) if self.static_tf is not None else None
         R = None if T is None else T[:3, :3].copy()
-        self._R_base_imu[frame] = (key[1], R)
+        self._R_base_imu[frame] = (version, R)
         if R is not None:
-            self.get_logger().info(f"IMU frame '{frame}': rates and accelerations rotated into '{base}' "
-                                   f"(/tf_static), rotation {np.round(R, 4).tolist()}")
+            if cached is None or cached[1] is None or not np.allclose(cached[1], R, rtol=0, atol=1e-12):
+                self.get_logger().info(f"IMU frame '{frame}': rates and accelerations rotated into '{base}' "
+                                       f"(/tf_static), rotation {np.round(R, 4).tolist()}")
         elif frame not in self._imu_frame_warned:
             self._imu_frame_warned.add(frame)
             self._log("imu_frame", f"IMU frame '{frame}' is not base_frame '{base}' and /tf_static has no "
@@ -503,6 +510,11 @@ class BevoNode(Node):
             if hasattr(self.engine, "max_pending_images"):
                 self.engine.max_pending_images = self.settings.max_pending_images
             self._engine_counters = self._read_engine_counters()
+            backlog, self._imu_backlog = list(self._imu_backlog), collections.deque(maxlen=self._imu_backlog.maxlen)
+            for t, gyro, accel in backlog:  # IMU that arrived before the calibration, in order
+                steps = self._engine_call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
+                if steps is not None:
+                    self._last_imu_stamp = t
         else:
             self.engine.set_camera(camera)
 
@@ -565,6 +577,7 @@ class BevoNode(Node):
             self._engine_counters = self._read_engine_counters()
         self._pending.clear()
         self._path.clear()
+        self._imu_backlog.clear()
         self._last_imu_stamp = None
         self.events["reset"] += 1
 
@@ -679,9 +692,8 @@ class BevoNode(Node):
             self._drop("imu_nonfinite", f"IMU message at {t:.6f} has NaN/inf "
                                         f"(gyro {gyro.tolist()}, accel {accel.tolist()})")
             return
-        if self.engine is None:
-            self._drop("no_camera_info", f"IMU at {t:.6f}: waiting for CameraInfo on "
-                                         f"{self.settings.camera_info_topic} before starting", level="info")
+        if self.engine is None:  # kept (bounded) and fused once the camera is known: the filter warms up
+            self._imu_backlog.append((t, gyro, accel))
             return
         self._last_gap = 0.0 if self._last_imu_stamp is None else t - self._last_imu_stamp
         steps = self._engine_call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
@@ -696,8 +708,12 @@ class BevoNode(Node):
         self.monitors["image"].tick()
         t = stamp_to_sec(msg.header.stamp)
         frame = msg.header.frame_id
-        if frame and frame != self._camera_frame:
-            self._camera_frame = frame
+        tf_version = -1
+        if self.static_tf is not None:
+            self.static_tf.poll()
+            tf_version = self.static_tf.version
+        if (frame and frame != self._camera_frame) or tf_version != self._tf_version:
+            self._camera_frame, self._tf_version = frame or self._camera_frame, tf_version
             self._refresh_camera()
         if self.engine is None:
             self._await_calibration()

@@ -59,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--qos-depth", type=int, default=1000, help="reliable keep-last depth of the publishers (default 1000)")
     p.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SEC",
                    help="before playing, wait up to SEC seconds until every topic has a subscriber")
+    p.add_argument("--namespace", default="", metavar="NS",
+                   help="publish the bag's topics under this namespace (/imu/data -> /NS/imu/data), for a node "
+                        "started in NS; /tf, /tf_static and /clock stay global")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     p.add_argument("--clock-topic", default="/clock")
     p.add_argument("--clock-rate", type=float, default=100.0, metavar="HZ",
@@ -68,6 +71,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at the end, wait up to SEC seconds for reliable deliveries to be acknowledged (default 0.5)")
     p.add_argument("--quiet", "-q", action="store_true", help="only print the final counts")
     return p
+
+
+GLOBAL_TOPICS = ("/tf", "/tf_static", "/clock", "/rosout", "/parameter_events")
+
+
+def namespaced(topic: str, namespace: str) -> str:
+    """``/imu/data`` under ``car1`` -> ``/car1/imu/data`` (global topics unchanged)."""
+    ns = namespace.strip("/")
+    if not ns or topic in GLOBAL_TOPICS:
+        return topic
+    return f"/{ns}/{topic.lstrip('/')}"
 
 
 class Player:
@@ -86,7 +100,8 @@ class Player:
 
         self.node = node
         self.qos = {t: qos(t) for t in topics}
-        self.publishers = {t: node.create_publisher(message_class(mt), t, self.qos[t]) for t, mt in topics.items()}
+        self.publishers = {t: node.create_publisher(message_class(mt), namespaced(t, args.namespace), self.qos[t])
+                           for t, mt in topics.items()}
         self.clock_pub = None
         if not args.no_clock:
             from rosgraph_msgs.msg import Clock

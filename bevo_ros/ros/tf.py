@@ -73,6 +73,7 @@ class StaticTransforms:
     def __init__(self, node, topic: str = "/tf_static") -> None:
         self.tree = StaticTree()
         self._buffer = None
+        self._sub = None
         self.backend = "none"
         try:
             from tf2_ros import Buffer, TransformListener  # a full ROS 2 install
@@ -94,12 +95,34 @@ class StaticTransforms:
         self._sub = node.create_subscription(TFMessage, topic, self._on_tf_static, qos)
         self.backend = "tf2_msgs"
 
+    def poll(self) -> None:
+        """Take the /tf_static messages already received, now: a transform published before the
+        sensor data (a bag's first message) is then known before that data is used, whatever
+        order the executor would have run the callbacks in."""
+        sub = self._sub
+        if sub is None:
+            return
+        try:
+            with sub.handle:
+                for _ in range(1000):
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if taken is None:
+                        break
+                    self._on_tf_static(taken[0])
+        except (AttributeError, TypeError):  # rclpy internals changed: the callback still delivers them
+            self._sub_poll_broken = True
+
     def _on_tf_static(self, msg) -> None:
         for t in msg.transforms:
             self.tree.add(t.header.frame_id, t.child_frame_id, matrix_from_transform(t.transform))
 
     @property
     def version(self) -> int:
+        """Changes when the transforms may have changed (tf2_ros: re-read once a second)."""
+        if self._buffer is not None:
+            import time
+
+            return int(time.monotonic())
         return self.tree.version
 
     def lookup(self, target: str, source: str) -> np.ndarray | None:
