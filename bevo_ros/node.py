@@ -293,9 +293,10 @@ class BevoNode(Node):
         self._imu_backlog: collections.deque = collections.deque(maxlen=max(s.imu_qos_depth, 1000))
         self._info_sub = None
         monotonic = time.monotonic
-        self.monitors = {"imu": SensorMonitor("IMU", s.imu_topic, s.imu_timeout, s.sensor_late_factor, clock=monotonic),
-                         "image": SensorMonitor("images", s.image_topic, s.image_timeout, s.sensor_late_factor,
-                                                clock=monotonic)}
+        self.monitors = {"imu": SensorMonitor("IMU", self.resolve_topic_name(s.imu_topic), s.imu_timeout,
+                                              s.sensor_late_factor, clock=monotonic),
+                         "image": SensorMonitor("images", self.resolve_topic_name(s.image_topic), s.image_timeout,
+                                                s.sensor_late_factor, clock=monotonic)}
         if not s.use_camera_info:
             if not self.config.camera.has_intrinsics():
                 raise ConfigError("camera intrinsics are not set (camera.fx, fy, cx, cy, width, height_px) and "
@@ -344,7 +345,7 @@ class BevoNode(Node):
             self.image_input_topic, image_type = s.image_topic.rstrip("/") + "/compressed", CompressedImage
         else:
             self.image_input_topic, image_type = s.image_topic, Image
-        self.monitors["image"].topic = self.image_input_topic
+        self.monitors["image"].topic = self.resolve_topic_name(self.image_input_topic)
         self._image_sub = self.create_subscription(image_type, self.image_input_topic,
                                                    lambda msg, info: image_intake(msg, info), in_qos(s.image_qos_depth))
         if s.use_camera_info:
