@@ -316,6 +316,8 @@ def test_tf_static_extrinsics_and_a_z_down_imu(graph, drive):
     imu_pub, image_pub = graph.pub(Imu, "/imu/data"), graph.pub(Image, "/camera/image_rect")
     odom = graph.sub(Odometry, "/bevo/odometry")
     assert graph.until(lambda: imu_pub.get_subscription_count() and image_pub.get_subscription_count())
+    # the rig is latched before the data flows (a robot's /tf_static is up before its sensors)
+    assert graph.until(lambda: len(node.static_tf.tree.edges) == 2)
     base_messages = drive_messages(drive)
     sent = []
     for kind, msg in base_messages:
