@@ -162,3 +162,32 @@ def test_setup_installs_launch_rviz_params_tools_and_license():
         assert pattern in text, pattern
     for name in _setup_py_executables() - {"bevo_node"}:
         assert (REPO / "tools" / f"{name}.py").is_file(), name
+
+
+# import name -> rosdep key (ROS packages are their own key); pip-only ones have none
+ROSDEP_KEYS = {"numpy": "python3-numpy", "yaml": "python3-yaml", "cv2": "python3-opencv",
+               "torch": "python3-pytorch-pip", "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib",
+               "tf2_ros": "tf2_ros_py"}
+PIP_ONLY = {"rosbags"}
+
+
+def test_license_and_every_runtime_import_is_declared():
+    import xml.etree.ElementTree as ET
+
+    from bevo_ros.cli import TOOLS
+
+    root = ET.parse(REPO / "package.xml").getroot()
+    assert root.findtext("license") == "BSD-3-Clause"
+    assert (REPO / "LICENSE").read_text().startswith("BSD 3-Clause License")
+    deps = {e.text for e in root.findall("exec_depend")}
+    files = [*(REPO / "bevo_ros").rglob("*.py"), *(REPO / "tools" / f"{t}.py" for t in TOOLS), LAUNCH]
+    imported: set[str] = set()
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                imported.add(node.module.split(".")[0])
+    third_party = {m for m in imported if m not in sys.stdlib_module_names and m not in ("bevo_ros", "__future__")}
+    missing = {m for m in third_party - PIP_ONLY if ROSDEP_KEYS.get(m, m) not in deps}
+    assert not missing, f"imported but not an exec_depend of package.xml: {sorted(missing)}"
