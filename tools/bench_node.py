@@ -275,7 +275,7 @@ def main() -> int:
     ap.add_argument("--torch-threads", type=int, default=None,
                     help="node parameter torch_threads (default: the parameters file's)")
     ap.add_argument("--imu-topic", default="/imu/data")
-    ap.add_argument("--image-topic", default="/camera/image_raw")
+    ap.add_argument("--image-topic", default="/camera/image_rect")
     ap.add_argument("--domain-id", type=int, default=int(os.environ.get("BEVO_BENCH_DOMAIN_ID", 77)))
     ap.add_argument("--node", default=str(Path(sys.executable).parent / "bevo_node"), help="bevo_node executable")
     ap.add_argument("--cache-dir", default=str(REPO / "out" / "bench_cache"))
