@@ -4,7 +4,7 @@ from setuptools import find_packages, setup
 
 package_name = "bevo_ros"
 # tools/<name>.py installed as executables (bevo_ros.cli.TOOLS; kept literal: setup.py must not import the package)
-TOOLS = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting")
+TOOLS = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting", "map_from_bag")
 
 setup(
     name=package_name,
@@ -30,6 +30,7 @@ setup(
     entry_points={
         "console_scripts": [
             "bevo_node = bevo_ros.node:main",
+            "bevo_localizer = bevo_ros.localizer_node:main",
             *(f"{name} = bevo_ros.cli:{name}" for name in TOOLS),
         ],
     },

@@ -318,6 +318,54 @@ def _storage_plugin(storage: str):
     return StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
 
 
+PARTIAL_LOCK = ".lock"
+UNLOCKED_PARTIAL_AGE = 60.0  # s: a partial without a lock file (older code) is stale after this
+
+
+def _lock_partial(tmpdir: Path) -> int:
+    """Hold an exclusive flock on ``tmpdir/.lock`` (the kernel releases it when the process dies)."""
+    import fcntl
+
+    fd = os.open(tmpdir / PARTIAL_LOCK, os.O_CREAT | os.O_RDWR, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    return fd
+
+
+def _partial_is_stale(partial: Path) -> bool:
+    import fcntl
+    import time
+
+    lock = partial / PARTIAL_LOCK
+    try:
+        fd = os.open(lock, os.O_RDWR)
+    except FileNotFoundError:  # older code, or a writer between mkdtemp and its lock: by age
+        try:
+            return time.time() - partial.stat().st_mtime > UNLOCKED_PARTIAL_AGE
+        except FileNotFoundError:
+            return False
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return False  # its writer is alive
+    finally:
+        os.close(fd)
+    return True
+
+
+def remove_stale_partials(path: PathLike, keep: Path | None = None) -> list[Path]:
+    """Remove the ``.<name>.partial-*`` directories of ``path`` left by killed writers; returns them."""
+    path = Path(path)
+    removed = []
+    for partial in sorted(path.parent.glob(f".{path.name}.partial-*")):
+        if partial == keep or not partial.is_dir() or not _partial_is_stale(partial):
+            continue
+        shutil.rmtree(partial, ignore_errors=True)
+        removed.append(partial)
+    return removed
+
+
 class BagWriter:
     """Atomic rosbag2 writer (context manager).
 
@@ -328,7 +376,10 @@ class BagWriter:
 
     Everything is written into ``.<name>.partial-XXXX/<name>`` beside ``path``; on success it is
     renamed to ``path`` (replacing an old bag only when ``overwrite``); on an exception (including
-    KeyboardInterrupt) the temp directory is removed and ``path`` is untouched.
+    KeyboardInterrupt) the temp directory is removed and ``path`` is untouched. A process killed
+    outright (SIGKILL, power loss) cannot clean up: the next writer of the same ``path`` removes
+    such stale partials (each writer holds a lock on its own while it lives, so a concurrent
+    writer's is kept); ``removed_partials`` lists them.
 
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is False (raised by the constructor,
@@ -349,15 +400,31 @@ class BagWriter:
         self._tmpdir: Path | None = None
         self._connections: dict[str, Any] = {}
         self._msgtypes: dict[str, str] = {}
+        self._lock_fd: int | None = None
+        self.removed_partials: list[Path] = []
 
     # context management ------------------------------------------------------------------
     def __enter__(self) -> "BagWriter":
         from rosbags.rosbag2 import Writer
 
         self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent))
-        self._writer = Writer(self._tmpdir / self.path.name, version=9, storage_plugin=self._plugin)
-        self._writer.open()
+        try:
+            self._lock_fd = _lock_partial(self._tmpdir)
+            self.removed_partials = remove_stale_partials(self.path, keep=self._tmpdir)
+            self._writer = Writer(self._tmpdir / self.path.name, version=9, storage_plugin=self._plugin)
+            self._writer.open()
+        except BaseException:
+            self._discard()
+            raise
         return self
+
+    def _discard(self) -> None:
+        if self._tmpdir is not None:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._tmpdir = None
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
 
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
@@ -370,9 +437,7 @@ class BagWriter:
                 except Exception:  # the original exception matters, not this one
                     pass
         finally:
-            if self._tmpdir is not None and self._tmpdir.exists():
-                shutil.rmtree(self._tmpdir, ignore_errors=True)
-            self._tmpdir = None
+            self._discard()
 
     def _commit(self) -> None:
         assert self._tmpdir is not None

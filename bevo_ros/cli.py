@@ -10,7 +10,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
-TOOLS = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting")
+TOOLS = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting", "map_from_bag")
 
 
 def _tools_dir() -> Path:
@@ -50,3 +50,4 @@ run_bag = _entry("run_bag")
 evaluate = _entry("evaluate")
 train_from_bag = _entry("train_from_bag")
 calibrate_mounting = _entry("calibrate_mounting")
+map_from_bag = _entry("map_from_bag")

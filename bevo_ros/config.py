@@ -80,6 +80,24 @@ class FilterSettings:
     # update, with the visual odometry's latest speed. Off by default: it cuts the synthetic roll
     # error from 5.7 to 0.6 deg RMS, but the odometry got worse there (pitch), see the issue notes.
     turn_compensation: bool = False
+    # IMU plausibility limits (core/validation.py ImuLimits): samples beyond them are dropped
+    # with the reason. Specific-force norm (m/s^2, 8 g) and any gyro axis (rad/s, ~2000 deg/s).
+    max_acceleration: float = 78.45
+    max_angular_rate: float = 35.0
+
+
+@dataclass
+class OdometrySettings:
+    # "fused" (default): vehicle-acceleration-aware attitude, gyro yaw, vehicle motion filter with
+    # gates. "paper": the paper's pipeline (accelerometer = gravity, correlation composed as is).
+    mode: str = "fused"
+    # Fused mode: a correlation peak quality below this marks a frame without information (black,
+    # covered, overexposed): rejected and counted, the pose carried by the motion filter.
+    min_quality: float = 0.05
+    # Fused mode: Mahalanobis distance (sigmas) beyond which a frame's measurement is rejected.
+    gate: float = 5.0
+    # Fused mode: the DUKF starts at the mounting attitude with this standard deviation (rad).
+    initial_attitude_std: float = 0.0524
 
 
 @dataclass
@@ -87,6 +105,7 @@ class BevoConfig:
     camera: CameraSettings = field(default_factory=CameraSettings)
     bev: BevSettings = field(default_factory=BevSettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
+    odometry: OdometrySettings = field(default_factory=OdometrySettings)
     # Learned O/Q file; relative paths resolve against the parameters file, then the package.
     learned_params_file: str = "params/learned_default.yaml"
     # "cpu" or "cuda" ("cuda" falls back to CPU with a warning when unavailable).
@@ -162,7 +181,16 @@ def read_yaml(path: Path, what: str) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{what} {path} cannot be read: {exc}") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{what} {path} is not valid YAML: {exc}") from None
+        raise ConfigError(f"{what} {path} is not valid YAML: {yaml_error_line(exc)}") from None
+
+
+def yaml_error_line(exc: Exception) -> str:
+    """A YAML parser error on one line: ``line L, column C: problem`` (PyYAML's own text spans
+    several lines with an excerpt of the file)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or getattr(exc, "context", None) or str(exc)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return where + " ".join(str(problem).split())
 
 
 def load_params_file(path: str | os.PathLike, node_name: str = "bevo_node") -> dict[str, Any]:
@@ -219,6 +247,10 @@ class LearnedParams:
     process_noise_density: tuple[float, float] = (1e-6, 1e-6)
     measurement_noise_variance: tuple[float, float] = (5e-2, 5e-2)
     info: dict[str, Any] = field(default_factory=dict)
+    # Fused mode: the vehicle motion filter's noise (bevo_ros.core.vehicle_filter.VehicleNoise,
+    # learned fields only) and the suspension's (pitch, roll) lean per m/s^2, rad/(m/s^2).
+    vehicle: dict[str, float] = field(default_factory=dict)
+    suspension_gradients: tuple[float, float] = (0.0, 0.0)
 
 
 def learned_to_dict(params: LearnedParams) -> dict[str, Any]:
@@ -227,6 +259,9 @@ def learned_to_dict(params: LearnedParams) -> dict[str, Any]:
         "format": LEARNED_FORMAT,
         "process_noise_density": {"pitch": float(o[0]), "roll": float(o[1]), "units": "rad^2/s"},
         "measurement_noise_variance": {"pitch": float(q[0]), "roll": float(q[1]), "units": "rad^2"},
+        "vehicle_filter": {k: float(v) for k, v in params.vehicle.items()},
+        "suspension_gradients": {"pitch": float(params.suspension_gradients[0]),
+                                 "roll": float(params.suspension_gradients[1]), "units": "rad/(m/s^2)"},
         "info": dict(params.info),
     }
 
@@ -254,8 +289,10 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
     if doc.get("format") != LEARNED_FORMAT:
         raise ConfigError(f"learned-parameters file {path}: 'format' must be '{LEARNED_FORMAT}', got {doc.get('format')!r}")
 
-    def pair(key: str) -> tuple[float, float]:
+    def pair(key: str, positive: bool = True, default: tuple[float, float] | None = None) -> tuple[float, float]:
         section = doc.get(key)
+        if section is None and default is not None:
+            return default
         if not isinstance(section, dict):
             raise ConfigError(f"learned-parameters file {path}: missing section '{key}' with 'pitch' and 'roll'")
         out = []
@@ -264,15 +301,29 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
                 v = float(section[axis])
             except (KeyError, TypeError, ValueError):
                 raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' missing or not a number") from None
-            if not (math.isfinite(v) and v > 0):
-                raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' = {v} must be finite and > 0")
+            if not (math.isfinite(v) and (v > 0 or not positive)):
+                raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' = {v} must be finite"
+                                  + (" and > 0" if positive else ""))
             out.append(v)
         return out[0], out[1]
 
     info = doc.get("info") or {}
     if not isinstance(info, dict):
         raise ConfigError(f"learned-parameters file {path}: 'info' must be a mapping")
-    return LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info)
+    from bevo_ros.core.vehicle_filter import VehicleNoise
+
+    vehicle = doc.get("vehicle_filter") or {}
+    if not isinstance(vehicle, dict):
+        raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter' must be a mapping")
+    for k, v in vehicle.items():
+        if k not in VehicleNoise.LEARNED:
+            raise ConfigError(f"learned-parameters file {path}: unknown 'vehicle_filter.{k}' "
+                              f"(known: {', '.join(VehicleNoise.LEARNED)})")
+        if not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number > 0")
+    return LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info,
+                         {k: float(v) for k, v in vehicle.items()},
+                         pair("suspension_gradients", positive=False, default=(0.0, 0.0)))
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -340,6 +391,10 @@ def camera_model(settings: CameraSettings, K=None, width: int | None = None, hei
         raise ConfigError("camera.base_T_camera: rotation part is not orthonormal")
     if settings.height <= 0:
         raise ConfigError(f"camera.height must be > 0 m, got {settings.height}")
+    from bevo_ros.core.validation import intrinsics_problem
+
+    if (problem := intrinsics_problem(np.asarray(K, dtype=np.float64), width, height_px)) is not None:
+        raise ConfigError(f"camera intrinsics are not plausible: {problem}")
     return CameraModel(torch.tensor(np.array(K, dtype=np.float64)).reshape(3, 3), int(width), int(height_px), T,
                        float(settings.height))
 
@@ -360,10 +415,17 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
 
         warnings.warn(f"device '{device}' asked for but CUDA is not available: running on the CPU", stacklevel=2)
         device = "cpu"
+    from bevo_ros.core.odometry import MODES
+    from bevo_ros.core.vehicle_filter import VehicleNoise
+
+    if config.odometry.mode not in MODES:
+        raise ConfigError(f"odometry.mode must be one of {', '.join(MODES)}, got {config.odometry.mode!r}")
     dukf = DUKF(process_var=learned.process_noise_density, measurement_var=learned.measurement_noise_variance,
                 motion_model=config.filter.motion_model).double()
+    vehicle = VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate)
     spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
-    return BevoOdometry(
+    limits = imu_limits(config)
+    odometry = BevoOdometry(
         camera=camera if camera is not None else camera_model(config.camera),
         spec=spec,
         dukf=dukf,
@@ -372,4 +434,21 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         max_imu_gap=config.filter.max_imu_gap,
         turn_compensation=config.filter.turn_compensation,
         device=device,
+        mode=config.odometry.mode,
+        vehicle_noise=vehicle,
+        suspension_gradients=learned.suspension_gradients,
+        initial_attitude_std=config.odometry.initial_attitude_std,
     )
+    odometry.imu_limits = limits
+    return odometry
+
+
+def imu_limits(config: BevoConfig):
+    """The engine's IMU plausibility limits from ``filter.max_acceleration/max_angular_rate``."""
+    from bevo_ros.core.validation import ImuLimits
+
+    f = config.filter
+    for name in ("max_acceleration", "max_angular_rate"):
+        if getattr(f, name) <= 0:
+            raise ConfigError(f"filter.{name} must be > 0, got {getattr(f, name)}")
+    return ImuLimits(f.max_acceleration, f.max_angular_rate)

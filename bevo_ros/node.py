@@ -27,6 +27,7 @@ from rclpy.node import Node
 
 from bevo_ros.config import (BevoConfig, ConfigError, build_odometry, camera_model, load_learned_params,
                              resolve_path)
+from bevo_ros.core.validation import TimeJumpGuard, intrinsics_problem
 from bevo_ros.ros import parameters as ros_params
 from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from_camera_info,
                                  calibration_from_parameters, same_camera_info)
@@ -68,6 +69,8 @@ class NodeSettings:
     ordered_intake: bool = True
     max_pending_images: int = 20
     max_time_jump_back: float = 1.0
+    max_time_jump_forward: float = 1.0
+    time_jump_confirmations: int = 3
     diagnostics_period: float = 1.0
     log_throttle_period: float = 5.0
     latency_window: int = 1000
@@ -118,7 +121,12 @@ DESCRIPTIONS = {
     "ordered_intake": "take every IMU/image message already received and process them in stamp order "
                       "(offline order, IMU keeps up under load) instead of one per topic per executor turn",
     "max_pending_images": "images waiting for IMU beyond this are dropped (oldest first, counted)",
-    "max_time_jump_back": "a stamp earlier than the previous by more than this (s) resets the odometry",
+    "max_time_jump_back": "a stamp earlier than the previous by more than this (s) is a time jump back: once "
+                          "confirmed (time_jump_confirmations) it resets the odometry",
+    "max_time_jump_forward": "a stamp later than the previous by more than this (s) is a time jump forward: held "
+                             "until confirmed (time_jump_confirmations), else dropped as an outlier",
+    "time_jump_confirmations": "messages on a new timeline needed to accept a time jump; a lone outlier stamp is "
+                               "dropped (stamp_outlier) instead of resetting the odometry; 1 = accept at once",
     "diagnostics_period": "seconds between /diagnostics messages",
     "log_throttle_period": "seconds between two log lines of the same drop reason",
     "latency_window": "number of recent frames the latency percentiles cover",
@@ -141,6 +149,8 @@ DESCRIPTIONS = {
     "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
     "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
     "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
+    "filter.max_acceleration": "IMU samples whose specific-force norm exceeds this (m/s^2) are dropped (imu_accel_range)",
+    "filter.max_angular_rate": "IMU samples with a gyro axis above this (rad/s) are dropped (imu_gyro_range)",
     "learned_params_file": "learned O/Q YAML; relative paths resolve beside the parameters file, then the package",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
 }
@@ -167,10 +177,11 @@ def _coerce(name: str, value: Any, default: Any) -> Any:
 def _validate(s: NodeSettings) -> None:
     if s.input_qos not in ("sensor_data", "reliable"):
         raise ConfigError(f"parameter 'input_qos' must be 'sensor_data' or 'reliable', got {s.input_qos!r}")
-    for name in ("imu_qos_depth", "image_qos_depth", "output_qos_depth", "max_pending_images", "latency_window"):
+    for name in ("imu_qos_depth", "image_qos_depth", "output_qos_depth", "max_pending_images", "latency_window",
+                 "time_jump_confirmations"):
         if getattr(s, name) < 1:
             raise ConfigError(f"parameter '{name}' must be >= 1, got {getattr(s, name)}")
-    for name in ("image_wait", "max_time_jump_back", "diagnostics_period"):
+    for name in ("image_wait", "max_time_jump_back", "max_time_jump_forward", "diagnostics_period"):
         if getattr(s, name) <= 0:
             raise ConfigError(f"parameter '{name}' must be > 0, got {getattr(s, name)}")
     for name in ("path_max_length", "torch_threads"):
@@ -280,6 +291,8 @@ class BevoNode(Node):
         self._last_gap = 0.0
         self._path = collections.deque(maxlen=max(1, s.path_max_length))
         self._last_diag = (time.monotonic(), collections.Counter())
+        self._time_guard = TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward, s.time_jump_confirmations)
+        self._image_size: tuple[int, int] | None = None  # (width, height) of the last decoded image
 
         # calibration: CameraInfo first, the camera.* parameters as the fallback (see _on_image)
         self.calibration: Calibration | None = None
@@ -560,8 +573,8 @@ class BevoNode(Node):
         jump = float(getattr(exc, "jump", 0.0))
         if jump > self.settings.max_time_jump_back:
             self.events["time_jump_reset"] += 1
-            self.get_logger().warning(
-                f"{'IMU' if kind == 'imu' else kind} stamp {stamp:.6f} is {jump:.3f} s before the previous one (> max_time_jump_back="
+            self._log(
+                "time_jump_reset", f"{'IMU' if kind == 'imu' else kind} stamp {stamp:.6f} is {jump:.3f} s before the previous one (> max_time_jump_back="
                 f"{self.settings.max_time_jump_back} s): time jumped back (bag restarted?) - resetting the "
                 "odometry; the trajectory restarts at identity")
             self._reset()
@@ -674,16 +687,41 @@ class BevoNode(Node):
                 ti, tg = stamp_to_sec(imus[i][0].header.stamp), stamp_to_sec(images[j][0].header.stamp)
                 take_imu = ti <= tg or abs(ti - tg) > jump
             if take_imu:
-                self._handle_imu(*imus[i])
+                self._gated("imu", imus[i])
                 i += 1
             else:
-                self._handle_image(*images[j])
+                self._gated("image", images[j])
                 j += 1
 
+    def _gated(self, kind: str, item: tuple) -> None:
+        """Hand one received ``(msg, arrival)`` to its handler through the time-jump guard: a lone
+        outlier stamp is dropped, a confirmed jump back resets the odometry first."""
+        self.counts["imu_in" if kind == "imu" else "images_in"] += 1
+        self.monitors[kind].tick()
+        v = self._time_guard.check(stamp_to_sec(item[0].header.stamp), (kind, item))
+        for k, (msg, _) in v.outliers:
+            label = "IMU" if k == "imu" else k
+            self._drop("stamp_outlier", f"{label} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the timeline "
+                                        f"({self._time_guard.ref:.6f}) by more than max_time_jump_back/forward and no "
+                                        f"other message confirmed the jump (time_jump_confirmations="
+                                        f"{self.settings.time_jump_confirmations})")
+        if v.accept:
+            (self._handle_imu if kind == "imu" else self._handle_image)(*item)
+            return
+        if v.jump is None:
+            return  # held until confirmed or found to be an outlier
+        self.events[f"time_jump_{v.jump}"] += 1
+        if v.jump == "back":
+            self._reset()
+        self._log(f"time_jump_{v.jump}", f"time jumped {v.jump} by {v.jump_size:.3f} s (confirmed by {len(v.release)} "
+                                         "messages; bag restarted?): "
+                                         + ("odometry reset, the trajectory restarts at identity" if v.jump == "back"
+                                            else "continuing on the new timeline"))
+        for k, it in v.release:
+            (self._handle_imu if k == "imu" else self._handle_image)(*it)
+
     # ------------------------------------------------------------------ per message
-    def _on_imu(self, msg, arrival: float = 0.0) -> None:
-        self.counts["imu_in"] += 1
-        self.monitors["imu"].tick()
+    def _on_imu(self, msg, arrival: float = 0.0) -> None:  # counted (and monitored) in _gated
         t = stamp_to_sec(msg.header.stamp)
         gyro, accel = imu_to_arrays(msg)
         R = self._imu_rotation(msg.header.frame_id)
@@ -704,9 +742,7 @@ class BevoNode(Node):
         self._publish_steps(steps)
 
     def _on_image(self, msg, arrival: float | None = None) -> None:
-        arrival = time.time() if arrival is None else arrival
-        self.counts["images_in"] += 1
-        self.monitors["image"].tick()
+        arrival = time.time() if arrival is None else arrival  # counted (and monitored) in _gated
         t = stamp_to_sec(msg.header.stamp)
         frame = msg.header.frame_id
         tf_version = -1
@@ -730,6 +766,7 @@ class BevoNode(Node):
         except ImageConversionError as exc:
             self._drop(exc.reason, f"image at {t:.6f}: {exc}")
             return
+        self._image_size = (img.shape[1], img.shape[0])
         calib = self.calibration
         if (img.shape[1], img.shape[0]) != (calib.width, calib.height):
             self._drop("bad_image_size", f"image at {t:.6f} is {img.shape[1]}x{img.shape[0]} but the calibration "
@@ -762,8 +799,8 @@ class BevoNode(Node):
                     steps = self._out_of_order(kind, exc, t, call)
                 except ValueError as exc2:
                     self._drop(f"{kind}_invalid", f"{'IMU' if kind == 'imu' else kind} at {t:.6f}: {exc2}")
-            else:
-                self._drop(f"{kind}_invalid", f"{'IMU' if kind == 'imu' else kind} at {t:.6f}: {exc}")
+            else:  # ImplausibleImuError carries its own reason
+                self._drop(getattr(exc, "reason", f"{kind}_invalid"), f"{'IMU' if kind == 'imu' else kind} at {t:.6f}: {exc}")
         self._check_engine_counters()
         return steps
 
@@ -777,6 +814,14 @@ class BevoNode(Node):
                                                  source=f"CameraInfo on {self.resolve_topic_name(s.camera_info_topic)}")
         except CalibrationError as exc:
             self._drop("bad_camera_info", str(exc))
+            return
+        w, h = calib.width, calib.height
+        problem = intrinsics_problem(calib.K, w, h)
+        if problem is None and self._image_size not in (None, (w, h)):
+            problem = f"its size {w}x{h} disagrees with the images ({self._image_size[0]}x{self._image_size[1]})"
+        if problem is not None:
+            keep = "keeping the last good calibration" if self.camera is not None else "still waiting for a valid one"
+            self._drop("bad_camera_info", f"CameraInfo rejected ({keep}): {problem}")
             return
         self._apply_calibration(calib)
 
@@ -819,8 +864,10 @@ class BevoNode(Node):
                 if self._last_imu_stamp is None and not self._pending:
                     return
                 self.events["clock_jump_reset"] += 1
-                self.get_logger().warning("ROS time jumped backwards (bag restarted?): resetting the odometry")
+                self._log("clock_jump_reset", "ROS time jumped backwards (bag restarted?): resetting the odometry")
                 self._reset()
+                for kind, item in self._time_guard.reset():  # held messages: judged again on the new timeline
+                    self._gated(kind, item)
 
             self._jump_handle = self.get_clock().create_jump_callback(threshold, post_callback=self._guard(
                 "clock_jump", on_jump))
@@ -945,37 +992,80 @@ def _params_file_from_args(argv: list[str]) -> list[str]:
     return ros_params.params_files_from_args(argv)
 
 
+class _StopRequest:
+    """SIGINT/SIGTERM only set a flag the spin loop checks: the node then stops between two
+    callbacks, destroys its entities and shuts ROS down in that order. (rclpy's own handler shuts
+    the context down at once, under a running executor: a subscription taken at that moment
+    raised ``RuntimeError`` out of ``rclpy.spin`` with exit 1 and a traceback.)"""
+
+    SIGNALS = ("SIGINT", "SIGTERM")
+
+    def __init__(self) -> None:
+        import signal
+
+        self.requested = False
+        self._previous = {}
+        for name in self.SIGNALS:
+            sig = getattr(signal, name)
+            self._previous[sig] = signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum, frame) -> None:  # noqa: ARG002 - signal handler signature
+        self.requested = True
+
+    def restore(self) -> None:
+        import signal
+
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
 def main(args: list[str] | None = None) -> int:
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
     argv = list(sys.argv if args is None else args)
+    stop = _StopRequest()
     try:
-        rclpy.init(args=argv)
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as exc:  # noqa: BLE001 - e.g. an unreadable --params-file
-        print(f"[FATAL] [{NODE_NAME}]: cannot initialise ROS 2: {exc}", file=sys.stderr)
+        stop.restore()
+        print(f"[FATAL] [{NODE_NAME}]: cannot initialise ROS 2: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
     logger = rclpy.logging.get_logger(NODE_NAME)
-    node = None
-    code = 0
+    node = executor = None
     try:
         try:
             node = BevoNode(params_file=_params_file_from_args(argv))
         except ConfigError as exc:
-            logger.fatal(f"refusing to start: {exc}")
+            logger.fatal(f"refusing to start: {' '.join(str(exc).split())}")  # one line
             return EXIT_CONFIG_ERROR
         except Exception as exc:  # noqa: BLE001 - a clear line, no traceback
-            logger.fatal(f"refusing to start: {type(exc).__name__}: {exc}")
+            logger.fatal(f"refusing to start: {type(exc).__name__}: {' '.join(str(exc).split())}")
             return EXIT_CONFIG_ERROR
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
         try:
-            rclpy.spin(node)
+            while not stop.requested and rclpy.ok():
+                executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s when idle
         except (KeyboardInterrupt, ExternalShutdownException):
-            pass  # SIGINT/SIGTERM: rclpy has shut the context down (no /rosout any more)
+            pass
+        except Exception:  # noqa: BLE001
+            if not (stop.requested or not rclpy.ok()):
+                raise
+            # raised by rclpy while the process is being stopped: nothing left to do but stop
+        if stop.requested:
+            logger.info("stopping (signal received)")
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+        try:
+            if executor is not None:
+                executor.shutdown(timeout_sec=1.0)
+            if node is not None:
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+            stop.restore()
+    return 0
 
 
 if __name__ == "__main__":

@@ -24,8 +24,11 @@ def drive():
     return d, images
 
 
-def engine(d, **overrides):
+def engine(d, mode: str = "paper", **overrides):
+    """The engine in ``mode``; these tests pin the paper pipeline (the batched path is its twin),
+    test_fused_odometry the fused one."""
     config = BevoConfig()
+    config.odometry.mode = mode
     for key, value in overrides.items():
         setattr(config.filter, key, value)
     return build_odometry(config, LEARNED, camera=d.camera)
@@ -215,7 +218,9 @@ def test_a_frame_whose_bev_is_invalid_is_dropped_not_raised(drive):
     """An absurd attitude (70 deg nose up) leaves no valid BEV pixel: counted drop, no exception,
     no lost state; the engine carries on with the next frames."""
     d, images = drive
-    odo = build_odometry(BevoConfig(), LearnedParams((1e-6, 1e-6), (1e-3, 1e-3)), camera=d.camera)
+    config = BevoConfig()
+    config.odometry.mode = "paper"
+    odo = build_odometry(config, LearnedParams((1e-6, 1e-6), (1e-3, 1e-3)), camera=d.camera)
     t0 = float(d.imu_stamps[0])
     level, nose_up = [0.0, 0.0, 9.81], [9.81 * math.sin(1.22), 0.0, 9.81 * math.cos(1.22)]
     odo.add_imu(t0, [0.0, 0.0, 0.0], level)

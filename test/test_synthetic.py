@@ -22,6 +22,14 @@ def drive() -> syn.SyntheticDrive:
     return syn.make_drive(seed=0, duration=20.0, noise=False, render=False)
 
 
+@pytest.fixture(scope="module", params=[None, *syn.PRESETS])
+def any_drive(request, drive) -> syn.SyntheticDrive:
+    """The random drive and every preset (noise-free, no images): the exactness checks run on each."""
+    if request.param is None:
+        return drive
+    return syn.make_drive(seed=0, preset=request.param, noise=False, render=False)
+
+
 def _so3_exp(v: np.ndarray) -> np.ndarray:
     th = float(np.linalg.norm(v))
     k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
@@ -84,8 +92,9 @@ def test_deterministic_by_seed():
     assert torch.equal(t1, t2) and (t1 - t3).abs().mean() > 0.02
 
 
-def test_gyro_integrates_to_attitude(drive):
+def test_gyro_integrates_to_attitude(any_drive):
     """Noise-free gyro = body rate of R_grav_base: integrating it reproduces the attitude."""
+    drive = any_drive
     w, rot, dt = drive.gyro_true, drive.imu_rotation_gravity, np.diff(drive.imu_stamps)
     r = rot[0].copy()
     err = 0.0
@@ -100,7 +109,7 @@ def test_gyro_integrates_to_attitude(drive):
     for k in range(len(w) - 1):
         r_w = r_w @ _so3_exp(0.5 * (wrong[k] + wrong[k + 1]) * dt[k])
         err_w = max(err_w, _rot_angle(r_w, rot[k + 1]))
-    print(f"\ngyro integration over 20 s: max attitude error {err:.2e} rad (world-frame rate: {err_w:.2e} rad)")
+    print(f"\ngyro integration over {drive.imu_stamps[-1] - drive.imu_stamps[0]:.0f} s: max attitude error {err:.2e} rad (world-frame rate: {err_w:.2e} rad)")
     assert err < 3e-4
     assert err_w > 10 * err
     # The stored angles are the Euler angles of the stored rotation.
@@ -108,19 +117,26 @@ def test_gyro_integrates_to_attitude(drive):
     assert np.allclose(np.stack([p_, r_], 1), drive.imu_pitch_roll_gravity, atol=1e-12)
 
 
-def test_accel_is_specific_force(drive):
+def test_accel_is_specific_force(any_drive):
     """R accel - g integrates to the true gravity-frame velocity."""
+    drive = any_drive
     g = np.array([0.0, 0.0, syn.GRAVITY])
     a = np.einsum("nij,nj->ni", drive.imu_rotation_gravity, drive.accel_true) - g
     dt = np.diff(drive.imu_stamps)[:, None]
     v = drive.imu_velocity_gravity
     v_int = v[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (a[1:] + a[:-1]) * dt, 0)])
     err = np.abs(v_int - v).max()
-    print(f"\naccel integration over 20 s: max velocity error {err:.2e} m/s; |a_kin| max {np.abs(a).max(0).round(2)} m/s^2")
+    print(f"\naccel integration over {drive.imu_stamps[-1] - drive.imu_stamps[0]:.0f} s: max velocity error {err:.2e} m/s; |a_kin| max {np.abs(a).max(0).round(2)} m/s^2")
     assert err < 5e-3
-    # Speed along the road matches the planar motion between frames (no lateral slip).
+    # Speed along the road matches the planar motion between frames (no lateral slip): the chord
+    # between frames vs the speed's exact integral (arc), and vs the trapezoid of the frame speeds.
     step = np.linalg.norm(drive.relative_motion[:, :2], axis=1)
-    assert np.allclose(step, 0.1 * 0.5 * (drive.speed[1:] + drive.speed[:-1]), rtol=2e-3)
+    arc = np.diff(drive._motion.speed_profile.integral(drive.frame_stamps - drive.imu_stamps[0]))
+    trap = 0.1 * 0.5 * (drive.speed[1:] + drive.speed[:-1])
+    print(f"frame steps vs arc length: max rel err {np.abs(step - arc).max() / arc.max():.1e}, vs trapezoid "
+          f"{np.abs(step - trap).max() / arc.max():.1e}")
+    assert np.allclose(step, arc, rtol=1e-4, atol=1e-9)
+    assert np.allclose(step, trap, rtol=2e-3, atol=2e-3 * arc.max())
 
 
 def test_accel_gives_gravity_angles_when_unaccelerated():
@@ -153,7 +169,8 @@ def test_imu_noise_statistics():
     assert np.array_equal(quiet.gyro, quiet.gyro_true) and np.array_equal(quiet.accel, quiet.accel_true)
 
 
-def test_relative_motion_composes_to_poses(drive):
+def test_relative_motion_composes_to_poses(any_drive):
+    drive = any_drive
     poses = drive.poses_xy_yaw
     x, y, yaw = poses[0]
     out = [poses[0]]
@@ -327,3 +344,126 @@ def test_options_rates_camera_and_rigid_body():
     axis = d.camera.T_base_cam[:3, 2]
     assert axis[2].item() == pytest.approx(-math.sin(0.01)) and axis[0].item() > 0.99
     assert np.allclose(syn.camera_poses_4x4(d)[:, 2, 3], d.camera.height, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# Presets: named deterministic manoeuvres (issue 9), each checked on its defining property
+# ---------------------------------------------------------------------------------------------
+
+G = np.array([0.0, 0.0, syn.GRAVITY])
+
+
+def _kinematic_accel(d: syn.SyntheticDrive) -> tuple[np.ndarray, np.ndarray]:
+    """Vehicle acceleration from the noise-free IMU, along and left of the heading (gravity frame). -> 2 x (N,)"""
+    a = np.einsum("nij,nj->ni", d.imu_rotation_gravity, d.accel_true) - G
+    yaw = d.imu_poses_xy_yaw[:, 2]
+    c, s = np.cos(yaw), np.sin(yaw)
+    return c * a[:, 0] + s * a[:, 1], -s * a[:, 0] + c * a[:, 1]
+
+
+def _rel_t(d: syn.SyntheticDrive) -> np.ndarray:
+    return d.imu_stamps - d.imu_stamps[0]
+
+
+def test_presets_listed_deterministic_and_checked():
+    assert set(syn.PRESETS) == {"curve", "braking", "bend_start", "stop_and_go", "bumpy"}
+    assert all(isinstance(v, str) and len(v) > 20 for v in syn.PRESETS.values())
+    a = syn.make_drive(seed=3, preset="curve", duration=3.0, render=False)
+    b = syn.preset_drive("curve", seed=3, duration=3.0, render=False)
+    c = syn.make_drive(seed=4, preset="curve", duration=3.0, render=False)
+    for name in ("gyro", "accel", "poses_xy_yaw", "pitch_roll_road", "relative_motion"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    for name in ("gyro", "accel", "poses_xy_yaw", "pitch_roll_road"):
+        assert not np.allclose(getattr(a, name), getattr(c, name)), name  # the seed still draws the extras
+    # ... but not the manoeuvre: same speeds and same planar motion between frames.
+    assert np.array_equal(a.speed, c.speed) and np.allclose(a.relative_motion, c.relative_motion, atol=1e-9)
+    assert syn.make_drive(preset="braking", render=False).imu_stamps[-1] - 1000.0 == pytest.approx(8.0)
+    with pytest.raises(ValueError, match="preset"):
+        syn.make_drive(preset="drift", render=False)
+
+
+def test_preset_curve():
+    """100 m radius at 15 m/s: 2.25 m/s^2 and 0.15 rad/s in the sustained part (t = 4..12 s)."""
+    rigid = syn.make_drive(seed=1, preset="curve", bumps=0.0, road_tilt=False, noise=False, render=False)
+    d = syn.make_drive(seed=1, preset="curve", noise=False, render=False)
+    k = (_rel_t(d) >= 4.0) & (_rel_t(d) <= 12.0)
+    e_acc = np.abs(rigid.accel_true[k] - [0.0, 2.25, syn.GRAVITY]).max()
+    e_gyro = np.abs(rigid.gyro_true[k] - [0.0, 0.0, 0.15]).max()
+    _, lat = _kinematic_accel(d)
+    fk = (d.frame_stamps - d.frame_stamps[0] >= 4.0) & (d.frame_stamps - d.frame_stamps[0] <= 11.9)
+    curv = d.relative_motion[fk[:-1], 2] / np.linalg.norm(d.relative_motion[fk[:-1], :2], axis=1)
+    print(f"\ncurve, rigid and flat: accel error {e_acc:.1e} m/s^2, gyro error {e_gyro:.1e} rad/s; with suspension "
+          f"and road tilt: lateral {lat[k].mean():.4f} m/s^2 (std {lat[k].std():.3f}), gyro z {d.gyro_true[k, 2].mean():.4f} "
+          f"rad/s, radius from the poses {1 / curv.mean():.2f} m; first 2 s max |gyro z| {np.abs(d.gyro_true[:200, 2]).max():.4f}")
+    assert e_acc < 1e-6 and e_gyro < 1e-8
+    assert lat[k].mean() == pytest.approx(2.25, rel=0.01) and d.gyro_true[k, 2].mean() == pytest.approx(0.15, rel=0.01)
+    assert np.allclose(1.0 / curv, 100.0, rtol=1e-3)
+    assert np.abs(d.gyro_true[:150, 2]).max() < 0.01  # straight before the entry
+    assert np.all(np.abs(np.diff(rigid.gyro_true[:, 2])) < 0.01)  # entered smoothly: no step in the yaw rate
+
+
+def test_preset_braking():
+    """15 m/s, then -5 m/s^2 with a smooth onset, down to 2 m/s, held."""
+    d = syn.make_drive(seed=2, preset="braking", noise=False, render=False)
+    lon, lat = _kinematic_accel(d)
+    t = _rel_t(d)
+    onset = t[np.argmax(lon < -4.95)] - t[np.argmax(lon < -0.05)]
+    print(f"\nbraking: min longitudinal accel {lon.min():.3f} m/s^2, onset (-0.05 -> -4.95) {onset:.2f} s, "
+          f"speed {d.speed[0]:.1f} -> {d.speed[-1]:.2f} m/s, nose-down pitch {np.degrees(d.pitch_roll_road[:, 0].max()):.2f} deg")
+    assert lon.min() == pytest.approx(-5.0, abs=0.1)
+    assert 0.3 <= onset <= 0.55
+    assert d.speed[0] == pytest.approx(15.0) and d.speed[-1] == pytest.approx(2.0) and d.speed.min() > 1.99
+    assert np.abs(lon[t > 5.2]).max() < 0.1 and np.abs(lat).max() < 0.5  # holds, straight
+    # Load transfer: the suspension pitches the nose down while braking (positive pitch = nose down).
+    rigid_free = syn.make_drive(seed=2, preset="braking", road_tilt=False, noise=False, render=False)
+    hard = (t > 2.6) & (t < 4.5)
+    assert (rigid_free.imu_pitch_roll_road[hard, 0].mean() - rigid_free.imu_pitch_roll_road[t < 1.9, 0].mean()) > np.radians(1.0)
+
+
+def test_preset_bend_start():
+    """The first IMU sample is already in the bend: centripetal acceleration v * wz at sample 0."""
+    rigid = syn.make_drive(seed=3, preset="bend_start", bumps=0.0, road_tilt=False, noise=False, render=False)
+    d = syn.make_drive(seed=3, preset="bend_start", noise=False, render=False)
+    _, lat = _kinematic_accel(d)
+    v0, wz0 = d.speed[0], d.gyro_true[0, 2]
+    acc_roll = math.degrees(math.atan2(d.accel_true[0, 1], d.accel_true[0, 2]))
+    print(f"\nbend start: speed {v0:.1f} m/s, gyro z {wz0:.4f} rad/s, lateral {lat[0]:.4f} m/s^2 (v wz {v0 * wz0:.4f}), "
+          f"rigid accel y {rigid.accel_true[0, 1]:.4f}; accelerometer roll {acc_roll:.1f} deg vs true "
+          f"{math.degrees(d.imu_pitch_roll_gravity[0, 1]):.1f} deg")
+    assert abs(wz0) > 0.15 and rigid.gyro_true[0, 2] == pytest.approx(0.18, abs=1e-8)
+    assert rigid.accel_true[0, 1] == pytest.approx(12.0 * 0.18, abs=1e-6)
+    assert lat[0] == pytest.approx(v0 * wz0, rel=0.02)
+    assert abs(acc_roll - math.degrees(d.imu_pitch_roll_gravity[0, 1])) > 8.0  # the trap: gravity-only roll is far off
+    assert np.abs(d.gyro_true[_rel_t(d) > 5.5, 2]).max() < 0.01  # leaves the bend
+
+
+def test_preset_stop_and_go():
+    """Down to 0.1 m per 10 Hz frame (and one full stop) and up again, several times; never reversing."""
+    d = syn.make_drive(seed=4, preset="stop_and_go", noise=False, render=False)
+    step = np.linalg.norm(d.relative_motion[:, :2], axis=1)
+    v = d.speed
+    slow = v < 1.0 + 1e-9
+    dips = int(np.sum(slow[1:] & ~slow[:-1]))
+    print(f"\nstop and go: speed {v.min():.2f}..{v.max():.2f} m/s, {dips} dips to <= 1 m/s, min step "
+          f"{step.min():.4f} m/frame, {int((step < 1e-9).sum())} frames standing; forward motion "
+          f"{d.relative_motion[:, 0].min():.2e}..{d.relative_motion[:, 0].max():.2f} m")
+    assert step.min() <= 0.1 + 1e-9 and dips >= 3 and v.max() >= 8.9
+    assert v.min() == 0.0 and (step < 1e-9).sum() >= 15  # one full stop of ~2 s
+    assert d.relative_motion[:, 0].min() >= 0.0  # never backwards
+    assert np.all(d._motion.speed(np.linspace(-3.0, 50.0, 100001)) >= 0.0)
+    assert ((step > 0.099) & (step < 0.101)).sum() >= 10  # holds at 0.1 m/frame
+
+
+def test_preset_bumpy():
+    """Suspension and vibration scaled up against the default drive of the same seed, gentle curves."""
+    d = syn.make_drive(seed=5, preset="bumpy", render=False)
+    ref = syn.make_drive(seed=5, duration=20.0, render=False)
+    sd, sr = np.degrees(d.pitch_roll_road.std(0)), np.degrees(ref.pitch_roll_road.std(0))
+    vib = (d.accel - d.accel_true - d.accel_bias).std(0)
+    vib_ref = (ref.accel - ref.accel_true - ref.accel_bias).std(0)
+    print(f"\nbumpy: road-relative pitch/roll std {sd.round(2)} deg (default drive {sr.round(2)}), accel noise std "
+          f"{vib.round(2)} m/s^2 (default {vib_ref.round(2)}), speed {d.speed.min():.1f}..{d.speed.max():.1f} m/s, "
+          f"max |yaw rate| {np.abs(d.gyro_true[:, 2]).max():.3f} rad/s")
+    assert np.all(sd > 1.5 * sr)
+    assert np.all(vib > 1.5 * vib_ref)
+    assert 6.5 < d.speed.min() and d.speed.max() < 10.5 and np.abs(d.gyro_true[:, 2]).max() < 0.12

@@ -100,14 +100,18 @@ def main(argv: list[str] | None = None) -> int:
 
     t = step(f"3/4 odometry over the held-out last quarter (frames {cut}..{n - 1})")
     rows = []
-    for label, params_file in (("learned", str(learned)), ("default", str(REPO / "params" / "learned_default.yaml"))):
+    # Training fits the paper pipeline's O and Q (the batched KL path); fused mode runs its own defaults.
+    runs = (("fused", "fused", str(REPO / "params" / "learned_default.yaml"), "fused (default params)"),
+            ("learned", "paper", str(learned), "paper, learned O/Q"),
+            ("default", "paper", str(REPO / "params" / "learned_paper.yaml"), "paper, default O/Q"))
+    for label, mode, params_file, title in runs:
         run_dir, eval_dir = out / f"run_{label}", out / f"eval_{label}"
         call("run_bag", [str(bag_path), "--out", str(run_dir), "--params", synth_params, "--learned", params_file,
-                         "--first-frame", str(cut), "-q"])
+                         "--first-frame", str(cut), "--mode", mode, "-q"])
         call("evaluate", ["--gt", str(run_dir / "gt_kitti.txt"), "--est", str(run_dir / "trajectory_kitti.txt"),
                           "--pitch-roll", str(run_dir / "pitch_roll.csv"), "--out", str(eval_dir),
-                          "--title", f"synthetic held-out, {label} O/Q"])
-        rows.append(metrics_row(f"synthetic held-out, {label} O/Q", eval_dir))
+                          "--title", f"synthetic held-out, {title}"])
+        rows.append(metrics_row(f"synthetic held-out, {title}", eval_dir))
     print(f"odometry + evaluation took {time.perf_counter() - t:.1f} s")
 
     if not args.no_kitti and (KITTI / "odometry" / "sequences" / "06").is_dir():
@@ -115,12 +119,14 @@ def main(argv: list[str] | None = None) -> int:
         kbag = out / "kitti06_bag"
         call("kitti_to_bag", ["--odometry", str(KITTI / "odometry"), "--sequence", "06", "-o", str(kbag),
                               "--overwrite", "-q"])
-        run_dir, eval_dir = out / "run_kitti06", out / "eval_kitti06"
-        call("run_bag", [str(kbag), "--out", str(run_dir), "-q"])
-        call("evaluate", ["--gt", str(run_dir / "gt_kitti.txt"), "--est", str(run_dir / "trajectory_kitti.txt"),
-                          "--pitch-roll", str(run_dir / "pitch_roll.csv"), "--out", str(eval_dir),
-                          "--title", "KITTI 06, frames 0-50"])
-        rows.append(metrics_row("KITTI 06 sample (params/kitti.yaml)", eval_dir))
+        for mode, learned_file in (("fused", "learned_default.yaml"), ("paper", "learned_paper.yaml")):
+            run_dir, eval_dir = out / f"run_kitti06_{mode}", out / f"eval_kitti06_{mode}"
+            call("run_bag", [str(kbag), "--out", str(run_dir), "--mode", mode, "--learned",
+                             str(REPO / "params" / learned_file), "-q"])
+            call("evaluate", ["--gt", str(run_dir / "gt_kitti.txt"), "--est", str(run_dir / "trajectory_kitti.txt"),
+                              "--pitch-roll", str(run_dir / "pitch_roll.csv"), "--out", str(eval_dir),
+                              "--title", f"KITTI 06, frames 0-50, {mode}"])
+            rows.append(metrics_row(f"KITTI 06 sample, {mode} (params/kitti.yaml)", eval_dir))
         print(f"KITTI took {time.perf_counter() - t:.1f} s")
     else:
         print("\n(4/4 skipped: no KITTI sample at ../shared/data/kitti)")
@@ -130,7 +136,12 @@ def main(argv: list[str] | None = None) -> int:
 
     atomic_write_text(out / "summary.md", "# BEVO demo\n\n" + table)
     print("\n" + table)
-    print(f"plots: {out}/eval_learned/trajectory.png, frame_errors.png, pitch_roll.png")
+    print(f"plots: {out}/eval_fused/trajectory.png, frame_errors.png, pitch_roll.png")
+    from bevo_ros.synthetic_map import localization_demo  # BEVO+ (issue 13): odometry only vs map localisation
+
+    plus = localization_demo(out / "bevo_plus")
+    print("\n" + plus["table"] + f"plot: {plus['plot']}")
+    atomic_write_text(out / "summary.md", "# BEVO demo\n\n" + table + "\n" + plus["table"])
     print(f"demo finished in {time.perf_counter() - t_start:.0f} s")
     return 0
 

@@ -259,6 +259,8 @@ def convert(src: Source, args) -> dict[str, int]:
 
     size = None
     with bag.BagWriter(args.output, storage=args.storage, overwrite=args.overwrite) as writer:
+        for partial in writer.removed_partials:  # left by a killed earlier run
+            print(f"kitti_to_bag: removed {partial}, the partial output of an interrupted run", file=sys.stderr)
         if src.T_base_cam is not None and events and not args.no_tf_static:
             # the rig on /tf_static (latched): base = the OXTS IMU (KITTI's convention), and the camera
             writer.write_tf_static(events[0][0], [(args.base_frame, args.imu_frame, np.eye(4)),

@@ -46,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
     p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
     p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
+    p.add_argument("--mode", choices=("fused", "paper"), help="override odometry.mode of --params (fused: the default "
+                   "acceleration-aware, gyro-yaw, motion-filtered odometry; paper: the paper's pipeline)")
     p.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads (default 1, as bevo_node's torch_threads: same arithmetic, same result)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
@@ -134,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     try:
         config, _ = load_config(args.params)
+        if args.mode:
+            config.odometry.mode = args.mode
         learned = args.learned or config.learned_params_file
         t0 = time.perf_counter()
         steps, rec, odo = run(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
@@ -150,8 +154,10 @@ def main(argv: list[str] | None = None) -> int:
         print("run_bag: interrupted", file=sys.stderr)
         return 130
     c = odo.counters
-    print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s); "
-          f"imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, dropped (no imu) {c.dropped_no_imu}")
+    print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
+          f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
+          f"dropped (no imu) {c.dropped_no_imu}; rejected: textureless {c.rejected_textureless}, "
+          f"translation {c.rejected_translation}, rotation {c.rejected_rotation}")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 

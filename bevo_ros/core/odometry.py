@@ -23,6 +23,12 @@ from .motion import (motion_covariance_from_registration, pitch_scale_sensitivit
 from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
+from .validation import ImplausibleImuError, ImuLimits, imu_problem
+from .vehicle_dynamics import compensate_floats, suspension_attitude
+from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
+
+MODES = ("fused", "paper")
+ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceleration stays the same
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 
@@ -58,6 +64,9 @@ class OdometryStep:
     peak_quality: float  # correlation peak quality in [0, 1]; nan for the first frame
     first: bool = False
     correlation: np.ndarray | None = None  # (S, S) translation correlation (the heat-map), None first
+    measured_motion: np.ndarray | None = None  # (3,) the correlation's own (dx, dy, dyaw); None first
+    accepted: tuple[bool, bool] = (True, True)  # fused mode: (translation, rotation) measurement used
+    speed: float = float("nan")  # fused mode: the motion filter's forward speed, m/s
 
 
 @dataclass
@@ -70,6 +79,9 @@ class Counters:
     dropped_pending_overflow: int = 0
     dropped_invalid_bev: int = 0  # the attitude put the BEV's ground patch out of the image
     resets: int = 0
+    rejected_textureless: int = 0  # fused: a frame whose correlation carries no information
+    rejected_translation: int = 0  # fused: the translation failed the Mahalanobis gate
+    rejected_rotation: int = 0  # fused: the image rotation disagreed with the gyro beyond the gate
 
 
 class BevoOdometry:
@@ -90,7 +102,20 @@ class BevoOdometry:
             :func:`~bevo_ros.core.dukf.remove_turn_acceleration`).
         device: torch device for the vision part.
         max_pending_images: images waiting for IMU beyond this are dropped (counted).
+        mode: ``"fused"`` (default): the accelerometer minus the car's own acceleration, the
+            suspension's lean kept in the road-relative attitude, yaw from the gyro (its bias
+            observed by the images), and a vehicle motion filter with Mahalanobis gates between
+            the correlation and the pose (see :mod:`~bevo_ros.core.vehicle_filter`).
+            ``"paper"``: the paper's pipeline (accelerometer = gravity, correlation composed as is).
+        vehicle_noise: the motion filter's noise (fused mode).
+        suspension_gradients: (pitch, roll) body lean per m/s^2 of forward / lateral
+            acceleration, rad/(m/s^2) (fused mode; :func:`~bevo_ros.core.vehicle_dynamics.suspension_attitude`).
+        initial_attitude_std: the DUKF's start (fused mode): the mounting attitude with this
+            standard deviation (rad), then the first accelerometer sample as a measurement, so an
+            accelerometer read in a bend is not locked in.
     """
+
+    imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
 
     def __init__(
         self,
@@ -104,7 +129,18 @@ class BevoOdometry:
         turn_compensation: bool = False,
         device: str | torch.device = "cpu",
         max_pending_images: int = 20,
+        mode: str = "fused",
+        vehicle_noise: VehicleNoise | None = None,
+        suspension_gradients: tuple[float, float] = (0.0, 0.0),
+        initial_attitude_std: float = math.radians(3.0),
     ) -> None:
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        self.mode = mode
+        self.vehicle = VehicleFilter(vehicle_noise)
+        self.suspension_gradients = (float(suspension_gradients[0]), float(suspension_gradients[1]))
+        self.initial_attitude_std = float(initial_attitude_std)
+        self.max_speed_age = 0.5  # s: an external speed older than this is not used
         self.device = torch.device(device)
         self.dtype = torch.float32
         self.spec = spec
@@ -143,6 +179,11 @@ class BevoOdometry:
         self._speed = 0.0  # forward speed of the latest VO step, m/s
         self._pose = torch.zeros(3, dtype=torch.float64)
         self._pose_cov = torch.zeros(3, 3, dtype=torch.float64)
+        self._vstate = initial_vehicle_state()  # fused: [v, a, gyro yaw bias], speed unknown
+        self._yaw_cum = 0.0  # fused: gyro yaw about the vertical integrated since the start, rad
+        self._yaw_rate = None  # its latest rate (trapezoid)
+        self._prev_yaw_cum = 0.0
+        self._ext_speed = None  # (stamp, VehicleState) from add_speed
         self.counters.resets += 1
 
     def set_camera(self, camera: CameraModel) -> None:
@@ -164,18 +205,25 @@ class BevoOdometry:
     def add_imu(self, stamp: float, gyro, accel) -> list[OdometryStep]:
         """Fuse one IMU sample; returns the images it released (processed in stamp order).
 
-        Raises ValueError for non-finite data and OutOfOrderError for stamps not after the last.
+        Raises ValueError for non-finite data, ImplausibleImuError (a ValueError) for readings
+        outside ``self.imu_limits`` and OutOfOrderError for stamps not after the last.
         """
         g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
         a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
         if not (math.isfinite(stamp) and all(math.isfinite(v) for v in g + a)):
             raise ValueError("IMU sample contains NaN or inf")
+        if (problem := imu_problem(g, a, self.imu_limits)) is not None:
+            raise ImplausibleImuError(*problem)
         if math.hypot(*a) < 1e-6:
             raise ValueError("IMU linear acceleration is zero: no gravity, no attitude")
         if self._last_imu is not None and stamp <= self._last_imu:
             raise OutOfOrderError("IMU", stamp, self._last_imu)
         out = self._release(lambda s: s < stamp)
         self.counters.imu += 1
+        if self.mode == "fused":
+            self._fuse_imu(stamp, g, a)
+            out += self._release(lambda s: s <= stamp)
+            return out
         if self.turn_compensation:  # remove_turn_acceleration, in floats
             a[1] -= self._speed * g[2]
         if self._state is None or stamp - self._last_imu > self.max_imu_gap:
@@ -190,9 +238,71 @@ class BevoOdometry:
         self._last_imu = stamp
         pitch, roll = self._road_tilt.update(stamp, *self._state[0])
         road = (pitch + self._mounting[0], roll + self._mounting[1])
-        self._history.append((stamp, road, self._state))
+        self._history.append((stamp, road, self._state, 0.0))
         out += self._release(lambda s: s <= stamp)
         return out
+
+    def add_speed(self, stamp: float, speed: float, variance: float = 0.01) -> None:
+        """Fused mode: a forward speed that does not come from the images (wheel odometry, CAN),
+        m/s with its variance. While fresh (``max_speed_age``) the DUKF removes the whole vehicle
+        acceleration with it, forward dv/dt included (see :meth:`_fuse_imu`)."""
+        if not (math.isfinite(stamp) and math.isfinite(speed) and math.isfinite(variance) and variance > 0):
+            raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
+        if self._ext_speed is None:
+            state = self.vehicle.step(initial_vehicle_state(), 1.0, 0.0, forward=speed, forward_var=variance).state
+        else:
+            last, state = self._ext_speed
+            dt = stamp - last
+            if dt <= 0:
+                raise OutOfOrderError("speed", stamp, last)
+            state = self.vehicle.step(state, dt, 0.0, forward=speed * dt, forward_var=variance * dt * dt).state
+        self._ext_speed = (stamp, state)
+
+    def _fuse_imu(self, stamp: float, g: list[float], a: list[float]) -> None:
+        """Fused mode, one IMU sample: compensated DUKF, suspension-aware road tilt, gyro yaw."""
+        vs = self._vstate
+        elapsed = 0.0 if self._prev_stamp is None else max(stamp - self._prev_stamp, 0.0)
+        speed, speed_var = vs.speed_at(elapsed)
+        ext = self._ext_speed
+        if ext is not None and 0.0 <= stamp - ext[0] <= self.max_speed_age:
+            # A speed that does not come from the images (wheel odometry): v and dv/dt both removed.
+            es = ext[1]
+            esp, esv = es.speed_at(stamp - ext[0])
+            f, extra = compensate_floats(a, g, esp, es.a, esv, es.p[3])
+        else:
+            # With the visual speed alone the forward acceleration is not subtracted, it only makes
+            # the pitch measurement count less (variance P_aa + a^2): a visual dv/dt closes a loop (a
+            # pitch error scales the BEV's speed, whose rate tilts the compensated pitch) that is
+            # unstable at road speeds (the gravity pitch ran to 11 deg RMS on the KITTI sample).
+            # The speed itself (centripetal v wz, -v wy) has no such loop gain.
+            # The error is the same for every sample for as long as the acceleration lasts: per
+            # sample its variance counts once per sample of its correlation time, not once in total
+            # (ACCEL_CORRELATION_TIME: braking preset pitch 2.2 -> 0.2 deg RMS at 100 Hz).
+            per_second = max(1.0, ACCEL_CORRELATION_TIME / max(self._imu_dt, 1e-4))
+            f, extra = compensate_floats(a, g, speed, 0.0, speed_var, (vs.p[3] + vs.a * vs.a) * per_second)
+        if self._state is None or stamp - self._last_imu > self.max_imu_gap:
+            if self._state is not None:
+                self.counters.imu_gaps += 1
+            # Start from the mounting attitude with a wide variance and take the first sample as a
+            # measurement: one accelerometer sample read in a bend is not locked in.
+            v0 = self.initial_attitude_std**2
+            self._state = self.dukf.step_scalar(self.mounting_attitude, (v0, 0.0, v0), g, f, 0.0, self._noise, extra)
+            self._yaw_rate = None
+        else:
+            self._imu_dt = stamp - self._last_imu
+            self._state = self.dukf.step_scalar(*self._state, g, f, self._imu_dt, self._noise, extra)
+        (pitch, roll) = self._state[0]
+        # Yaw rate about the vertical (Z-Y-X Euler kinematics), integrated by trapezoids.
+        rate = (g[1] * math.sin(roll) + g[2] * math.cos(roll)) / math.cos(pitch)
+        if self._yaw_rate is not None:
+            self._yaw_cum += 0.5 * (rate + self._yaw_rate) * (stamp - self._last_imu)
+        self._yaw_rate = rate
+        self._last_imu = stamp
+        # The suspension's lean lasts as long as the acceleration: keep it out of the low-pass.
+        dyn_p, dyn_r = suspension_attitude(vs.a, speed * g[2], *self.suspension_gradients)
+        rp, rr = self._road_tilt.update(stamp, pitch - dyn_p, roll - dyn_r)
+        road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])
+        self._history.append((stamp, road, self._state, self._yaw_cum))
 
     def add_image(self, stamp: float, image) -> list[OdometryStep]:
         """Queue or process one image ``(H, W)`` uint8 or float in [0, 1].
@@ -251,16 +361,20 @@ class BevoOdometry:
         image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
         if image.dtype != torch.uint8:
             image = image.to(self.dtype)
-        road, state = self._attitude_at(stamp)
+        road, state, yaw_cum = self._attitude_at(stamp)
         pr_road = torch.tensor([road], dtype=self.dtype, device=self.device)
         bev, mask = project_to_bev(image[None, None], self.camera, pr_road[:, 0], pr_road[:, 1], self.spec)
         curr = prepare(bev, mask, self.dpc)
         first = self._prev is None
         dt = 0.0 if first else stamp - self._prev_stamp
+        measured, accepted, speed = None, (True, True), float("nan")
         if first:
             motion = np.zeros(3)
             motion_cov = np.zeros((3, 3))
             quality = float("nan")
+        elif self.mode == "fused":
+            reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, dt, yaw_cum, state)
+            quality = float(reg.quality[0])
         else:
             reg = register_prepared(self._prev, curr, self.dpc)
             motion = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
@@ -270,6 +384,7 @@ class BevoOdometry:
         self._pose_cov = propagate_covariance_se2(self._pose, self._pose_cov, motion_t, motion_cov_t)
         self._pose = compose_se2(self._pose, motion_t)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
+        self._prev_yaw_cum = yaw_cum
         if dt > 0:
             self._speed = float(motion[0] / dt)
         self.counters.frames_out += 1
@@ -309,13 +424,49 @@ class BevoOdometry:
             peak_quality=quality,
             first=first,
             correlation=None if first else reg.translation_corr[0].detach().cpu().numpy(),
+            measured_motion=measured,
+            accepted=accepted,
+            speed=speed,
         )
 
-    def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple]:
-        """Road-relative attitude and DUKF state of the last IMU sample at or before ``stamp``."""
+    def _fused_motion(self, curr, dt: float, yaw_cum: float, state: tuple):
+        """Fused mode, one frame: derotate by the gyro's yaw, correlate, filter, gate."""
+        gyro_yaw = yaw_cum - self._prev_yaw_cum
+        n = self.vehicle.noise
+        predicted_bias = self._vstate.b
+        dyaw = gyro_yaw - predicted_bias * dt
+        dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.p[5] * dt * dt)
+        dev, dt_ = self.device, self.dtype
+        reg = register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
+                                angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev))
+        measured = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
+        cov = self._motion_covariance(reg, measured, state)
+        rot = -float(reg.rotation_estimate[0])
+        # The image rotation's spread, floored: the polar-magnitude estimate is not refined here.
+        rot_var = float(reg.rotation_estimate_std[0]) ** 2 + math.radians(0.1) ** 2
+        frame = self.vehicle.step(self._vstate, dt, gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
+                                  lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot,
+                                  rotation_var=rot_var, quality=float(reg.quality[0]))
+        self._vstate = frame.state
+        acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
+        if float(reg.quality[0]) < n.min_quality:
+            self.counters.rejected_textureless += 1
+        else:
+            self.counters.rejected_translation += int(not acc_t)
+            self.counters.rejected_rotation += int(not acc_r)
+        motion = np.array([float(v) for v in frame.motion])
+        motion_cov = np.diag([float(v) for v in frame.variance])
+        return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v)
+
+    def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple, float]:
+        """Road-relative attitude, DUKF state and integrated gyro yaw at ``stamp``: the last IMU
+        sample at or before it (the yaw interpolated linearly to the stamp between samples)."""
         i = bisect.bisect_right(self._history, stamp, key=lambda h: h[0]) - 1
-        _, pr_road, state = self._history[max(i, 0)]  # older than the whole history: its oldest entry
-        return pr_road, state
+        t0, pr_road, state, yaw = self._history[max(i, 0)]  # older than the whole history: its oldest entry
+        if 0 <= i < len(self._history) - 1:
+            t1, _, _, yaw1 = self._history[i + 1]
+            yaw += (yaw1 - yaw) * (stamp - t0) / (t1 - t0)
+        return pr_road, state, yaw
 
     def _motion_covariance(self, reg, motion: np.ndarray, state: tuple) -> np.ndarray:
         """(dx, dy, dyaw) covariance: the correlation distributions' spread (first order) plus what

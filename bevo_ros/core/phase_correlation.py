@@ -197,6 +197,8 @@ class Registration:
     rotation_quality: Tensor
     angle_std: Tensor
     shift_cov: Tensor
+    rotation_estimate: Tensor | None = None  # (B,) the images' own rotation when ``angle`` was given
+    rotation_estimate_std: Tensor | None = None  # (B,) its spread
 
     @property
     def rotation_prob(self) -> Tensor:
@@ -657,19 +659,33 @@ def refine_rotation(prev: Prepared, curr: Prepared, angle: Tensor, step: float, 
     return angle + step * off.clamp(-1.0, 1.0)
 
 
-def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig) -> Registration:
-    """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``)."""
+def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: Tensor | None = None,
+                      angle_std: Tensor | None = None) -> Registration:
+    """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``).
+
+    With ``angle (B,)`` (and its ``angle_std``), e.g. the gyro's rotation, the BEV is derotated by
+    it instead of by the image estimate, which is still computed (``rotation_estimate``, its
+    distribution kept for the loss) but not refined: the gyro measures a car's yaw over a frame
+    better than the BEVs do, and a translation correlation of well-derotated images is sharper.
+    """
     if prev.image.shape != curr.image.shape:
         raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")
-    angle, rcorr, rlog = estimate_rotation(prev, curr, config)
+    estimate, rcorr, rlog = estimate_rotation(prev, curr, config)
     envelope = overlap_envelope(prev.weight_spectrum, curr.weight_spectrum) if config.envelope_correction else None
-    for i in range(config.rotation_refine_iters):
-        angle = refine_rotation(prev, curr, angle, math.radians(config.rotation_refine_step) / 2**i, config, envelope)
+    given = angle is not None
+    if not given:
+        angle = estimate
+        for i in range(config.rotation_refine_iters):
+            angle = refine_rotation(prev, curr, angle, math.radians(config.rotation_refine_step) / 2**i, config,
+                                    envelope)
+    else:
+        angle = angle.to(estimate.dtype)
     derotated = rotate_about_centre(curr.image[:, None], -angle)[:, 0]
     shift, tcorr, tlog = estimate_translation(prev.spectrum, derotated, config, envelope)
     dtype, device = rcorr.dtype, rcorr.device
     abins = angle_bins(config, dtype, device)
     tbins = shift_bins(prev.size, dtype, device)
+    spread = _wrapped_spread(rlog, abins, estimate if given else angle)
     return Registration(
         angle=angle,
         shift=shift,
@@ -681,8 +697,10 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig) -> Regi
         translation_corr=tcorr,
         quality=tcorr.amax(dim=(-1, -2)).clamp(0.0, 1.0),
         rotation_quality=rcorr.amax(dim=-1).clamp(0.0, 1.0),
-        angle_std=_wrapped_spread(rlog, abins, angle),
+        angle_std=angle_std.to(dtype) if given and angle_std is not None else spread,
         shift_cov=_shift_cov(tlog, tbins, shift),
+        rotation_estimate=estimate if given else None,
+        rotation_estimate_std=spread if given else None,
     )
 
 

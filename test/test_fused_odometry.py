@@ -1,0 +1,187 @@
+"""Fused odometry (issue 9): acceleration-aware attitude, gyro yaw, vehicle motion filter, gates.
+
+Synthetic presets run on a half-resolution KITTI-like camera to keep CI fast; the figures the
+README quotes come from the same code at full resolution (printed with ``-s``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from bevo_ros.config import REPO_ROOT, BevoConfig, CameraSettings, LearnedParams, build_odometry, load_learned_params
+from bevo_ros.core.geometry import CameraModel
+from bevo_ros.core.pose import integrate_motions
+from bevo_ros.core.vehicle_dynamics import compensate_floats, compensate_specific_force
+from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
+from bevo_ros.synthetic import kitti_like_camera, preset_drive
+
+FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
+PAPER = load_learned_params(REPO_ROOT / "params" / "learned_paper.yaml")
+
+
+def small_camera() -> CameraModel:
+    cam = kitti_like_camera()
+    K = cam.K.clone()
+    K[:2] *= 0.5
+    return CameraModel(K, 620, 188, cam.T_base_cam, cam.height)
+
+
+def engine(camera, mode: str, learned: LearnedParams | None = None):
+    config = BevoConfig()
+    config.odometry.mode = mode
+    return build_odometry(config, learned or (FUSED if mode == "fused" else PAPER), camera=camera)
+
+
+def feed(odo, d, images=None, speeds: bool = False):
+    steps, k = [], 0
+    for i, s in enumerate(d.imu_stamps):
+        if speeds:
+            odo.add_speed(float(s), float(np.linalg.norm(d.imu_velocity_gravity[i])), 0.05**2)
+        steps += odo.add_imu(float(s), d.gyro[i], d.accel[i])
+        while k < len(d.frame_stamps) and d.frame_stamps[k] <= s:
+            steps += odo.add_image(float(d.frame_stamps[k]), images[k] if images is not None else d.image(k))
+            k += 1
+    return steps + odo.flush()
+
+
+def scores(steps, d) -> dict[str, float]:
+    est = np.array([s.motion for s in steps[1:]])
+    gt = d.relative_motion
+    road = np.array([s.pitch_roll_road for s in steps])
+    att = np.degrees(np.sqrt(np.mean((road - d.pitch_roll_road) ** 2, axis=0)))
+    dist = np.linalg.norm(gt[:, :2], axis=1)
+    et = np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
+    end_e = integrate_motions(torch.tensor(est))[-1].numpy()
+    end_g = integrate_motions(torch.tensor(gt))[-1].numpy()
+    return {
+        "pitch": float(att[0]), "roll": float(att[1]),
+        "trans_pct": float(np.sqrt(np.mean(et**2)) / dist.mean() * 100),
+        "yaw": float(np.degrees(np.sqrt(np.mean((est[:, 2] - gt[:, 2]) ** 2)))),
+        "drift": float(np.linalg.norm(end_e[:2] - end_g[:2]) / dist.sum() * 100),
+    }
+
+
+# ------------------------------------------------------------------------------ pure functions
+def test_float_and_tensor_paths_agree():
+    """The engine's float arithmetic and the batched tensor form (training) are one computation."""
+    rng = np.random.default_rng(0)
+    f = VehicleFilter(VehicleNoise())
+    sf, st = initial_vehicle_state(), initial_vehicle_state(like=torch.zeros(3, dtype=torch.float64))
+    for _ in range(20):
+        dt = 0.1
+        m = rng.normal(size=(4,)) * [0.05, 0.02, 0.002, 0.002] + [1.2, 0.0, 0.01, 0.0]
+        q = float(rng.uniform(0.0, 1.0))
+        a = f.step(sf, dt, m[2], forward=m[0], forward_var=1e-3, lateral=m[1], lateral_var=4e-4, rotation=m[3],
+                   rotation_var=1e-5, quality=q)
+        def T(v):
+            return torch.tensor(v, dtype=torch.float64).expand(3)
+
+        b = f.step(st, dt, T(m[2]), forward=T(m[0]), forward_var=T(1e-3), lateral=T(m[1]), lateral_var=T(4e-4),
+                   rotation=T(m[3]), rotation_var=T(1e-5), quality=T(q))
+        for x, y in zip(a.motion + a.variance, b.motion + b.variance):
+            assert float(y[0]) == pytest.approx(x, rel=1e-12, abs=1e-15)
+        sf, st = a.state, b.state
+    accel, gyro = [0.3, 2.1, 9.7], [0.01, -0.02, 0.15]
+    fc, ev = compensate_floats(accel, gyro, 12.0, 0.5, 0.2, 0.3)
+    tc, tv = compensate_specific_force(torch.tensor(accel), torch.tensor(gyro), torch.tensor(12.0), torch.tensor(0.5),
+                                       torch.tensor(0.2), torch.tensor(0.3))
+    assert np.allclose(fc, tc.numpy()) and np.allclose(ev, tv.numpy())
+    assert fc[1] == pytest.approx(2.1 - 12.0 * 0.15)  # the centripetal part is gone
+
+
+def test_gate_rejects_an_outlier_and_carries_the_prediction():
+    f = VehicleFilter(VehicleNoise(gate=5.0))
+    s = initial_vehicle_state()
+    for _ in range(30):  # 12 m/s, steady
+        s = f.step(s, 0.1, 0.0, forward=1.2, forward_var=1e-4, lateral=0.0, lateral_var=1e-4, rotation=0.0,
+                   rotation_var=1e-6, quality=0.5).state
+    out = f.step(s, 0.1, 0.0, forward=19.0, forward_var=1e-4, lateral=3.0, lateral_var=1e-4, rotation=0.0,
+                 rotation_var=1e-6, quality=0.5)
+    assert not out.accepted[0] and out.mahalanobis[0] > 5
+    assert out.motion[0] == pytest.approx(1.2, abs=0.01) and abs(out.motion[1]) < 0.01
+    dark = f.step(s, 0.1, 0.0, forward=0.0, forward_var=1e-4, lateral=0.0, lateral_var=1e-4, rotation=0.0,
+                  rotation_var=1e-6, quality=0.0)  # textureless: no information, whatever it says
+    assert not dark.accepted[0] and dark.motion[0] == pytest.approx(1.2, abs=0.01)
+
+
+# ------------------------------------------------------------------------------ synthetic presets
+@pytest.fixture(scope="module")
+def camera():
+    return small_camera()
+
+
+# Regression limits at half resolution on short drives (measured: curve 1.16 / 0.97 deg, 23 %,
+# 0.071 deg, 15.9 %; braking 0.86 / 0.18, 19 %, 0.031, 11.4 %; bend_start 1.34 / 1.24, 30 %, 0.040,
+# 19.3 %). Issue 9's acceptance (0.3 deg, 3 %, 0.05 deg, 1 %) is not reached yet: see the README.
+PRESET_LIMITS = {  # name: (duration s, road attitude RMS deg, yaw deg)
+    "curve": (10.0, 1.5, 0.1),
+    "braking": (6.0, 1.2, 0.06),
+    "bend_start": (6.0, 1.7, 0.08),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(PRESET_LIMITS))
+def test_fused_beats_paper_on_hard_drives(name, camera):
+    duration, att_max, yaw_max = PRESET_LIMITS[name]
+    d = preset_drive(name, seed=1, duration=duration, render="lazy", camera=camera, road_tilt=True)
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+    fused = scores(feed(engine(camera, "fused"), d, images), d)
+    paper = scores(feed(engine(camera, "paper"), d, images), d)
+    print(f"\n{name}: fused {fused}\n{name}: paper {paper}")
+    assert max(fused["pitch"], fused["roll"]) <= att_max and fused["yaw"] <= yaw_max
+    assert fused["yaw"] < paper["yaw"] / 5  # the gyro's yaw
+    assert fused["drift"] < paper["drift"]
+
+
+def test_black_frame_does_not_move_a_still_vehicle(camera):
+    """A frame without texture is rejected (counted) and the pose carried by the motion filter."""
+    d = preset_drive("braking", seed=2, duration=1.5, render="lazy", camera=camera)
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+    still = images[0]
+    imgs = [still] * len(images)
+    imgs[8] = np.zeros_like(still)
+    # A vehicle at rest: gravity only, no rotation.
+    for i in range(len(d.imu_stamps)):
+        d.gyro[i] = 0.0
+        d.accel[i] = [0.0, 0.0, 9.80665]
+    odo = engine(camera, "fused")
+    steps = feed(odo, d, imgs)
+    moves = np.array([np.linalg.norm(s.motion[:2]) for s in steps])
+    print(f"\nper-frame motion max {moves.max():.4f} m; rejected textureless {odo.counters.rejected_textureless}")
+    assert moves.max() < 0.2
+    assert odo.counters.rejected_textureless >= 1
+    assert np.linalg.norm(steps[-1].position[:2]) < 0.2
+
+
+# ------------------------------------------------------------------------------ real IMU
+@pytest.mark.kitti
+@pytest.mark.parametrize("drive", ["0016", "0018", "0020", "0027"])
+def test_gravity_attitude_on_real_drives(kitti_root, drive):
+    """The shared OXTS drives (real bends, stops): the engine's DUKF with the unit's forward speed
+    standing in for wheel odometry stays within 0.5 deg RMS of the unit's own pitch and roll."""
+    from bevo_ros.kitti import read_oxts
+
+    ox = read_oxts(kitti_root / "raw" / "2011_09_30" / f"2011_09_30_drive_{drive}_sync" / "oxts")
+    config = BevoConfig()
+    config.camera = CameraSettings(fx=700, fy=700, cx=600, cy=180, width=1226, height_px=370)
+    t = ox.stamps - ox.stamps[0]
+    vf = ox.field("vf")
+    results = {}
+    for label, use_speed in (("fused", True), ("paper", False)):
+        config.odometry.mode = "fused" if use_speed else "paper"
+        odo = build_odometry(config, FUSED if use_speed else PAPER)
+        out = []
+        for i in range(len(t)):
+            if use_speed:
+                odo.add_speed(t[i], vf[i], 0.05**2)
+            odo.add_imu(t[i], ox.gyro[i], ox.accel[i])
+            out.append(odo.pitch_roll)
+        out = np.array(out)
+        results[label] = np.degrees(np.sqrt(np.mean((out - np.stack([ox.pitch, ox.roll], -1)) ** 2, axis=0)))
+    print(f"\n{drive}: fused pitch/roll RMS {results['fused'].round(2)} deg; paper {results['paper'].round(2)} deg")
+    assert results["fused"].max() <= 0.5
+    assert results["fused"].mean() < results["paper"].mean()
