@@ -2,7 +2,9 @@
 
     ros2 run bevo_ros bevo_node --ros-args --params-file params/kitti.yaml
 
-Subscribes to IMU, images and (optionally) CameraInfo; runs the DUKF on every IMU message and
+Subscribes (relative topic names) to IMU, images (raw or compressed) and CameraInfo, and reads
+the rig from /tf_static (bevo_ros.ros: calibration, extrinsics, per-input diagnostics, parameter
+descriptors); runs the DUKF on every IMU message and
 BEV + phase correlation on every frame through the same engine the offline tools use; publishes
 nav_msgs/Odometry (header stamp = the image's stamp), a bounded nav_msgs/Path, a BEV image (only
 when subscribed), TF ``odom -> base_link`` and ``/diagnostics``. Every parameter is documented in
@@ -33,7 +35,7 @@ from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from
                                  calibration_from_parameters, same_camera_info)
 from bevo_ros.ros.diagnostics import SensorMonitor, status_message
 from bevo_ros.ros.tf import StaticTransforms
-from bevo_ros.ros_conversions import (ImageConversionError, bev_to_mono8, camera_info_intrinsics,
+from bevo_ros.ros_conversions import (ImageConversionError, bev_to_mono8,
                                       gray_to_image_msg, heatmap_to_mono8, image_to_gray, imu_to_arrays,
                                       odometry_msg, pose_stamped_from_odometry, sec_to_stamp, stamp_to_sec,
                                       transform_from_odometry)
@@ -132,14 +134,15 @@ DESCRIPTIONS = {
     "latency_window": "number of recent frames the latency percentiles cover",
     "torch_threads": "torch CPU threads of the node (1: the engine's small tensors gain nothing from more); 0 = torch's default",
     # engine (bevo_ros.config.BevoConfig)
-    "camera.fx": "focal length x (px) of the rectified image; 0 = from CameraInfo",
+    "camera.fx": "focal length x (px) of the rectified image (fallback when no CameraInfo arrives)",
     "camera.fy": "focal length y (px); 0 = from CameraInfo",
     "camera.cx": "principal point x (px)",
     "camera.cy": "principal point y (px)",
     "camera.width": "image width (px); images of another size are dropped",
     "camera.height_px": "image height (px)",
     "camera.height": "camera centre height above the road (m)",
-    "camera.base_T_camera": "camera optical frame pose in the base (IMU) frame, 4x4 row-major",
+    "camera.base_T_camera": "camera optical frame pose in base_frame, 4x4 row-major (used when /tf_static has no "
+                            "base_frame -> camera frame)",
     "bev.size": "BEV grid is size x size pixels",
     "bev.metres_per_pixel": "BEV ground sampling distance (m/px)",
     "bev.forward_offset": "distance from the base origin to the BEV near edge (m)",
@@ -151,7 +154,8 @@ DESCRIPTIONS = {
     "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
     "filter.max_acceleration": "IMU samples whose specific-force norm exceeds this (m/s^2) are dropped (imu_accel_range)",
     "filter.max_angular_rate": "IMU samples with a gyro axis above this (rad/s) are dropped (imu_gyro_range)",
-    "learned_params_file": "learned O/Q YAML; relative paths resolve beside the parameters file, then the package",
+    "learned_params_file": "learned O/Q YAML; a relative path resolves beside the parameters file that set it, "
+                           "then the package share",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
 }
 
