@@ -45,7 +45,8 @@ def test_every_node_parameter_has_a_description():
     assert not missing, f"bevo_ros/node.py DESCRIPTIONS lacks {missing}"
 
 
-def test_kitti_yaml_loads_through_rcl_into_the_node():
+@pytest.mark.parametrize("namespace", ["", "car1"])  # launch's namespace:=car1 must not lose the file
+def test_kitti_yaml_loads_through_rcl_into_the_node(namespace):
     from bevo_ros.node import BevoNode
 
     import torch
@@ -55,7 +56,7 @@ def test_kitti_yaml_loads_through_rcl_into_the_node():
     ctx = rclpy.context.Context()
     rclpy.init(args=["--ros-args", "--params-file", str(KITTI_PARAMS)], context=ctx, domain_id=DOMAIN_ID)
     try:
-        node = BevoNode(context=ctx, params_file=str(KITTI_PARAMS))
+        node = BevoNode(context=ctx, params_file=str(KITTI_PARAMS), namespace=namespace)
         try:
             config, flat = load_config(KITTI_PARAMS)
             assert node.config == config

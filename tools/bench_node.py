@@ -285,7 +285,7 @@ def main() -> int:
     messages, overrides, desc = bag_messages(args) if args.bag else synthetic_messages(args)
     base = Path(args.params) if args.params else REPO / "params" / "kitti.yaml"
     doc = yaml.safe_load(base.read_text())
-    params = doc["bevo_node"]["ros__parameters"]
+    params = (doc.get("/**") or doc["bevo_node"])["ros__parameters"]
     params.update(overrides)
     learned = Path(str(params.get("learned_params_file", "params/learned_default.yaml")))
     if not learned.is_absolute():
