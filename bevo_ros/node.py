@@ -633,6 +633,8 @@ class BevoNode(Node):
             elif p.name == "max_pending_images" and self.engine is not None and hasattr(self.engine,
                                                                                        "max_pending_images"):
                 self.engine.max_pending_images = value
+            elif p.name == "max_time_jump_back":
+                self._time_guard.max_back = value
             elif p.name in ("imu_timeout", "image_timeout"):
                 self.monitors[p.name.split("_")[0]].timeout = value
             elif p.name == "sensor_late_factor":

@@ -191,3 +191,11 @@ def test_license_and_every_runtime_import_is_declared():
     third_party = {m for m in imported if m not in sys.stdlib_module_names and m not in ("bevo_ros", "__future__")}
     missing = {m for m in third_party - PIP_ONLY if ROSDEP_KEYS.get(m, m) not in deps}
     assert not missing, f"imported but not an exec_depend of package.xml: {sorted(missing)}"
+
+
+def test_parameter_choices_match_the_engine():
+    from bevo_ros.core.odometry import MODES
+    from bevo_ros.ros.camera import UNDISTORT_MODES
+    from bevo_ros.ros.parameters import CHOICES
+
+    assert CHOICES["odometry.mode"] == MODES and CHOICES["undistort"] == UNDISTORT_MODES
