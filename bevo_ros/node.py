@@ -957,6 +957,22 @@ class BevoNode(Node):
             values[f"event.{name}"] = str(n)
         return values
 
+    def _calibration_state(self):
+        """Where the camera model comes from: OK from CameraInfo (or the parameters when chosen with
+        use_camera_info false), WARN while waiting or when the parameters stand in for CameraInfo."""
+        from bevo_ros.ros.diagnostics import OK, WARN, SensorState
+
+        s, calib = self.settings, self.calibration
+        values = {"intrinsics": calib.source if calib else "none yet", "extrinsics": self._extrinsics_source,
+                  "undistorting": str(bool(calib and calib.maps is not None)).lower(),
+                  "imu_frames": ", ".join(f"{f}: {'tf' if r[1] is not None else 'as base'}"
+                                          for f, r in sorted(self._R_base_imu.items())) or "base_frame"}
+        if calib is None:
+            return SensorState(WARN, f"waiting for CameraInfo on {self.resolve_topic_name(s.camera_info_topic)}", values)
+        if s.use_camera_info and not calib.source.startswith("CameraInfo"):
+            return SensorState(WARN, "no CameraInfo: the camera.* parameters stand in for it", values)
+        return SensorState(OK, calib.describe(), values)
+
     def _publish_diagnostics(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
@@ -986,6 +1002,7 @@ class BevoNode(Node):
         values["extrinsics"] = self._extrinsics_source
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         statuses = [status] + [status_message(self.get_name(), f"{key} input", st) for key, st in inputs.items()]
+        statuses.append(status_message(self.get_name(), "calibration", self._calibration_state()))
         msg = DiagnosticArray(status=statuses)
         msg.header.stamp = self.get_clock().now().to_msg()
         self.diag_pub.publish(msg)

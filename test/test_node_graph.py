@@ -270,10 +270,23 @@ def test_parameters_are_the_fallback_after_camera_info_timeout(graph, drive):
     _feed(graph, node, imu_pub, image_pub, messages[2:40])
     assert node.events["camera_info_timeout"] == 1 and node.calibration.source == "parameters camera.*"
     assert graph.until(lambda: len(odom) >= 3)
+    diag = graph.sub(DiagnosticArray, "/diagnostics", 100)
+
+    def calibration_status():
+        for d in reversed(diag):
+            for st in d.status:
+                if st.name == "bevo_node: calibration":
+                    return st
+        return None
+
+    assert graph.until(lambda: calibration_status() is not None)
+    assert calibration_status().level == DiagnosticStatus.WARN and "stand in" in calibration_status().message
     # a CameraInfo arriving later replaces the parameters
     info = _camera_info(drive.camera)
     graph.send(node, info_pub, info, "camera_info_in")
     assert node.calibration.source.startswith("CameraInfo on /camera/camera_info")
+    diag.clear()
+    assert graph.until(lambda: calibration_status() is not None and calibration_status().level == DiagnosticStatus.OK)
 
 
 # ------------------------------------------------------------------------------ extrinsics from /tf_static
