@@ -24,7 +24,7 @@ from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
-from .vehicle_dynamics import compensate_floats, suspension_attitude
+from .vehicle_dynamics import GRAVITY, compensate_floats, suspension_attitude
 from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 
 MODES = ("fused", "paper")
@@ -184,6 +184,9 @@ class BevoOdometry:
         self._yaw_rate = None  # its latest rate (trapezoid)
         self._prev_yaw_cum = 0.0
         self._ext_speed = None  # (stamp, VehicleState) from add_speed
+        self._acc_sq = None  # low-passed |f_c|^2 - g^2, m^2/s^4
+        self._fwd_sum = 0.0  # integral of the accelerometer's forward acceleration since the last frame, m/s
+        self._fwd_time = 0.0  # the time it covers, s
         self.counters.resets += 1
 
     def set_camera(self, camera: CameraModel) -> None:
@@ -275,12 +278,23 @@ class BevoOdometry:
             # pitch error scales the BEV's speed, whose rate tilts the compensated pitch) that is
             # unstable at road speeds (the gravity pitch ran to 11 deg RMS on the KITTI sample).
             # The speed itself (centripetal v wz, -v wy) has no such loop gain.
-            # The error is the same for every sample for as long as the acceleration lasts: per
-            # sample its variance counts once per sample of its correlation time, not once in total
-            # (ACCEL_CORRELATION_TIME: braking preset pitch 2.2 -> 0.2 deg RMS at 100 Hz).
-            per_second = max(1.0, ACCEL_CORRELATION_TIME / max(self._imu_dt, 1e-4))
-            f, extra = compensate_floats(a, g, speed, 0.0, speed_var, (vs.p[3] + vs.a * vs.a) * per_second)
-        if self._state is None or stamp - self._last_imu > self.max_imu_gap:
+            # How large the unexplained forward acceleration is, from two loop-free cues: the
+            # accelerometer's own norm (|f_c|^2 - g^2, low-passed over the correlation time) and
+            # the motion filter's dv/dt (its square: a wrong mean only widens the variance). The
+            # error is the same for every sample for as long as the acceleration lasts, so its
+            # variance counts once per sample of that time (ACCEL_CORRELATION_TIME).
+            f, extra = compensate_floats(a, g, speed, 0.0, speed_var, 0.0)
+            tc = ACCEL_CORRELATION_TIME
+            per_second = max(1.0, tc / max(self._imu_dt, 1e-4))
+            sq = f[0] * f[0] + f[1] * f[1] + f[2] * f[2] - GRAVITY * GRAVITY
+            if self._acc_sq is None:
+                self._acc_sq = sq
+            else:
+                self._acc_sq += min(1.0, max(self._imu_dt, 1e-4) / tc) * (sq - self._acc_sq)
+            a_var = max(self._acc_sq, 0.0) + vs.a * vs.a
+            extra = (extra[0] + a_var * per_second / (GRAVITY * GRAVITY), extra[1])
+        restarted = self._state is None or stamp - self._last_imu > self.max_imu_gap
+        if restarted:
             if self._state is not None:
                 self.counters.imu_gaps += 1
             # Start from the mounting attitude with a wide variance and take the first sample as a
@@ -292,6 +306,10 @@ class BevoOdometry:
             self._imu_dt = stamp - self._last_imu
             self._state = self.dukf.step_scalar(*self._state, g, f, self._imu_dt, self._noise, extra)
         (pitch, roll) = self._state[0]
+        if self._last_imu is not None and stamp > self._last_imu and not restarted:
+            step = stamp - self._last_imu
+            self._fwd_sum += (a[0] + GRAVITY * math.sin(pitch)) * step
+            self._fwd_time += step
         # Yaw rate about the vertical (Z-Y-X Euler kinematics), integrated by trapezoids.
         rate = (g[1] * math.sin(roll) + g[2] * math.cos(roll)) / math.cos(pitch)
         if self._yaw_rate is not None:
@@ -444,9 +462,15 @@ class BevoOdometry:
         rot = -float(reg.rotation_estimate[0])
         # The image rotation's spread, floored: the polar-magnitude estimate is not refined here.
         rot_var = float(reg.rotation_estimate_std[0]) ** 2 + math.radians(0.1) ** 2
+        imu_accel = imu_var = None
+        if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
+            imu_accel = self._fwd_sum / self._fwd_time
+            imu_var = GRAVITY * GRAVITY * state[1][0]  # the pitch's share; noise: imu_accel_density
+        self._fwd_sum = self._fwd_time = 0.0
         frame = self.vehicle.step(self._vstate, dt, gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                                   lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot,
-                                  rotation_var=rot_var, quality=float(reg.quality[0]))
+                                  rotation_var=rot_var, quality=float(reg.quality[0]), imu_accel=imu_accel,
+                                  imu_accel_var=imu_var)
         self._vstate = frame.state
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
         if float(reg.quality[0]) < n.min_quality:
