@@ -75,7 +75,16 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
         size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
         print(f"{storage}: {counts}, {size / 1e6:.2f} MB")
         assert counts == {bag.IMU_TOPIC: N_FRAMES, bag.IMAGE_TOPIC: N_FRAMES, bag.CAMERA_INFO_TOPIC: N_FRAMES,
-                          bag.GT_ODOMETRY_TOPIC: N_FRAMES, bag.GT_IMU_TOPIC: N_FRAMES}
+                          bag.GT_ODOMETRY_TOPIC: N_FRAMES, bag.GT_IMU_TOPIC: N_FRAMES, bag.TF_STATIC_TOPIC: 1}
+        # /tf_static: the rig (base = IMU, camera = the calibration chain), offered latched
+        (_, _, tf), = bag.iter_messages(path, [bag.TF_STATIC_TOPIC])
+        frames = {(t.header.frame_id, t.child_frame_id): t.transform for t in tf.transforms}
+        assert set(frames) == {("base_link", "imu_link"), ("base_link", "camera_optical_frame")}
+        from bevo_ros.ros.tf import matrix_from_transform
+        assert np.allclose(matrix_from_transform(frames[("base_link", "camera_optical_frame")]), T_base_cam, atol=1e-6)  # KITTI rotations: 7 digits
+        assert np.allclose(matrix_from_transform(frames[("base_link", "imu_link")]), np.eye(4))
+        qos = bag.topic_qos(path)
+        assert qos[bag.TF_STATIC_TOPIC].transient_local and not qos[bag.IMU_TOPIC].transient_local
         # IMU: exact values and exact nanosecond stamps.
         assert np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns)
         assert np.array_equal(rec.gyro, oxts.gyro) and np.array_equal(rec.accel, oxts.accel)
@@ -112,7 +121,7 @@ def test_both_storages_hold_identical_messages(bags):
     a = list(bag.iter_raw_messages(bags["sqlite3"]))
     b = list(bag.iter_raw_messages(bags["mcap"]))
     print(f"{len(a)} messages per storage; first: {a[0].topic} at {a[0].stamp_ns}")
-    assert len(a) == len(b) == 5 * N_FRAMES
+    assert len(a) == len(b) == 5 * N_FRAMES + 1  # + the one /tf_static
     assert [(m.topic, m.stamp_ns, m.data) for m in a] == [(m.topic, m.stamp_ns, m.data) for m in b]
     stamps = [m.stamp_ns for m in a]
     assert stamps == sorted(stamps)
