@@ -29,7 +29,7 @@ correlation's whitening (``DpcConfig.whitening_floor = 0``) is the phase-only pa
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from .aerial_map import AerialMap
 from .geometry import BevSpec
 from .mosaic import MosaicBuffer, _gaussian_blur, compose_mosaic, mosaic_anchor
-from .phase_correlation import (DpcConfig, Registration, _quadratic_peak_2d, _window_2d, estimate_rotation,
+from .phase_correlation import (DpcConfig, _quadratic_peak_2d, _window_2d, estimate_rotation,
                                 estimate_translation, overlap_envelope, prepare, rotate_about_centre,
                                 translation_correlation)
 
