@@ -297,3 +297,27 @@ def test_device_argument_falls_back_to_cpu_and_runs_on_cuda_when_present(short_d
     dev = loc.device
     out = measure(mos.to(dev), cov.to(dev), aerial.grey().to(dev), pred.to(dev), cfg).correction.cpu()
     assert torch.allclose(out, ref, atol=2e-3)
+
+
+def test_measurement_is_batched(short_drive):
+    """Two mosaics in one batch give what each gives alone."""
+    ld, aerial = short_drive
+    cfg = MapMatchConfig()
+    grey = aerial.grey()
+    mos_l, cov_l, pred_l = [], [], []
+    for k, end in enumerate((80, 160)):
+        idx = list(range(end - 20, end + 1, 2))
+        bevs = torch.from_numpy(np.stack([frame_bev(ld.drive, i, SPEC)[0] for i in idx]))[:, None]
+        masks = torch.from_numpy(np.stack([frame_bev(ld.drive, i, SPEC)[1] for i in idx]))[:, None]
+        poses = torch.tensor(ld.gt[idx], dtype=torch.float32)
+        anchor = mosaic_anchor(poses, SPEC)
+        mos, cov = compose_mosaic(bevs, masks, poses, anchor, SPEC, cfg.size, cfg.resolution)
+        mos_l.append(mos)
+        cov_l.append(cov)
+        pred_l.append(torch.tensor(se2_compose(anchor.double().numpy(), np.array([0.8, -0.6 * k, 0.02])),
+                                   dtype=torch.float32))
+    both = measure(torch.cat(mos_l), torch.cat(cov_l), grey, torch.stack(pred_l), cfg)
+    for k in range(2):
+        one = measure(mos_l[k], cov_l[k], grey, pred_l[k][None], cfg)
+        assert torch.allclose(both.correction[k], one.correction[0], atol=1e-4)
+        assert torch.allclose(both.covariance[k], one.covariance[0], rtol=1e-3, atol=1e-8)
