@@ -27,8 +27,6 @@ import sys
 import time
 import traceback
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 from rclpy.node import Node
