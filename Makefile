@@ -30,7 +30,7 @@ test: setup
 	$(PY) -m pytest
 
 demo: setup
-	$(PY) tools/demo.py
+	$(VENV)/bin/bevo demo
 
 bench: setup
 	$(PY) tools/bench_core.py

@@ -214,6 +214,74 @@ def load_config(path: str | os.PathLike, node_name: str = "bevo_node") -> tuple[
     return config, flat
 
 
+def field_comments(cls: type, prefix: str = "") -> dict[str, str]:
+    """``{"a.b": comment}``: the ``#`` comment lines right above each field of the settings
+    dataclass ``cls`` (and of its nested ones), joined; the settings' documentation in one place."""
+    import inspect
+
+    out: dict[str, str] = {}
+    try:
+        lines = inspect.getsource(cls).splitlines()
+    except (OSError, TypeError):  # source not shipped
+        lines = []
+    pending: list[str] = []
+    for line in lines:
+        text = line.strip()
+        if text.startswith("#"):
+            pending.append(text.lstrip("#").strip())
+            continue
+        name = text.split(":", 1)[0].strip()
+        if pending and name.isidentifier() and ":" in text:
+            out[prefix + name] = " ".join(pending)
+        pending = []
+    for f in dataclasses.fields(cls):
+        default = getattr(cls(), f.name)
+        if dataclasses.is_dataclass(default):
+            out.update(field_comments(type(default), f"{prefix}{f.name}."))
+    return out
+
+
+def _yaml_scalar(value: Any) -> str:
+    """One value as ROS 2 parameter YAML (a float always with a dot: PyYAML reads 1e-05 as text)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        text = repr(value)
+        if "e" in text and "." not in text.split("e")[0]:
+            mantissa, exponent = text.split("e")
+            text = f"{mantissa}.0e{exponent}"
+        return text if ("." in text or "e" in text or "n" in text) else text + ".0"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_yaml_scalar(v) for v in value) + "]"
+    return yaml.safe_dump(str(value), default_style='"').strip().removesuffix("...").strip()
+
+
+def dump_params_yaml(config: BevoConfig | None = None, node_settings: Any = None,
+                     descriptions: dict[str, str] | None = None, node_name: str = "/**") -> str:
+    """``config`` (default: the defaults) as a ROS 2 parameters file, one ``a.b: value`` line per
+    setting with its description as a comment; ``node_settings`` (a dataclass, e.g. the node's
+    ``NodeSettings``) first when given. :func:`load_config` reads it back to an equal config."""
+    config = BevoConfig() if config is None else config
+    docs = field_comments(BevoConfig)
+    docs.update(descriptions or {})
+    sections: list[tuple[str, dict[str, Any]]] = []
+    if node_settings is not None:
+        sections.append(("bevo_node (ROS wiring)", {f.name: getattr(node_settings, f.name)
+                                                    for f in dataclasses.fields(node_settings)}))
+    sections.append(("engine (bevo_ros.config.BevoConfig)", config.to_flat()))
+    lines = ["# Every bevo_node / bevo tool setting with its default (`bevo dump-config`).",
+             f"{node_name}:", "  ros__parameters:"]
+    for title, flat in sections:
+        lines.append(f"    # ---- {title}")
+        for name, value in flat.items():
+            if docs.get(name):
+                lines.append(f"    # {docs[name]}")
+            lines.append(f"    {name}: {_yaml_scalar(value)}")
+    return "\n".join(lines) + "\n"
+
+
 def resolve_path(name: str, base_dir: Path | None = None) -> Path:
     """Absolute path for ``name``: as given, else beside ``base_dir``, else in the repo/package share."""
     p = Path(name).expanduser()

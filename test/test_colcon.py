@@ -64,12 +64,13 @@ def test_colcon_build_and_ros2_run_style_start(tmp_path, monkeypatch):
     params = share / "params" / "kitti.yaml"
     assert params.is_file() and (params.parent / "learned_default.yaml").is_file()
     # issue 11: launch, RViz, the license and every tool are installed; each executable is found
-    from bevo_ros.cli import TOOLS
+    from bevo_ros.cli import COMMANDS, TOOLS
 
     for f in ("launch/bevo.launch.py", "rviz/bevo.rviz", "LICENSE", "package.xml",
-              *(f"tools/{t}.py" for t in TOOLS)):
+              *(f"tools/{t}.py" for t in TOOLS), *(f"tools/{t}.py" for t, _ in COMMANDS.values())):
         assert (share / f).is_file(), f"{f} not installed in {share}"
     tool_exes = {t: _find_executable(prefix, "bevo_ros", t) for t in TOOLS}
+    bevo = _find_executable(prefix, "bevo_ros", "bevo")  # `ros2 run bevo_ros bevo run BAG --out OUT`
 
     env = dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONPATH=os.pathsep.join([str(site)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]),
@@ -78,6 +79,10 @@ def test_colcon_build_and_ros2_run_style_start(tmp_path, monkeypatch):
         help_run = subprocess.run([str(tool_exe), "--help"], cwd=tmp_path, env=env, capture_output=True, text=True,
                                   timeout=120)
         assert help_run.returncode == 0 and "usage:" in help_run.stdout, f"{name}: {help_run.stderr[-2000:]}"
+    for command in ("demo", "ablation", "run"):  # the installed `bevo` runs the installed tools
+        help_run = subprocess.run([str(bevo), command, "--help"], cwd=tmp_path, env=env, capture_output=True,
+                                  text=True, timeout=120)
+        assert help_run.returncode == 0 and f"usage: bevo {command}" in help_run.stdout, help_run.stderr[-2000:]
     proc = subprocess.Popen([str(exe), "--ros-args", "--params-file", str(params)], cwd=tmp_path, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = []

@@ -85,7 +85,7 @@ def calibrate(seq: Sequence, spec: BevSpec, roll0: float = 0.0) -> tuple[float, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="calibrate_mounting.py", description=__doc__,
+    p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry")
     p.add_argument("--params", default=str(REPO_ROOT / "params" / "kitti.yaml"), help="parameters file")

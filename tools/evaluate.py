@@ -34,7 +34,7 @@ example:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="evaluate.py", description=__doc__, epilog=EPILOG,
+    p = argparse.ArgumentParser(description=__doc__, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--gt", required=True, help="ground-truth poses (KITTI format)")
     p.add_argument("--est", required=True, help="estimated poses (KITTI format)")

@@ -297,7 +297,7 @@ def _dir_size(path: Path) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="kitti_to_bag.py", description=__doc__,
+    p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--odometry", metavar="DIR", help="KITTI odometry root (holds sequences/ and poses/)")

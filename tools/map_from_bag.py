@@ -48,7 +48,7 @@ def xy_yaw_from_4x4(T: np.ndarray) -> np.ndarray:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="map_from_bag.py", description=__doc__,
+    p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="rosbag2 directory with /ground_truth/odometry")
     p.add_argument("--out", required=True, help="map YAML to write (the PNG goes beside it)")

@@ -50,7 +50,7 @@ def message_class(msgtype: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="play_bag.py", description=__doc__, epilog=EPILOG,
+    p = argparse.ArgumentParser(description=__doc__, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="rosbag2 directory (or its .db3 / .mcap file)")
     p.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0 = as fast as possible (default 1)")

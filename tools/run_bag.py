@@ -37,7 +37,7 @@ DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="run_bag.py", description=__doc__,
+    p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="rosbag2 directory (sqlite3 or mcap)")
     p.add_argument("--out", required=True, help="output directory")

@@ -59,7 +59,7 @@ examples:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="train_from_bag.py", description=__doc__, epilog=EPILOG,
+    p = argparse.ArgumentParser(description=__doc__, epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 directories with /ground_truth/odometry")
     p.add_argument("--out", required=True, help="learned-parameters YAML to write (best validated O/Q)")

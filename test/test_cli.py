@@ -1,0 +1,104 @@
+"""The `bevo` command (bevo_ros.cli): every subcommand's help, dump-config round trip, one error
+convention (message on stderr, exit 2)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from bevo_ros import cli
+from bevo_ros.config import BevoConfig, REPO_ROOT, dump_params_yaml, load_config, load_params_file
+
+ALL = [*cli.COMMANDS, cli.DUMP_CONFIG]
+
+
+def test_the_command_is_registered_as_a_console_script():
+    assert "bevo = bevo_ros.cli:main" in (REPO_ROOT / "setup.py").read_text()
+    assert "bevo demo" in (REPO_ROOT / "Makefile").read_text()
+
+
+@pytest.mark.parametrize("command", ALL)
+def test_help_of_each_subcommand(command, capsys):
+    assert cli.main([command, "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: bevo {command}"), out[:200]  # the tool's own options, under its bevo name
+    assert "--help" in out
+
+
+def test_top_level_help_lists_every_command(capsys):
+    assert cli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    for command in ALL:
+        assert f"  {command} " in out
+
+
+@pytest.mark.parametrize("argv, message", [
+    ([], "usage: bevo"),
+    (["no-such-command"], "invalid choice"),
+    (["run", "bag", "--out", "o", "--no-such-option"], "unrecognized arguments"),
+    (["run"], "the following arguments are required"),
+    (["evaluate", "--gt", "/nonexistent/gt.txt", "--est", "/nonexistent/est.txt", "--out", "/tmp/x"], "error"),
+    (["dump-config", "--bogus"], "unrecognized arguments"),
+])
+def test_errors_exit_2_with_a_message(argv, message, capsys):
+    assert cli.main(argv) == 2
+    captured = capsys.readouterr()
+    assert message in captured.err + captured.out
+
+
+def test_an_uncaught_bad_input_is_reported_not_raised(tmp_path, capsys, monkeypatch):
+    """A ValueError escaping a tool is the same convention: `bevo CMD: error: ...`, exit 2."""
+    def boom(name, argv):
+        raise ValueError("bad value in the input")
+
+    monkeypatch.setattr(cli, "run_tool", boom)
+    assert cli.main(["run", "x"]) == 2
+    assert "bevo run: error: bad value in the input" in capsys.readouterr().err
+
+
+def test_dump_config_round_trips_through_load_config(tmp_path, capsys):
+    assert cli.main([cli.DUMP_CONFIG]) == 0
+    text = capsys.readouterr().out
+    path = tmp_path / "all.yaml"
+    path.write_text(text)
+    config, flat = load_config(path)
+    default = BevoConfig()
+    expected = default.to_flat()
+    assert set(expected) <= set(flat)  # every engine field is in the file
+    got = config.to_flat()
+    assert got.pop("learned_params_file") == str(REPO_ROOT / "params" / "learned_default.yaml")
+    expected.pop("learned_params_file")
+    assert got == expected
+    for name, value in expected.items():  # also typed as the dataclass has it (1e-05 must not read as text)
+        assert type(flat[name]) is type(value), name
+    from bevo_ros.node import NodeSettings
+
+    for field in NodeSettings.__dataclass_fields__:  # and the node's own settings
+        assert field in flat
+    assert "# camera centre height above the road (m)" in text  # documented
+
+
+def test_dump_config_of_a_changed_config_reads_back_equal(tmp_path):
+    config = BevoConfig()
+    config.filter.max_imu_gap = 1e-5  # repr "1e-05": YAML 1.1 needs a dot
+    config.odometry.mode = "paper"
+    config.camera.base_T_camera = [float(i) for i in range(16)]
+    config.bev.size = 64
+    config.learned_params_file = str(REPO_ROOT / "params" / "learned_paper.yaml")
+    path = tmp_path / "changed.yaml"
+    cli_text = dump_params_yaml(config)
+    path.write_text(cli_text)
+    assert load_config(path)[0] == config
+    assert isinstance(yaml.safe_load(cli_text)["/**"]["ros__parameters"]["filter.max_imu_gap"], float)
+    assert load_params_file(path)["bev.size"] == 64
+
+
+def test_dump_config_to_a_file_and_run_as_a_module(tmp_path):
+    out = tmp_path / "p.yaml"
+    r = subprocess.run([sys.executable, "-m", "bevo_ros.cli", "dump-config", "--engine-only", "-o", str(out)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert load_config(out)[0].bev == BevoConfig().bev
+    assert "imu_topic" not in out.read_text()  # --engine-only
