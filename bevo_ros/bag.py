@@ -208,7 +208,9 @@ def image_message(stamp: float | int, image: np.ndarray, frame_id: str, encoding
     else:
         raise ValueError(f"unsupported image: shape {image.shape}, dtype {image.dtype} "
                          "(need (H, W) uint8/uint16 or (H, W, 3) uint8)")
-    if enc not in ENCODINGS or ENCODINGS[enc] != (channels, depth):
+    from bevo_ros.ros_conversions import IMAGE_ENCODINGS
+
+    if IMAGE_ENCODINGS.get(enc) != (channels, depth):
         raise ValueError(f"encoding {enc!r} does not fit an image of shape {image.shape}, dtype {image.dtype}")
     h, w = image.shape[:2]
     data = np.ascontiguousarray(image).astype(image.dtype.newbyteorder("<"), copy=False).view(np.uint8).reshape(-1)
@@ -591,36 +593,16 @@ def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start
         yield conn.topic, t_ns, reader.deserialize(raw, conn.msgtype)
 
 
-# Image encodings decoded here: name -> (channels, bytes per channel).
-ENCODINGS = {"mono8": (1, 1), "8UC1": (1, 1), "mono16": (1, 2), "16UC1": (1, 2), "rgb8": (3, 1), "bgr8": (3, 1)}
+def decode_image(msg: Any) -> np.ndarray:
+    """sensor_msgs/Image (as read from a bag) -> uint8 grey ``(H, W)``: the node's conversion
+    (:func:`bevo_ros.ros_conversions.image_to_gray`), so a bag gives the engine the very grey levels
+    bevo_node gives it. Raises :class:`BagError` for an encoding or layout it cannot use."""
+    from bevo_ros.ros_conversions import ImageConversionError, image_to_gray
 
-
-def decode_image(msg: Any, to_gray: bool = True) -> np.ndarray:
-    """sensor_msgs/Image -> uint8 ``(H, W)`` (``to_gray``) or the native layout.
-
-    Colour is converted with ITU-R BT.601 luma weights (as OpenCV does); mono16 is scaled to 8
-    bits by /257 (65535 -> 255).
-    """
-    enc = msg.encoding
-    if enc not in ENCODINGS:
-        raise BagError(f"unsupported image encoding {enc!r} (supported: {', '.join(ENCODINGS)})")
-    channels, depth = ENCODINGS[enc]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    data = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, dtype=np.uint8)
-    row = w * channels * depth
-    if step < row or data.size < step * h:
-        raise BagError(f"image {w}x{h} {enc}: step {step} / data size {data.size} inconsistent")
-    rows = data[: step * h].reshape(h, step)[:, :row]
-    if depth == 2:
-        dtype = np.dtype(">u2" if msg.is_bigendian else "<u2")
-        img = np.ascontiguousarray(rows).view(dtype).reshape(h, w).astype(np.uint16)
-        return np.round(img / 257.0).astype(np.uint8) if to_gray else img
-    img = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
-    if channels == 1 or not to_gray:
-        return np.ascontiguousarray(img)
-    r, g, b = (img[..., 0], img[..., 1], img[..., 2]) if enc == "rgb8" else (img[..., 2], img[..., 1], img[..., 0])
-    gray = 0.299 * r + 0.587 * g + 0.114 * b
-    return np.clip(np.round(gray), 0, 255).astype(np.uint8)
+    try:
+        return image_to_gray(msg)
+    except ImageConversionError as exc:
+        raise BagError(str(exc)) from None
 
 
 @dataclass

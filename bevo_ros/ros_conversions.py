@@ -71,8 +71,9 @@ def image_to_gray(msg: Any) -> np.ndarray:
     """sensor_msgs/Image -> ``(H, W)`` uint8 grey.
 
     mono8/8UC1 are used as they are (zero-copy view when the rows are unpadded); rgb8/bgr8 (and
-    rgba8/bgra8) are converted with the ITU-R BT.601 luma weights (as ``bag.decode_image`` and
-    OpenCV do); mono16/16UC1 are scaled to 8 bits by /257 (65535 -> 255).
+    rgba8/bgra8) are converted with the ITU-R BT.601 luma weights in float32 (``bag.decode_image``
+    is this function, so bags and the node give the engine identical grey levels); mono16/16UC1
+    are scaled to 8 bits by /257 (65535 -> 255).
 
     Raises:
         ImageConversionError: unsupported encoding (reason ``bad_encoding``) or a data/step size

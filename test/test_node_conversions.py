@@ -246,3 +246,24 @@ def test_distorted_camera_info_builds_undistortion_maps_that_invert_the_lens():
     assert fisheye.maps is not None
     with pytest.raises(CalibrationError, match="distortion_model 'kannala_unknown'.*not supported"):
         calibration_from_camera_info(_camera_info(w, h, K, D, "kannala_unknown"), image_topic="camera/image_raw")
+
+
+def test_rgb8_bag_gives_the_node_s_grey_levels_for_every_colour(tmp_path):
+    """One conversion: an rgb8 image read back from a rosbag2 by the offline tools (bag.decode_image,
+    run_bag, training) has exactly the grey levels the node computes from the same message, for all
+    2^24 colours (a float64 copy of the BT.601 formula rounds 2,743 of them differently)."""
+    from bevo_ros import bag
+
+    rgb = np.arange(1 << 24, dtype=np.uint32).view(np.uint8).reshape(4096, 4096, 4)[..., :3].copy()
+    path = tmp_path / "rgb_bag"
+    with bag.BagWriter(path, storage="mcap") as writer:
+        writer.write(bag.IMAGE_TOPIC, bag.IMAGE_MSG, bag.image_message(1.0, rgb, "camera", "rgb8"), 1.0)
+    (_, _, stored), = list(bag.iter_messages(path, [bag.IMAGE_TOPIC]))
+    offline = bag.decode_image(stored)
+    node = rc.image_to_gray(_image(rgb, "rgb8"))
+    assert offline.shape == node.shape == (4096, 4096)
+    assert np.array_equal(offline, node)
+    f64 = np.clip(np.round(0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]), 0, 255)
+    differ = int((f64 != node).sum())
+    print(f"\nfloat64 BT.601 differs from the one conversion on {differ} of {1 << 24} colours (by at most 1)")
+    assert 0 < differ and np.abs(f64 - node).max() == 1  # the comparison above can see such a drift
