@@ -24,6 +24,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from bevo_ros.ros_conversions import ns_to_seconds, stamp_to_ns  # noqa: F401 - the stamp formulas, one place
+
 PathLike = str | Path
 
 # Default topic names (the node, the tools and the tests agree on them).
@@ -76,17 +78,6 @@ def ns_to_sec_nanosec(ns: int) -> tuple[int, int]:
     if ns < 0:
         raise ValueError(f"negative stamp {ns} ns cannot go into builtin_interfaces/Time")
     return ns // 1_000_000_000, ns % 1_000_000_000
-
-
-def stamp_ns(msg_stamp: Any) -> int:
-    """``builtin_interfaces/Time``-like (``sec``, ``nanosec``) -> integer nanoseconds."""
-    return int(msg_stamp.sec) * 1_000_000_000 + int(msg_stamp.nanosec)
-
-
-def ns_to_seconds(ns: np.ndarray | Sequence[int]) -> np.ndarray:
-    """int64 nanoseconds -> float64 seconds (whole seconds split off first)."""
-    ns = np.asarray(ns, dtype=np.int64)
-    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
@@ -704,12 +695,12 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
     shape = None
     for topic, _, msg in iter_messages(path, wanted):
         if topic == imu_topic:
-            imu_t.append(stamp_ns(msg.header.stamp))
+            imu_t.append(stamp_to_ns(msg.header.stamp))
             gyro.append((msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z))
             accel.append((msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z))
             rec.imu_frame_id = msg.header.frame_id
         elif topic == image_topic:
-            frame_t.append(stamp_ns(msg.header.stamp))
+            frame_t.append(stamp_to_ns(msg.header.stamp))
             rec.image_frame_id, rec.image_encoding = msg.header.frame_id, msg.encoding
             if load_images:
                 try:
@@ -732,14 +723,14 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
             T = np.eye(4)
             T[:3, :3] = matrix_from_quaternion((p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
             T[:3, 3] = (p.position.x, p.position.y, p.position.z)
-            gt_t.append(stamp_ns(msg.header.stamp))
+            gt_t.append(stamp_to_ns(msg.header.stamp))
             gt_T.append(T)
             rec.gt_frame_id, rec.gt_child_frame_id = msg.header.frame_id, msg.child_frame_id
         elif topic == gt_imu_topic:
             if msg.orientation_covariance[0] == -1.0:
                 continue  # no attitude in this message
             q = msg.orientation
-            att_t.append(stamp_ns(msg.header.stamp))
+            att_t.append(stamp_to_ns(msg.header.stamp))
             att.append(rpy_from_matrix(matrix_from_quaternion((q.x, q.y, q.z, q.w))))
 
     rec.imu_stamps_ns = np.asarray(imu_t, dtype=np.int64)

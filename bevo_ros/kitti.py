@@ -22,6 +22,8 @@ from typing import Iterable
 
 import numpy as np
 
+from bevo_ros.ros_conversions import ns_to_seconds
+
 PathLike = str | Path
 
 # KITTI odometry devkit (readme.txt): sequence -> (raw drive, first raw frame, last raw frame).
@@ -137,12 +139,6 @@ def read_timestamps_ns(path: PathLike) -> np.ndarray:
 def read_timestamps(path: PathLike) -> np.ndarray:
     """A KITTI raw ``timestamps.txt`` -> ``(N,)`` float64 seconds since the epoch."""
     return ns_to_seconds(read_timestamps_ns(path))
-
-
-def ns_to_seconds(ns: np.ndarray) -> np.ndarray:
-    """int64 nanoseconds -> float64 seconds, splitting off whole seconds first to round once."""
-    ns = np.asarray(ns, dtype=np.int64)
-    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 # ----------------------------------------------------------------------------------------------

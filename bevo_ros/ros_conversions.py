@@ -1,8 +1,8 @@
 """ROS message <-> numpy helpers for ``bevo_node`` (rclpy message classes, no node state).
 
-Stamps: ``builtin_interfaces/Time`` -> float seconds as ``sec + nanosec * 1e-9`` (the formula of
-``bevo_ros.bag.ns_to_seconds``, so the node and the offline tools feed the engine identical
-floats). Outgoing headers copy the input header's ``Time`` object, never a float round trip.
+Stamps: ``builtin_interfaces/Time`` -> float seconds as ``sec + nanosec * 1e-9`` (one formula,
+:func:`ns_to_seconds`, for the node, the bag reader and the KITTI reader, so they feed the engine
+identical floats). Outgoing headers copy the input header's ``Time`` object, never a float round trip.
 """
 from __future__ import annotations
 
@@ -40,13 +40,21 @@ class ImageConversionError(ValueError):
         self.reason = reason
 
 
-def stamp_to_sec(stamp: Any) -> float:
-    """``builtin_interfaces/Time`` -> float seconds (same formula as ``bag.ns_to_seconds``)."""
-    return float(int(stamp.sec)) + float(int(stamp.nanosec)) * 1e-9
+def ns_to_seconds(ns: np.ndarray | Any) -> np.ndarray:
+    """int64 nanoseconds ``(...)`` -> float64 seconds ``(...)``: whole seconds split off first, so
+    ``sec + nanosec * 1e-9`` rounds once."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 def stamp_to_ns(stamp: Any) -> int:
+    """``builtin_interfaces/Time``-like (``sec``, ``nanosec``; rclpy or rosbags) -> integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def stamp_to_sec(stamp: Any) -> float:
+    """``builtin_interfaces/Time`` -> float seconds (:func:`ns_to_seconds`)."""
+    return float(ns_to_seconds(stamp_to_ns(stamp)))
 
 
 def sec_to_stamp(t: float):
@@ -269,7 +277,7 @@ def heatmap_to_mono8(heat: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 __all__ = [
-    "IMAGE_ENCODINGS", "CV2_GRAY_ENCODINGS", "ImageConversionError", "compressed_to_gray", "stamp_to_sec", "stamp_to_ns", "sec_to_stamp",
+    "IMAGE_ENCODINGS", "CV2_GRAY_ENCODINGS", "ImageConversionError", "compressed_to_gray", "stamp_to_sec", "stamp_to_ns", "ns_to_seconds", "sec_to_stamp",
     "imu_to_arrays", "image_to_gray", "gray_to_image_msg", "camera_info_intrinsics",
     "quaternion_from_rpy", "rpy_from_quaternion", "odometry_msg", "pose_stamped_from_odometry",
     "transform_from_odometry", "bev_to_mono8", "heatmap_to_mono8",

@@ -26,11 +26,13 @@ def _image(arr: np.ndarray, encoding: str, pad: int = 0, bigendian: bool = False
 
 
 def test_stamps_round_trip_and_match_bag_formula():
-    from bevo_ros.bag import ns_to_seconds
+    from bevo_ros import bag, kitti
 
     t = Time(sec=1317388800, nanosec=123456789)
     assert rc.stamp_to_ns(t) == 1317388800123456789
-    assert rc.stamp_to_sec(t) == float(ns_to_seconds([rc.stamp_to_ns(t)])[0])
+    assert rc.stamp_to_sec(t) == 1317388800.0 + 123456789 * 1e-9  # sec + nanosec * 1e-9: rounded once
+    assert rc.stamp_to_sec(t) == float(rc.ns_to_seconds([rc.stamp_to_ns(t)])[0])
+    assert bag.ns_to_seconds is kitti.ns_to_seconds is rc.ns_to_seconds  # one formula for node, bags and KITTI
     back = rc.sec_to_stamp(1000.25)
     assert (back.sec, back.nanosec) == (1000, 250000000)
     edge = rc.sec_to_stamp(1.9999999999)

@@ -32,6 +32,7 @@ from bevo_ros.core.geometry import quaternion_from_rpy
 from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
 from bevo_ros.datasets import camera_for_recording, gt_at
+from bevo_ros.ros_conversions import stamp_to_ns, stamp_to_sec
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
@@ -68,8 +69,8 @@ def run(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_
 
         bar = tqdm(total=total, unit="frame", desc="run_bag")
     for topic, stamp_ns, msg in bag.iter_messages(bag_path, [imu_topic, image_topic]):
-        stamp_ns = bag.stamp_ns(msg.header.stamp)
-        stamp = float(bag.ns_to_seconds([stamp_ns])[0])  # sec + nanosec * 1e-9, bit-identical to the node
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        stamp = stamp_to_sec(msg.header.stamp)  # the node's conversion: bit-identical floats
         try:
             if topic == imu_topic:
                 a, g = msg.linear_acceleration, msg.angular_velocity
