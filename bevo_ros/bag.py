@@ -24,7 +24,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from bevo_ros.ros_conversions import ns_to_seconds, stamp_to_ns  # noqa: F401 - the stamp formulas, one place
+from bevo_ros.ros_conversions import ns_to_seconds, quaternion_from_rpy, stamp_to_ns  # noqa: F401 - one place
 
 PathLike = str | Path
 
@@ -108,15 +108,6 @@ def matrix_from_quaternion(q: Sequence[float]) -> np.ndarray:
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ])
-
-
-def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """``Rz(yaw) Ry(pitch) Rx(roll)`` (geometry.py convention) -> ``(x, y, z, w)``."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-                     cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy])
 
 
 def rpy_from_matrix(R: np.ndarray) -> tuple[float, float, float]:

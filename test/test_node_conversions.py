@@ -33,6 +33,7 @@ def test_stamps_round_trip_and_match_bag_formula():
     assert rc.stamp_to_sec(t) == 1317388800.0 + 123456789 * 1e-9  # sec + nanosec * 1e-9: rounded once
     assert rc.stamp_to_sec(t) == float(rc.ns_to_seconds([rc.stamp_to_ns(t)])[0])
     assert bag.ns_to_seconds is kitti.ns_to_seconds is rc.ns_to_seconds  # one formula for node, bags and KITTI
+    assert bag.quaternion_from_rpy is rc.quaternion_from_rpy  # bag writer, run_bag and the node: one quaternion
     back = rc.sec_to_stamp(1000.25)
     assert (back.sec, back.nanosec) == (1000, 250000000)
     edge = rc.sec_to_stamp(1.9999999999)

@@ -28,11 +28,10 @@ import torch
 from bevo_ros import bag, kitti
 from bevo_ros.config import BevoConfig, ConfigError, REPO_ROOT, atomic_write_text, build_odometry, load_config, \
     load_learned_params
-from bevo_ros.core.geometry import quaternion_from_rpy
 from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
 from bevo_ros.datasets import camera_for_recording, gt_at
-from bevo_ros.ros_conversions import stamp_to_ns, stamp_to_sec
+from bevo_ros.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_to_sec
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
@@ -111,7 +110,7 @@ def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.Recording, T_ba
     kitti.write_poses(paths[0], camera_trajectory(base, T_base_cam))
     lines = []
     for s in steps:
-        q = quaternion_from_rpy(*torch.tensor(s.rpy)).tolist()
+        q = quaternion_from_rpy(*map(float, s.rpy))  # the node's published orientation
         lines.append(f"{s.stamp:.9f} " + " ".join(f"{v:.9f}" for v in (*s.position, *q)))
     atomic_write_text(paths[1], "\n".join(lines) + "\n")
     stamps = np.array([s.stamp for s in steps])

@@ -62,22 +62,6 @@ def rpy_from_rotation(rotation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return roll, pitch, yaw
 
 
-def quaternion_from_rpy(roll: Tensor, pitch: Tensor, yaw: Tensor) -> Tensor:
-    """Unit quaternion ``(x, y, z, w)`` (ROS order) of ``Rz(yaw) Ry(pitch) Rx(roll)``. -> ``(..., 4)``."""
-    cr, sr = torch.cos(roll / 2), torch.sin(roll / 2)
-    cp, sp = torch.cos(pitch / 2), torch.sin(pitch / 2)
-    cy, sy = torch.cos(yaw / 2), torch.sin(yaw / 2)
-    return torch.stack(
-        [
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy,
-        ],
-        dim=-1,
-    )
-
-
 def wrap_angle(angle: Tensor) -> Tensor:
     """Wrap to ``[-pi, pi)``."""
     return torch.remainder(angle + torch.pi, 2 * torch.pi) - torch.pi
