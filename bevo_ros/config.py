@@ -467,22 +467,25 @@ def camera_model(settings: CameraSettings, K=None, width: int | None = None, hei
                        float(settings.height))
 
 
+def bev_spec(config: BevoConfig):
+    """The engine's BEV grid (``core.geometry.BevSpec``) from the settings."""
+    from bevo_ros.core.geometry import BevSpec
+
+    return BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+
+
 def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     """The engine both the node and the offline tools run: one construction, one behaviour."""
-    import torch
-
+    from bevo_ros.core.device import resolve_device
     from bevo_ros.core.dukf import DUKF
-    from bevo_ros.core.geometry import BevSpec
     from bevo_ros.core.odometry import BevoOdometry
 
     if config.filter.motion_model not in ("euler", "additive"):
         raise ConfigError(f"filter.motion_model must be 'euler' or 'additive', got {config.filter.motion_model!r}")
-    device = config.device
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        import warnings
-
-        warnings.warn(f"device '{device}' asked for but CUDA is not available: running on the CPU", stacklevel=2)
-        device = "cpu"
+    try:
+        device = str(resolve_device(config.device))
+    except ValueError as exc:
+        raise ConfigError(f"device: {exc}") from None
     from bevo_ros.core.odometry import MODES
     from bevo_ros.core.vehicle_filter import VehicleNoise
 
@@ -491,7 +494,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     dukf = DUKF(process_var=learned.process_noise_density, measurement_var=learned.measurement_noise_variance,
                 motion_model=config.filter.motion_model).double()
     vehicle = VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate)
-    spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+    spec = bev_spec(config)
     limits = imu_limits(config)
     odometry = BevoOdometry(
         camera=camera if camera is not None else camera_model(config.camera),

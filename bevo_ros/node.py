@@ -29,6 +29,7 @@ from rclpy.node import Node
 
 from bevo_ros.config import (BevoConfig, ConfigError, build_odometry, camera_model, load_learned_params,
                              resolve_path)
+from bevo_ros.core.device import resolve_device
 from bevo_ros.core.validation import TimeJumpGuard, intrinsics_problem
 from bevo_ros.ros import parameters as ros_params
 from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from_camera_info,
@@ -275,9 +276,10 @@ class BevoNode(Node):
 
         if s.torch_threads > 0:
             torch.set_num_threads(s.torch_threads)
-        if self.config.device.startswith("cuda") and not torch.cuda.is_available():
-            self.get_logger().warning(f"device '{self.config.device}' requested but CUDA is not available: "
-                                      "running on the CPU")
+        try:  # the one CUDA fallback rule, logged (build_odometry applies it again for the engine)
+            resolve_device(self.config.device, log=self.get_logger().warning)
+        except ValueError as exc:
+            raise ConfigError(f"parameter 'device': {exc}") from None
 
         # ---- state
         self.engine = None

@@ -45,7 +45,9 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from bevo_ros.config import BevoConfig, LearnedParams, atomic_write_text, provenance, read_yaml, save_learned_params
+from bevo_ros.config import BevoConfig, LearnedParams, atomic_write_text, bev_spec, provenance, read_yaml, \
+    save_learned_params
+from bevo_ros.core.device import resolve_device
 from bevo_ros.core.dukf import DUKF
 from bevo_ros.core.geometry import BevSpec, wrap_angle
 from bevo_ros.core.loss import registration_kl_loss
@@ -70,10 +72,6 @@ class TrainingDiverged(RuntimeError):
 
 
 # --------------------------------------------------------------------------- engine pieces
-def bev_spec(config: BevoConfig) -> BevSpec:
-    return BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
-
-
 def loss_dpc(temperature: float = LOSS_TEMPERATURE, base: DpcConfig | None = None) -> DpcConfig:
     """The engine's phase-correlation settings with the loss temperature (point estimates unchanged)."""
     base = base or DpcConfig()
@@ -97,21 +95,6 @@ def variances(dukf: DUKF) -> tuple[tuple[float, float], tuple[float, float]]:
     o = dukf.process_var.detach().cpu().tolist()
     q = dukf.measurement_var.detach().cpu().tolist()
     return (o[0], o[1]), (q[0], q[1])
-
-
-def resolve_device(device: str, log: Callable[[str], None] | None = None) -> torch.device:
-    """``cpu``/``cuda[:n]``; CUDA asked but absent falls back to CPU with a warning."""
-    if str(device).startswith("cuda"):
-        if torch.cuda.is_available():
-            return torch.device(device)
-        msg = f"device {device!r} asked for but CUDA is not available: training on the CPU"
-        warnings.warn(msg, RuntimeWarning, stacklevel=2)
-        if log is not None:
-            log("warning: " + msg)
-        return torch.device("cpu")
-    if str(device) != "cpu":
-        raise ValueError(f"device must be 'cpu' or 'cuda[:n]', got {device!r}")
-    return torch.device("cpu")
 
 
 # --------------------------------------------------------------------------- one pass over a recording
@@ -503,7 +486,7 @@ def train(
             raise ValueError(f"{s.name}: no ground truth; training needs /ground_truth/odometry")
         if len(s) < 4:
             raise ValueError(f"{s.name}: {len(s)} frames; need at least 4 to split train/validation")
-    device = resolve_device(options.device, log)
+    device = resolve_device(options.device, lambda m: log("warning: " + m), what="training")
     steps, vals = _split_parts(seqs, options.split, options.steps_per_bag)
     imu_dt = median_imu_dt(seqs)
 

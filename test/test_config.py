@@ -94,3 +94,34 @@ def test_missing_or_garbage_learned_file(tmp_path):
     Path(tmp_path / "list.yaml").write_text("- 1\n- 2\n")
     with pytest.raises(ConfigError, match="expected a mapping"):
         load_learned_params(tmp_path / "list.yaml")
+
+
+def test_one_device_rule_and_one_bev_grid_from_the_settings():
+    """build_odometry, training and the map localiser share core.device.resolve_device; the BEV
+    grid comes from config.bev_spec wherever settings are turned into an engine."""
+    import torch
+
+    from bevo_ros import config as cfg, training
+    from bevo_ros.core import map_localization
+    from bevo_ros.core.device import resolve_device
+    from bevo_ros.core.geometry import BevSpec
+
+    assert training.resolve_device is map_localization.resolve_device is resolve_device
+    assert training.bev_spec is cfg.bev_spec
+    c = cfg.BevoConfig()
+    c.bev.size, c.bev.metres_per_pixel, c.bev.forward_offset = 64, 0.2, 5.0
+    assert cfg.bev_spec(c) == BevSpec(64, 0.2, 5.0)
+    assert resolve_device("cpu") == torch.device("cpu")
+    c.device = "tpu"
+    with pytest.raises(cfg.ConfigError, match="device"):
+        cfg.build_odometry(c, cfg.LearnedParams())
+    if not torch.cuda.is_available():
+        c.device = "cuda"
+        logged = []
+        with pytest.warns(RuntimeWarning, match="CUDA is not available"):
+            assert resolve_device("cuda:0", logged.append) == torch.device("cpu")
+        assert logged and "on the CPU" in logged[0]
+        from bevo_ros.synthetic import kitti_like_camera
+
+        with pytest.warns(RuntimeWarning, match="CUDA is not available"):
+            assert cfg.build_odometry(c, cfg.LearnedParams(), camera=kitti_like_camera()).device == torch.device("cpu")

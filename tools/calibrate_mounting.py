@@ -27,7 +27,7 @@ except ImportError:
 
 import torch
 
-from bevo_ros.config import REPO_ROOT, ConfigError, load_config
+from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.phase_correlation import DpcConfig
 from bevo_ros.core.sequence import register_consecutive, project_frames
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError, FileNotFoundError) as exc:
         print(f"calibrate_mounting: error: {exc}", file=sys.stderr)
         return 2
-    spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+    spec = bev_spec(config)
     try:
         pitch, roll = calibrate(seq, spec)
     except ValueError as exc:

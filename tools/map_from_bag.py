@@ -27,8 +27,7 @@ import numpy as np
 import torch
 
 from bevo_ros import bag
-from bevo_ros.config import ConfigError, load_config
-from bevo_ros.core.geometry import BevSpec
+from bevo_ros.config import ConfigError, bev_spec, load_config
 from bevo_ros.core.mosaic import mosaic_to_map
 from bevo_ros.datasets import gt_at
 from bevo_ros.maps import save_map
@@ -77,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--frames {args.frames} --every {args.every} selects no frame")
         stamps = np.array([s.stamp for s in sel])
         poses = xy_yaw_from_4x4(gt_at(stamps, rec.gt_stamps, rec.gt_poses))
-        spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+        spec = bev_spec(config)
         bevs = torch.from_numpy(np.stack([s.bev for s in sel]).astype(np.float32))[:, None]
         masks = torch.from_numpy(np.stack([s.bev_mask for s in sel]).astype(np.float32))[:, None]
         aerial = mosaic_to_map(bevs, masks, torch.from_numpy(poses).float(), spec, args.resolution, args.margin)

@@ -39,6 +39,7 @@ import torch
 import torch.nn.functional as F
 
 from .aerial_map import AerialMap
+from .device import resolve_device
 from .geometry import BevSpec
 from .mosaic import MosaicBuffer, _gaussian_blur, compose_mosaic, mosaic_anchor
 from .phase_correlation import (DpcConfig, _quadratic_peak_2d, _window_2d, estimate_rotation,
@@ -505,9 +506,7 @@ class MapLocalizer:
 
     def __init__(self, aerial: AerialMap, spec: BevSpec, config: LocalizerConfig = LocalizerConfig(),
                  device: str | torch.device = "cpu") -> None:
-        if str(device).startswith("cuda") and not torch.cuda.is_available():
-            device = "cpu"
-        self.device = torch.device(device)
+        self.device = resolve_device(device, what="map localisation")
         self.config = config
         self.spec = spec
         self.map = aerial.grey().resampled(config.match.resolution).to(self.device, torch.float32)

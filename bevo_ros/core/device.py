@@ -1,0 +1,26 @@
+"""The torch device a run asks for, with the one CUDA fallback rule (engine, training, map localisation)."""
+from __future__ import annotations
+
+import warnings
+from typing import Callable
+
+import torch
+
+
+def resolve_device(device: str | torch.device, log: Callable[[str], None] | None = None,
+                   what: str = "running") -> torch.device:
+    """``cpu`` / ``cuda[:n]`` -> ``torch.device``; CUDA asked for but absent falls back to the CPU
+    with a ``RuntimeWarning`` (and ``log(message)`` when given, e.g. a ROS logger's ``warning``).
+    Anything else raises ``ValueError``."""
+    name = str(device)
+    if name.startswith("cuda"):
+        if torch.cuda.is_available():
+            return torch.device(name)
+        msg = f"device {name!r} asked for but CUDA is not available: {what} on the CPU"
+        warnings.warn(msg, RuntimeWarning, stacklevel=2)
+        if log is not None:
+            log(msg)
+        return torch.device("cpu")
+    if name != "cpu":
+        raise ValueError(f"device must be 'cpu' or 'cuda[:n]', got {name!r}")
+    return torch.device("cpu")
