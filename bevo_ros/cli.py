@@ -56,14 +56,20 @@ def _tools_dir() -> Path:
     return Path(get_package_share_directory("bevo_ros")) / "tools"
 
 
-def run_tool(name: str, argv: list[str] | None = None) -> int:
-    """Import ``tools/<name>.py`` and return its ``main(argv)``."""
+def load_tool(name: str):
+    """Import ``tools/<name>.py`` (the checkout's, else the installed share's) as a module: the one
+    loader of the tools (tools/ holds scripts, not a package), for bevo, the tools and the tests."""
     path = _tools_dir() / f"{name}.py"
     spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses in the tool need their module registered
     spec.loader.exec_module(module)
-    return int(module.main(sys.argv[1:] if argv is None else argv) or 0)
+    return module
+
+
+def run_tool(name: str, argv: list[str] | None = None) -> int:
+    """Import ``tools/<name>.py`` and return its ``main(argv)``."""
+    return int(load_tool(name).main(sys.argv[1:] if argv is None else argv) or 0)
 
 
 def _entry(name: str):

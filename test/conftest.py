@@ -34,15 +34,26 @@ def kitti_root() -> Path:
 
 
 def load_tool(name: str):
-    """Import ``tools/<name>.py`` as a module (tools/ holds scripts, not a package)."""
-    import importlib.util
-    import sys
+    """Import ``tools/<name>.py`` as a module (bevo_ros.cli's loader)."""
+    from bevo_ros.cli import load_tool as load
 
-    spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", REPO / "tools" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses defined in the tool need their module registered
-    spec.loader.exec_module(module)
-    return module
+    return load(name)
+
+
+def ros_context(domain_id: int):
+    """Body of a module's ``context`` fixture (``yield from ros_context(DOMAIN_ID)``): an rclpy
+    context on the module's own domain, localhost only; torch's thread count restored afterwards
+    (a node sets torch_threads process-wide)."""
+    import rclpy
+    import torch
+
+    threads = torch.get_num_threads()
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    yield ctx
+    rclpy.shutdown(context=ctx)
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")

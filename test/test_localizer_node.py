@@ -4,7 +4,6 @@ diagnostics and the debug image out; bad inputs counted."""
 from __future__ import annotations
 
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from bevo_ros.ros_conversions import (bev_to_mono8, gray_to_image_msg, heatmap_t
                                       quaternion_from_rpy, rpy_from_quaternion, sec_to_stamp, stamp_to_sec)
 from bevo_ros.synthetic_map import frame_bev, make_localization_drive, render_aerial_map  # noqa: E402
 
-from conftest import domain_id_for  # noqa: E402
+from conftest import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(18)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
@@ -40,15 +39,7 @@ RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 @pytest.fixture(scope="module")
 def context():
-    import torch
-
-    threads = torch.get_num_threads()
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.shutdown(context=ctx)
-    torch.set_num_threads(threads)
+    yield from ros_context(DOMAIN_ID)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@
 """
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu  # noqa: E402
 
-from conftest import domain_id_for  # noqa: E402
+from conftest import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(18)
 REPO = Path(__file__).resolve().parents[1]
@@ -42,15 +41,7 @@ LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durabilit
 
 @pytest.fixture(scope="module")
 def context():
-    import torch
-
-    threads = torch.get_num_threads()
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.shutdown(context=ctx)
-    torch.set_num_threads(threads)
+    yield from ros_context(DOMAIN_ID)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@
 """
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from bevo_ros.config import ConfigError  # noqa: E402
 from bevo_ros.ros_conversions import rpy_from_quaternion, stamp_to_sec  # noqa: E402
 
-from conftest import domain_id_for  # noqa: E402
+from conftest import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(11)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
@@ -40,15 +39,7 @@ RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 @pytest.fixture(scope="module")
 def context():
-    import torch
-
-    threads = torch.get_num_threads()  # the node sets torch_threads process-wide: restore it
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.shutdown(context=ctx)
-    torch.set_num_threads(threads)
+    yield from ros_context(DOMAIN_ID)
 
 
 @pytest.fixture(scope="module")

@@ -29,7 +29,7 @@ from test_node_support import (REPO, VENV_BIN, NodeProcess, camera_overrides, dr
 from bevo_ros.config import BevoConfig, build_odometry, camera_model, load_learned_params, resolve_path  # noqa: E402
 from bevo_ros.core.validation import STANDARD_GRAVITY as G  # noqa: E402
 
-from conftest import domain_id_for  # noqa: E402
+from conftest import domain_id_for, ros_context  # noqa: E402
 
 T0 = 1000.0
 MAX_STEP = 0.2  # m: the bound on a stationary vehicle's per-frame motion
@@ -128,15 +128,7 @@ PROCESS_DOMAIN_ID = domain_id_for(18)  # node subprocess tests
 
 @pytest.fixture(scope="module")
 def context():
-    import torch
-
-    threads = torch.get_num_threads()  # the node sets torch_threads process-wide: restore it
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.shutdown(context=ctx)
-    torch.set_num_threads(threads)
+    yield from ros_context(DOMAIN_ID)
 
 
 @pytest.fixture

@@ -12,7 +12,6 @@ Every step is a user-facing tool called exactly as the README shows.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import sys
 import time
@@ -28,12 +27,10 @@ KITTI = REPO.parent / "shared" / "data" / "kitti"
 
 
 def tool(name: str):
-    """Import tools/<name>.py as a module (tools/ is scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", REPO / "tools" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses defined in the tool need their module registered
-    spec.loader.exec_module(module)
-    return module
+    """Import tools/<name>.py as a module (bevo_ros.cli's loader)."""
+    from bevo_ros.cli import load_tool
+
+    return load_tool(name)
 
 
 def step(title: str) -> float:

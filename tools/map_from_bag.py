@@ -12,7 +12,6 @@ frame). The PNG's alpha channel marks the ground some BEV covered.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import sys
 from pathlib import Path
@@ -34,11 +33,9 @@ from bevo_ros.maps import save_map
 
 
 def _run_bag():
-    spec = importlib.util.spec_from_file_location("bevo_tool_run_bag", REPO / "tools" / "run_bag.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    from bevo_ros.cli import load_tool
+
+    return load_tool("run_bag")
 
 
 def xy_yaw_from_4x4(T: np.ndarray) -> np.ndarray:

@@ -38,13 +38,9 @@ TRAIN_ARGS = ("--epochs", "1", "--steps-per-bag", "2", "--seed", "0", "--vehicle
 
 
 def _tool(name: str):
-    import importlib.util
+    from bevo_ros.cli import load_tool
 
-    spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", REPO / "tools" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool(name)
 
 
 def kitti_bag(kitti_root: Path, out: Path) -> Path:
