@@ -137,6 +137,11 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write_text(out / "summary.md", "# BEVO demo\n\n" + table)
     print("\n" + table)
     print(f"plots: {out}/eval_fused/trajectory.png, frame_errors.png, pitch_roll.png")
+    from bevo_ros.synthetic_map import localization_demo  # BEVO+ (issue 13): odometry only vs map localisation
+
+    plus = localization_demo(out / "bevo_plus")
+    print("\n" + plus["table"] + f"plot: {plus['plot']}")
+    atomic_write_text(out / "summary.md", "# BEVO demo\n\n" + table + "\n" + plus["table"])
     print(f"demo finished in {time.perf_counter() - t_start:.0f} s")
     return 0
 

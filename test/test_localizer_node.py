@@ -1,0 +1,199 @@
+"""bevo_localizer in-process: bevo_node's outputs (odometry + mono8 BEV, with the heat-map beside
+it) and RViz's /initialpose in through DDS (localhost); pose in map, TF map -> odom (REP-105),
+diagnostics and the debug image out; bad inputs counted."""
+from __future__ import annotations
+
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_node_support import spin_until  # noqa: E402
+
+rclpy = pytest.importorskip("rclpy")
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+from std_msgs.msg import Header  # noqa: E402
+
+from bevo_ros.config import ConfigError  # noqa: E402
+from bevo_ros.core.map_localization import se2_compose  # noqa: E402
+from bevo_ros.maps import save_map  # noqa: E402
+from bevo_ros.ros_conversions import (bev_to_mono8, gray_to_image_msg, heatmap_to_mono8,  # noqa: E402
+                                      quaternion_from_rpy, rpy_from_quaternion, sec_to_stamp, stamp_to_sec)
+from bevo_ros.synthetic_map import frame_bev, make_localization_drive, render_aerial_map  # noqa: E402
+
+from conftest import domain_id_for  # noqa: E402
+
+DOMAIN_ID = domain_id_for(18)
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture(scope="module")
+def context():
+    import torch
+
+    threads = torch.get_num_threads()
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
+    yield ctx
+    rclpy.shutdown(context=ctx)
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    ld = make_localization_drive(seed=5, length=120.0)
+    aerial = render_aerial_map(ld.drive.ground, ld.gt[:, :2], seed=5)
+    path = save_map(aerial, tmp_path_factory.mktemp("map") / "area.yaml")
+    return ld, path
+
+
+def odometry_msg(stamp: float, pose: np.ndarray, dt: float) -> Odometry:
+    m = Odometry()
+    m.header = Header(stamp=sec_to_stamp(stamp), frame_id="odom")
+    m.child_frame_id = "base_link"
+    m.pose.pose.position.x, m.pose.pose.position.y = float(pose[0]), float(pose[1])
+    o = m.pose.pose.orientation
+    o.x, o.y, o.z, o.w = quaternion_from_rpy(0.0, 0.0, float(pose[2]))
+    tw = np.zeros((6, 6))
+    tw[0, 0], tw[1, 1], tw[5, 5] = (0.03 / dt) ** 2, (0.02 / dt) ** 2, (math.radians(0.05) / dt) ** 2
+    m.twist.covariance = [float(v) for v in tw.reshape(-1)]
+    return m
+
+
+def test_localizer_node_end_to_end(context, world):
+    from bevo_ros.localizer_node import BevoLocalizerNode
+
+    ld, map_path = world
+    node = BevoLocalizerNode(context=context, parameter_overrides=[
+        Parameter("map_file", value=str(map_path)), Parameter("diagnostics_period", value=0.2)])
+    tester = rclpy.create_node("localizer_tester", context=context)
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(tester)
+    odom_pub = tester.create_publisher(Odometry, "/bevo/odometry", RELIABLE)
+    bev_pub = tester.create_publisher(Image, "/bevo/bev_image", RELIABLE)
+    init_pub = tester.create_publisher(PoseWithCovarianceStamped, "/initialpose", 10)
+    poses, diag, debug, tf = [], [], [], []
+    tester.create_subscription(PoseWithCovarianceStamped, "/bevo/map_pose", poses.append, RELIABLE)
+    tester.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 10)
+    tester.create_subscription(Image, "/bevo/localizer/debug_image", debug.append, 10)
+    try:
+        from tf2_msgs.msg import TFMessage
+
+        tester.create_subscription(TFMessage, "/tf", tf.append, QoSProfile(depth=100))
+        have_tf = True
+    except ImportError:
+        have_tf = False
+    try:
+        assert spin_until(ex, lambda: odom_pub.get_subscription_count() > 0 and bev_pub.get_subscription_count() > 0
+                          and init_pub.get_subscription_count() > 0 and node.debug_pub.get_subscription_count() > 0,
+                          10)
+        # A pose in the wrong frame is ignored and counted; then RViz's 2D Pose Estimate, 2 m / 4 deg off.
+        bad = PoseWithCovarianceStamped()
+        bad.header.frame_id = "odom"
+        init_pub.publish(bad)
+        assert spin_until(ex, lambda: node.drops["initialpose_wrong_frame"] == 1, 5)
+        start = se2_compose(ld.gt[0], np.array([1.5, -1.3, math.radians(4.0)]))
+        msg = PoseWithCovarianceStamped()
+        msg.header.frame_id = "map"
+        msg.pose.pose.position.x, msg.pose.pose.position.y = float(start[0]), float(start[1])
+        o = msg.pose.pose.orientation
+        o.x, o.y, o.z, o.w = quaternion_from_rpy(0.0, 0.0, float(start[2]))
+        cov = np.zeros((6, 6))
+        cov[0, 0] = cov[1, 1] = 0.25 * 9  # RViz's 0.5 m std is too small for this start: say 1.5 m
+        cov[5, 5] = math.radians(5.0) ** 2
+        msg.pose.covariance = [float(v) for v in cov.reshape(-1)]
+        init_pub.publish(msg)
+        assert spin_until(ex, lambda: node.counts["initialpose"] == 1, 5)
+
+        rng = np.random.default_rng(0)
+        stamps = ld.drive.frame_stamps
+        for i in range(len(ld.gt)):
+            bev, mask = frame_bev(ld.drive, i, rng=rng)
+            img = bev_to_mono8(bev, mask)
+            if i % 3 == 0:  # bevo_node's heat-map beside the BEV: cut off
+                img = np.hstack([img, np.full((100, 2), 128, np.uint8), heatmap_to_mono8(rng.random((100, 100)), img.shape)])
+            dt = float(stamps[i] - stamps[i - 1]) if i else 0.1
+            before = node.counts["odometry_in"]
+            if i % 2:  # arrival order across topics is not guaranteed
+                bev_pub.publish(gray_to_image_msg(img, Header(stamp=sec_to_stamp(stamps[i]), frame_id="base_link")))
+                odom_pub.publish(odometry_msg(stamps[i], ld.odom[i], dt))
+            else:
+                odom_pub.publish(odometry_msg(stamps[i], ld.odom[i], dt))
+                bev_pub.publish(gray_to_image_msg(img, Header(stamp=sec_to_stamp(stamps[i]), frame_id="base_link")))
+            assert spin_until(ex, lambda: node.counts["odometry_in"] > before and node.counts["bev_in"] >= i + 1, 5)
+        bad_bev = gray_to_image_msg(np.zeros((50, 50), np.uint8), Header(stamp=sec_to_stamp(stamps[-1] + 0.1)))
+        bev_pub.publish(bad_bev)
+        odom_pub.publish(odometry_msg(stamps[-1] + 0.1, ld.odom[-1], 0.1))  # flushes the last frame
+        assert spin_until(ex, lambda: node.drops["bev_wrong_size"] == 1 and len(poses) >= len(ld.gt), 10)
+        n_diag = len(diag)
+        spin_until(ex, lambda: len(diag) >= n_diag + 2 and len(debug) >= 1, 5)
+
+        # Stamps copied, frame = map; the pose converges to the truth.
+        p = min(poses, key=lambda m: abs(stamp_to_sec(m.header.stamp) - float(stamps[-1])))
+        assert abs(stamp_to_sec(p.header.stamp) - float(stamps[-1])) < 1e-6
+        assert p.header.frame_id == "map"
+        q = p.pose.pose.orientation
+        est = np.array([p.pose.pose.position.x, p.pose.pose.position.y, rpy_from_quaternion(q.x, q.y, q.z, q.w)[2]])
+        err = float(np.hypot(*(est[:2] - ld.gt[-1, :2])))
+        yaw_err = math.degrees(abs((est[2] - ld.gt[-1, 2] + math.pi) % (2 * math.pi) - math.pi))
+        c = node.localizer.counters
+        print(f"\n[bevo_localizer] {len(poses)} poses, {c.measurements} map updates ({c.accepted} accepted); "
+              f"final error {err:.2f} m / {yaw_err:.2f} deg (start 2.0 m / 4 deg); debug images {len(debug)}")
+        assert err < 0.5 and yaw_err < 1.0 and c.accepted >= 10
+        cov = np.asarray(p.pose.covariance).reshape(6, 6)
+        assert 0 < cov[0, 0] < 0.25 and cov[2, 2] >= 1e5
+        # REP-105: map -> odom composed with odom -> base_link is the published map pose.
+        if have_tf:
+            tfs = [t for m in tf for t in m.transforms if t.header.frame_id == "map" and t.child_frame_id == "odom"]
+            t = [t for t in tfs if abs(stamp_to_sec(t.header.stamp) - float(stamps[-1])) < 1e-6][-1]
+            r = t.transform.rotation
+            m2o = np.array([t.transform.translation.x, t.transform.translation.y,
+                            rpy_from_quaternion(r.x, r.y, r.z, r.w)[2]])
+            np.testing.assert_allclose(se2_compose(m2o, ld.odom[-1])[:2], est[:2], atol=1e-6)
+        # Diagnostics name the status and the counts; the debug image is crop | mosaic | heat-map.
+        values = {kv.key: kv.value for kv in diag[-1].status[0].values}
+        assert values["status"] == "tracking" and int(values["accepted"]) == c.accepted
+        assert values["drop.bev_wrong_size"] == "1" and values["drop.initialpose_wrong_frame"] == "1"
+        assert debug[-1].width == 3 * 128 + 4 and debug[-1].height == 128
+    finally:
+        ex.remove_node(node)
+        ex.remove_node(tester)
+        node.destroy_node()
+        tester.destroy_node()
+        ex.shutdown()
+
+
+def test_localizer_node_refuses_to_start_without_a_usable_map(context, tmp_path):
+    from bevo_ros.localizer_node import BevoLocalizerNode
+
+    with pytest.raises(ConfigError, match="map_file"):
+        BevoLocalizerNode(context=context)
+    with pytest.raises(ConfigError, match="not found"):
+        BevoLocalizerNode(context=context, node_name="loc2",
+                          parameter_overrides=[Parameter("map_file", value=str(tmp_path / "none.yaml"))])
+
+
+def test_params_file_lists_every_parameter():
+    import dataclasses
+
+    import yaml
+
+    from bevo_ros.localizer_node import DESCRIPTIONS, LocalizerSettings
+
+    doc = yaml.safe_load((Path(__file__).resolve().parents[1] / "params" / "bevo_localizer.yaml").read_text())
+    listed = set(doc["bevo_localizer"]["ros__parameters"])
+    declared = {f.name for f in dataclasses.fields(LocalizerSettings)}
+    assert listed == declared and set(DESCRIPTIONS) == declared

@@ -1,0 +1,95 @@
+#!/usr/bin/env python3
+"""Build a BEVO+ map from any bag with ground truth: the BEVs of a drive mosaicked with the
+ground-truth poses ("a previous drive" map), written as a nav2 map_server YAML + PNG (atomically).
+
+The BEVs come from the very engine bevo_node runs (tools/run_bag.py); the poses from the bag's
+/ground_truth/odometry at the image stamps (base_link in its odom frame, which becomes the map
+frame). The PNG's alpha channel marks the ground some BEV covered.
+
+  .venv/bin/python tools/map_from_bag.py bags/kitti06 --out maps/kitti06.yaml --every 2
+  .venv/bin/bevo_localizer --ros-args -p map_file:=maps/kitti06.yaml
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+try:
+    import bevo_ros  # noqa: F401
+except ImportError:  # running from a source checkout without installing
+    sys.path.insert(0, str(REPO))
+
+import numpy as np
+import torch
+
+from bevo_ros import bag
+from bevo_ros.config import ConfigError, load_config
+from bevo_ros.core.geometry import BevSpec
+from bevo_ros.core.mosaic import mosaic_to_map
+from bevo_ros.datasets import gt_at
+from bevo_ros.maps import save_map
+
+
+def _run_bag():
+    spec = importlib.util.spec_from_file_location("bevo_tool_run_bag", REPO / "tools" / "run_bag.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def xy_yaw_from_4x4(T: np.ndarray) -> np.ndarray:
+    """``(F, 4, 4)`` poses -> ``(F, 3)`` planar ``(x, y, yaw)``."""
+    return np.stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])], axis=-1)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="map_from_bag.py", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", help="rosbag2 directory with /ground_truth/odometry")
+    p.add_argument("--out", required=True, help="map YAML to write (the PNG goes beside it)")
+    p.add_argument("--params", default=str(REPO / "params" / "kitti.yaml"), help="ROS parameters file")
+    p.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
+    p.add_argument("--resolution", type=float, default=0.1, help="metres per pixel (default 0.1, the BEV's)")
+    p.add_argument("--margin", type=float, default=2.0, help="metres around the BEVs (default 2)")
+    p.add_argument("--frames", default=":", help="frame range first:stop (default all)")
+    p.add_argument("--every", type=int, default=1, help="use every n-th frame (default 1)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    torch.set_num_threads(1)
+    try:
+        if not (args.resolution > 0 and math.isfinite(args.resolution)) or args.every < 1:
+            raise ValueError("--resolution must be > 0 and --every >= 1")
+        config, _ = load_config(args.params)
+        steps, rec, _ = _run_bag().run(args.bag, config, args.learned or config.learned_params_file)
+        if rec.gt_poses is None:
+            raise ValueError(f"{args.bag}: no /ground_truth/odometry messages: a map needs ground-truth poses")
+        first, _, stop = args.frames.partition(":")
+        sel = steps[int(first) if first else 0:int(stop) if stop else None:args.every]
+        if len(sel) < 1:
+            raise ValueError(f"--frames {args.frames} --every {args.every} selects no frame")
+        stamps = np.array([s.stamp for s in sel])
+        poses = xy_yaw_from_4x4(gt_at(stamps, rec.gt_stamps, rec.gt_poses))
+        spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+        bevs = torch.from_numpy(np.stack([s.bev for s in sel]).astype(np.float32))[:, None]
+        masks = torch.from_numpy(np.stack([s.bev_mask for s in sel]).astype(np.float32))[:, None]
+        aerial = mosaic_to_map(bevs, masks, torch.from_numpy(poses).float(), spec, args.resolution, args.margin)
+        path = save_map(aerial, args.out)
+    except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
+        print(f"map_from_bag: error: {exc}", file=sys.stderr)
+        return 2
+    w, h = aerial.extent
+    print(f"map_from_bag: {len(sel)} BEVs -> {aerial.width}x{aerial.height} px at {aerial.resolution:.3f} m/px "
+          f"({w:.0f} x {h:.0f} m, origin {aerial.origin[0]:.2f}, {aerial.origin[1]:.2f}); wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
