@@ -295,7 +295,8 @@ class BevoNode(Node):
         self._last_gap = 0.0
         self._path = collections.deque(maxlen=max(1, s.path_max_length))
         self._last_diag = (time.monotonic(), collections.Counter())
-        self._time_guard = TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward, s.time_jump_confirmations)
+        self._time_guards = {kind: TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward,
+                                                 s.time_jump_confirmations) for kind in ("imu", "image")}
         self._image_size: tuple[int, int] | None = None  # (width, height) of the last decoded image
 
         # calibration: CameraInfo first, the camera.* parameters as the fallback (see _on_image)
@@ -634,7 +635,8 @@ class BevoNode(Node):
                                                                                        "max_pending_images"):
                 self.engine.max_pending_images = value
             elif p.name == "max_time_jump_back":
-                self._time_guard.max_back = value
+                for g in self._time_guards.values():
+                    g.max_back = value
             elif p.name in ("imu_timeout", "image_timeout"):
                 self.monitors[p.name.split("_")[0]].timeout = value
             elif p.name == "sensor_late_factor":
@@ -700,31 +702,48 @@ class BevoNode(Node):
                 j += 1
 
     def _gated(self, kind: str, item: tuple) -> None:
-        """Hand one received ``(msg, arrival)`` to its handler through the time-jump guard: a lone
-        outlier stamp is dropped, a confirmed jump back resets the odometry first."""
+        """Count one received ``(msg, arrival)`` and hand it to its handler through the stream's
+        time-jump guard: a lone outlier stamp is dropped, a confirmed jump back resets first."""
         self.counts["imu_in" if kind == "imu" else "images_in"] += 1
         self.monitors[kind].tick()
-        v = self._time_guard.check(stamp_to_sec(item[0].header.stamp), (kind, item))
-        for k, (msg, _) in v.outliers:
-            label = "IMU" if k == "imu" else k
-            self._drop("stamp_outlier", f"{label} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the timeline "
-                                        f"({self._time_guard.ref:.6f}) by more than max_time_jump_back/forward and no "
-                                        f"other message confirmed the jump (time_jump_confirmations="
-                                        f"{self.settings.time_jump_confirmations})")
+        self._gate(kind, item)
+
+    def _gate(self, kind: str, item: tuple) -> None:
+        guard = self._time_guards[kind]
+        v = guard.check(stamp_to_sec(item[0].header.stamp), item)
+        self._drop_outliers(kind, v.outliers)
         if v.accept:
-            (self._handle_imu if kind == "imu" else self._handle_image)(*item)
+            self._dispatch(kind, item)
             return
         if v.jump is None:
             return  # held until confirmed or found to be an outlier
         self.events[f"time_jump_{v.jump}"] += 1
+        release = [(kind, it) for it in v.release]
         if v.jump == "back":
             self._reset()
+            for other, g in self._time_guards.items():  # the other inputs move to the new timeline too
+                if g is not guard:
+                    more, outliers = g.rebase(guard.ref)
+                    self._drop_outliers(other, outliers)
+                    release += [(other, it) for it in more]
+            release.sort(key=lambda r: (stamp_to_sec(r[1][0].header.stamp), r[0] != "imu"))
         self._log(f"time_jump_{v.jump}", f"time jumped {v.jump} by {v.jump_size:.3f} s (confirmed by {len(v.release)} "
-                                         "messages; bag restarted?): "
+                                         f"{'IMU' if kind == 'imu' else kind} messages; bag restarted?): "
                                          + ("odometry reset, the trajectory restarts at identity" if v.jump == "back"
                                             else "continuing on the new timeline"))
-        for k, it in v.release:
-            (self._handle_imu if k == "imu" else self._handle_image)(*it)
+        for k, it in release:
+            self._dispatch(k, it)
+
+    def _dispatch(self, kind: str, item: tuple) -> None:
+        (self._handle_imu if kind == "imu" else self._handle_image)(*item)
+
+    def _drop_outliers(self, kind: str, items: list) -> None:
+        label = "IMU" if kind == "imu" else kind
+        for msg, _ in items:
+            self._drop("stamp_outlier", f"{label} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the {label} "
+                                        f"timeline ({self._time_guards[kind].ref:.6f}) by more than "
+                                        "max_time_jump_back/forward and no other message confirmed the jump "
+                                        f"(time_jump_confirmations={self.settings.time_jump_confirmations})")
 
     # ------------------------------------------------------------------ per message
     def _on_imu(self, msg, arrival: float = 0.0) -> None:  # counted (and monitored) in _gated
@@ -872,8 +891,9 @@ class BevoNode(Node):
                 self.events["clock_jump_reset"] += 1
                 self._log("clock_jump_reset", "ROS time jumped backwards (bag restarted?): resetting the odometry")
                 self._reset()
-                for kind, item in self._time_guard.reset():  # held messages: judged again on the new timeline
-                    self._gated(kind, item)
+                for kind, guard in self._time_guards.items():  # held messages: judged again on the new timeline
+                    for item in guard.reset():
+                        self._gate(kind, item)
 
             self._jump_handle = self.get_clock().create_jump_callback(threshold, post_callback=self._guard(
                 "clock_jump", on_jump))
@@ -1015,80 +1035,11 @@ def _params_file_from_args(argv: list[str]) -> list[str]:
     return ros_params.params_files_from_args(argv)
 
 
-class _StopRequest:
-    """SIGINT/SIGTERM only set a flag the spin loop checks: the node then stops between two
-    callbacks, destroys its entities and shuts ROS down in that order. (rclpy's own handler shuts
-    the context down at once, under a running executor: a subscription taken at that moment
-    raised ``RuntimeError`` out of ``rclpy.spin`` with exit 1 and a traceback.)"""
-
-    SIGNALS = ("SIGINT", "SIGTERM")
-
-    def __init__(self) -> None:
-        import signal
-
-        self.requested = False
-        self._previous = {}
-        for name in self.SIGNALS:
-            sig = getattr(signal, name)
-            self._previous[sig] = signal.signal(sig, self._on_signal)
-
-    def _on_signal(self, signum, frame) -> None:  # noqa: ARG002 - signal handler signature
-        self.requested = True
-
-    def restore(self) -> None:
-        import signal
-
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
 def main(args: list[str] | None = None) -> int:
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
+    from bevo_ros.ros_process import run_node
 
-    argv = list(sys.argv if args is None else args)
-    stop = _StopRequest()
-    try:
-        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as exc:  # noqa: BLE001 - e.g. an unreadable --params-file
-        stop.restore()
-        print(f"[FATAL] [{NODE_NAME}]: cannot initialise ROS 2: {' '.join(str(exc).split())}", file=sys.stderr)
-        return EXIT_CONFIG_ERROR
-    logger = rclpy.logging.get_logger(NODE_NAME)
-    node = executor = None
-    try:
-        try:
-            node = BevoNode(params_file=_params_file_from_args(argv))
-        except ConfigError as exc:
-            logger.fatal(f"refusing to start: {' '.join(str(exc).split())}")  # one line
-            return EXIT_CONFIG_ERROR
-        except Exception as exc:  # noqa: BLE001 - a clear line, no traceback
-            logger.fatal(f"refusing to start: {type(exc).__name__}: {' '.join(str(exc).split())}")
-            return EXIT_CONFIG_ERROR
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        try:
-            while not stop.requested and rclpy.ok():
-                executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s when idle
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        except Exception:  # noqa: BLE001
-            if not (stop.requested or not rclpy.ok()):
-                raise
-            # raised by rclpy while the process is being stopped: nothing left to do but stop
-        if stop.requested:
-            logger.info("stopping (signal received)")
-    finally:
-        try:
-            if executor is not None:
-                executor.shutdown(timeout_sec=1.0)
-            if node is not None:
-                node.destroy_node()
-        finally:
-            rclpy.try_shutdown()
-            stop.restore()
-    return 0
+    return run_node(lambda argv: BevoNode(params_file=_params_file_from_args(argv)), NODE_NAME, args,
+                    refuse=(ConfigError,))
 
 
 if __name__ == "__main__":

@@ -245,3 +245,27 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     (cam / "timestamps.txt").write_text("".join((cam / "timestamps.txt").read_text().splitlines(True)[:4]))
     _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "o2"], "image_00/timestamps.txt",
                   "4 timestamps but 5 images")
+
+
+def test_a_killed_conversion_leaves_nothing_after_the_next_run(kitti_root, tmp_path, capsys):
+    """SIGKILL cannot be cleaned up after: the next run of the same output removes the partial."""
+    import signal
+    import subprocess
+    import time
+
+    out = tmp_path / "o"
+    cmd = [sys.executable, str(REPO / "tools" / "kitti_to_bag.py"), "--odometry", str(kitti_root / "odometry"),
+           "-o", str(out), "--quiet"]
+    proc = subprocess.Popen(cmd, env=dict(os.environ, PYTHONPATH=str(REPO)), stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while _no_partial(out) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert proc.poll() is None, "the conversion ended before it could be killed"
+    time.sleep(0.2)  # some frames written
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not out.exists() and not _no_partial(out)  # what a kill leaves
+    assert convert("--odometry", kitti_root / "odometry", "-o", out, "--count", "3") == 0
+    assert "partial output of an interrupted run" in capsys.readouterr().err
+    assert _no_partial(out) and bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["o"]

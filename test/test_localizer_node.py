@@ -25,7 +25,7 @@ from sensor_msgs.msg import Image  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from bevo_ros.config import ConfigError  # noqa: E402
-from bevo_ros.core.map_localization import se2_compose, se2_inverse  # noqa: E402
+from bevo_ros.core.map_localization import se2_compose  # noqa: E402
 from bevo_ros.maps import save_map  # noqa: E402
 from bevo_ros.ros_conversions import (bev_to_mono8, gray_to_image_msg, heatmap_to_mono8,  # noqa: E402
                                       quaternion_from_rpy, rpy_from_quaternion, sec_to_stamp, stamp_to_sec)
@@ -184,3 +184,16 @@ def test_localizer_node_refuses_to_start_without_a_usable_map(context, tmp_path)
     with pytest.raises(ConfigError, match="not found"):
         BevoLocalizerNode(context=context, node_name="loc2",
                           parameter_overrides=[Parameter("map_file", value=str(tmp_path / "none.yaml"))])
+
+
+def test_params_file_lists_every_parameter():
+    import dataclasses
+
+    import yaml
+
+    from bevo_ros.localizer_node import DESCRIPTIONS, LocalizerSettings
+
+    doc = yaml.safe_load((Path(__file__).resolve().parents[1] / "params" / "bevo_localizer.yaml").read_text())
+    listed = set(doc["bevo_localizer"]["ros__parameters"])
+    declared = {f.name for f in dataclasses.fields(LocalizerSettings)}
+    assert listed == declared and set(DESCRIPTIONS) == declared

@@ -11,7 +11,7 @@ import torch
 from bevo_ros.config import ConfigError
 from bevo_ros.core.aerial_map import AerialMap, local_grid
 from bevo_ros.core.geometry import BevSpec
-from bevo_ros.core.map_localization import (LocalizerConfig, MapMatchConfig, MapPoseFilter, appearance,
+from bevo_ros.core.map_localization import (LocalizerConfig, MapLocalizer, MapMatchConfig, MapPoseFilter, appearance,
                                             chi2_threshold, measure, se2_between, se2_compose, se2_inverse)
 from bevo_ros.core.mosaic import compose_mosaic, mosaic_anchor, mosaic_to_map
 from bevo_ros.maps import load_map, save_map
@@ -277,3 +277,47 @@ def test_previous_drive_map_from_mosaic(short_drive, tmp_path):
     err = np.linalg.norm(run.estimate[-20:, :2] - run.gt[-20:, :2], axis=1)
     print(f"\n[mosaic map] last 20 frames {err.mean():.3f} m; {run.counters}")
     assert err.mean() < 0.3
+
+
+def test_device_argument_falls_back_to_cpu_and_runs_on_cuda_when_present(short_drive):
+    """``device="cuda"`` runs the measurement on the GPU when there is one, else on the CPU, and
+    both give the same correction."""
+    ld, aerial = short_drive
+    loc = MapLocalizer(aerial, SPEC, LocalizerConfig(), device="cuda")
+    assert loc.device.type == ("cuda" if torch.cuda.is_available() else "cpu")
+    idx = list(range(40, 61, 2))
+    bevs = torch.from_numpy(np.stack([frame_bev(ld.drive, i, SPEC)[0] for i in idx]))[:, None]
+    masks = torch.from_numpy(np.stack([frame_bev(ld.drive, i, SPEC)[1] for i in idx]))[:, None]
+    poses = torch.tensor(ld.gt[idx], dtype=torch.float32)
+    anchor = mosaic_anchor(poses, SPEC)
+    cfg = MapMatchConfig()
+    mos, cov = compose_mosaic(bevs, masks, poses, anchor, SPEC, cfg.size, cfg.resolution)
+    pred = torch.tensor(se2_compose(anchor.double().numpy(), np.array([1.0, 0.5, 0.03])), dtype=torch.float32)[None]
+    ref = measure(mos, cov, aerial.grey(), pred, cfg).correction
+    dev = loc.device
+    out = measure(mos.to(dev), cov.to(dev), aerial.grey().to(dev), pred.to(dev), cfg).correction.cpu()
+    assert torch.allclose(out, ref, atol=2e-3)
+
+
+def test_measurement_is_batched(short_drive):
+    """Two mosaics in one batch give what each gives alone."""
+    ld, aerial = short_drive
+    cfg = MapMatchConfig()
+    grey = aerial.grey()
+    mos_l, cov_l, pred_l = [], [], []
+    for k, end in enumerate((80, 160)):
+        idx = list(range(end - 20, end + 1, 2))
+        bevs = torch.from_numpy(np.stack([frame_bev(ld.drive, i, SPEC)[0] for i in idx]))[:, None]
+        masks = torch.from_numpy(np.stack([frame_bev(ld.drive, i, SPEC)[1] for i in idx]))[:, None]
+        poses = torch.tensor(ld.gt[idx], dtype=torch.float32)
+        anchor = mosaic_anchor(poses, SPEC)
+        mos, cov = compose_mosaic(bevs, masks, poses, anchor, SPEC, cfg.size, cfg.resolution)
+        mos_l.append(mos)
+        cov_l.append(cov)
+        pred_l.append(torch.tensor(se2_compose(anchor.double().numpy(), np.array([0.8, -0.6 * k, 0.02])),
+                                   dtype=torch.float32))
+    both = measure(torch.cat(mos_l), torch.cat(cov_l), grey, torch.stack(pred_l), cfg)
+    for k in range(2):
+        one = measure(mos_l[k], cov_l[k], grey, pred_l[k][None], cfg)
+        assert torch.allclose(both.correction[k], one.correction[0], atol=2e-3)  # float32 FFTs
+        assert torch.allclose(both.covariance[k], one.covariance[0], rtol=2e-2, atol=1e-6)

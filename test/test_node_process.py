@@ -121,11 +121,13 @@ def test_node_process_end_to_end(context, tmp_path):
         executor.shutdown()
 
 
-@pytest.mark.parametrize("problem", ["missing", "malformed"])
+@pytest.mark.parametrize("problem", ["missing", "malformed", "yaml_syntax"])
 def test_bad_learned_file_refuses_to_start(tmp_path, problem):
     learned = tmp_path / "learned.yaml"
     if problem == "malformed":
         learned.write_text("format: bevo_learned_params/1\nprocess_noise_density: {pitch: 1e-4}\n")
+    elif problem == "yaml_syntax":
+        learned.write_text("format: bevo_learned_params/1\nprocess_noise_density: {pitch: 1e-4\n  roll: [\n")
     params = write_params(tmp_path / "params.yaml", {"learned_params_file": str(learned)})
     node = NodeProcess(params, str(DOMAIN_ID)).start()
     try:
@@ -135,6 +137,8 @@ def test_bad_learned_file_refuses_to_start(tmp_path, problem):
     out = node.output
     assert rc == 2, f"exit code {rc}\n{out}"
     assert "Traceback" not in out, out
-    expected = "not found" if problem == "missing" else "'process_noise_density.roll' missing"
-    lines = [line for line in out.splitlines() if "refusing to start" in line]
-    assert len(lines) == 1 and str(learned) in lines[0] and expected in lines[0], out
+    expected = {"missing": "not found", "malformed": "'process_noise_density.roll' missing",
+                "yaml_syntax": "is not valid YAML: line 3, column"}[problem]
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert len(lines) == 1 and "refusing to start" in lines[0], out  # one line, whatever the problem
+    assert str(learned) in lines[0] and expected in lines[0], out

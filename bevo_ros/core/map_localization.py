@@ -10,8 +10,11 @@ Pipeline, for one vehicle (the measurement itself is batched and differentiable)
    centre (differentiable ``grid_sample``), both images go through an illumination-robust
    :func:`appearance` transform, and the phase correlation of
    :mod:`~bevo_ros.core.phase_correlation` (rotation, then translation; phase-only whitening)
-   gives the correction of that pose, with a covariance from the correlation spread.
-3. :class:`MapPoseFilter`: an EKF on the SE(2) base pose in ``map``: predicted with every
+   gives the correction of that pose (the Fourier-magnitude angle refined on a grid of
+   translation-peak heights: :func:`register_grid`), with a covariance from the correlation's
+   spread about its peak, a floor, and the odometry noise the mosaic inherits.
+3. :class:`MapPoseFilter`: an EKF on the SE(2) base pose in ``map`` (plus the odometry's scale
+   and yaw drift per metre): predicted with every
    odometry increment and its covariance (plus a per-metre floor for what the odometry's own
    covariance misses), updated with the map measurement behind a peak-quality test and a
    Mahalanobis gate. A wrong match is rejected and counted, never a jump; after
@@ -21,15 +24,15 @@ Pipeline, for one vehicle (the measurement itself is batched and differentiable)
 
 Appearance: the map is another day, sensor and resolution. :func:`appearance` offers ``raw``,
 ``lcn`` (local contrast normalisation: removes shadows, illumination and contrast changes that are
-smooth over ``lcn_sigma``) and ``gradient`` (local-contrast-normalised gradient magnitude of the
-log intensity: also invariant to a gamma change and to contrast inversion); the phase
+smooth over ``appearance_sigma``) and ``gradient`` (locally normalised gradient magnitude of the
+log intensity: also invariant to a gamma change); the phase
 correlation's whitening (``DpcConfig.whitening_floor = 0``) is the phase-only part.
 ``tools/bench_localization.py`` measures what each buys.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -38,7 +41,7 @@ import torch.nn.functional as F
 from .aerial_map import AerialMap
 from .geometry import BevSpec
 from .mosaic import MosaicBuffer, _gaussian_blur, compose_mosaic, mosaic_anchor
-from .phase_correlation import (DpcConfig, Registration, _quadratic_peak_2d, _window_2d, estimate_rotation,
+from .phase_correlation import (DpcConfig, _quadratic_peak_2d, _window_2d, estimate_rotation,
                                 estimate_translation, overlap_envelope, prepare, rotate_about_centre,
                                 translation_correlation)
 

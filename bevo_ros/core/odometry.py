@@ -67,6 +67,7 @@ class OdometryStep:
     measured_motion: np.ndarray | None = None  # (3,) the correlation's own (dx, dy, dyaw); None first
     accepted: tuple[bool, bool] = (True, True)  # fused mode: (translation, rotation) measurement used
     speed: float = float("nan")  # fused mode: the motion filter's forward speed, m/s
+    filter_inputs: dict | None = None  # fused mode: VehicleFilter.step's arguments this frame (training replays them)
 
 
 @dataclass
@@ -271,7 +272,7 @@ class BevoOdometry:
             # A speed that does not come from the images (wheel odometry): v and dv/dt both removed.
             es = ext[1]
             esp, esv = es.speed_at(stamp - ext[0])
-            f, extra = compensate_floats(a, g, esp, es.a, esv, es.p[3])
+            f, extra = compensate_floats(a, g, esp, es.a, esv, es.var(1))
         else:
             # With the visual speed alone the forward acceleration is not subtracted, it only makes
             # the pitch measurement count less (variance P_aa + a^2): a visual dv/dt closes a loop (a
@@ -445,6 +446,7 @@ class BevoOdometry:
             measured_motion=measured,
             accepted=accepted,
             speed=speed,
+            filter_inputs=None if first or self.mode != "fused" else self._last_filter_inputs,
         )
 
     def _fused_motion(self, curr, dt: float, yaw_cum: float, state: tuple):
@@ -453,7 +455,7 @@ class BevoOdometry:
         n = self.vehicle.noise
         predicted_bias = self._vstate.b
         dyaw = gyro_yaw - predicted_bias * dt
-        dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.p[5] * dt * dt)
+        dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.var(2) * dt * dt)
         dev, dt_ = self.device, self.dtype
         reg = register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
                                 angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev))
@@ -465,13 +467,14 @@ class BevoOdometry:
         imu_accel = imu_var = None
         if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
             imu_accel = self._fwd_sum / self._fwd_time
-            imu_var = GRAVITY * GRAVITY * state[1][0]  # the pitch's share; noise: imu_accel_density
+            imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
         self._fwd_sum = self._fwd_time = 0.0
-        frame = self.vehicle.step(self._vstate, dt, gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
-                                  lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot,
-                                  rotation_var=rot_var, quality=float(reg.quality[0]), imu_accel=imu_accel,
-                                  imu_accel_var=imu_var)
+        inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
+                      lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
+                      quality=float(reg.quality[0]), imu_accel=imu_accel, imu_accel_var=imu_var)
+        frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
+        self._last_filter_inputs = inputs
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
         if float(reg.quality[0]) < n.min_quality:
             self.counters.rejected_textureless += 1
