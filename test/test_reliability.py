@@ -147,7 +147,8 @@ def harness(context):
 
     def make(**extra):
         ov = overrides()
-        ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, log_throttle_period=0.0)
+        ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, log_throttle_period=0.0,
+                  use_camera_info=False)  # the camera.* parameters unless a test asks for CameraInfo
         ov.update(extra)
         made.append(Harness(context, ov, subscribe_outputs=False))
         return made[-1]
@@ -330,7 +331,7 @@ class Peer:
         self.executor = SingleThreadedExecutor(context=context)
         self.executor.add_node(self.node)
         self.pubs = {"imu": self.node.create_publisher(Imu, "/imu/data", qos),
-                     "image": self.node.create_publisher(Image, "/camera/image_raw", qos),
+                     "image": self.node.create_publisher(Image, "/camera/image_rect", qos),
                      "info": self.node.create_publisher(CameraInfo, "/camera/camera_info", qos)}
         self.odom, self.diag = [], []
         self.node.create_subscription(Odometry, "/bevo/odometry", self.odom.append, qos)
