@@ -176,3 +176,27 @@ def road_relative_gt(poses: torch.Tensor) -> torch.Tensor:
     """
     roll, pitch, _ = rpy_from_rotation(poses[:, :3, :3])
     return torch.stack([pitch, roll], dim=-1)
+
+
+def run_engine(sequence: Sequence, config: BevoConfig, learned, mode: str | None = None) -> list:
+    """The node's engine (``build_odometry``) fed a :class:`Sequence` in stamp order (IMU first on
+    equal stamps), then flushed. Returns every ``OdometryStep``; ``mode`` overrides ``odometry.mode``."""
+    import dataclasses
+
+    from .config import build_odometry
+
+    if mode is not None:
+        config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))
+    odo = build_odometry(config, learned, camera=sequence.camera)
+    stamps, frames = sequence.imu_stamps.tolist(), sequence.frame_stamps.tolist()
+    steps, k = [], 0
+    for i, s in enumerate(stamps):
+        steps += odo.add_imu(s, sequence.gyro[i].tolist(), sequence.accel[i].tolist())
+        while k < len(frames) and frames[k] <= s:
+            steps += odo.add_image(frames[k], sequence.images[k].numpy())
+            k += 1
+    for stamp in frames[k:]:
+        steps += odo.add_image(stamp, sequence.images[k].numpy())
+        k += 1
+    return steps + odo.flush()
+

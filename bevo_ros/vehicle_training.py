@@ -112,24 +112,11 @@ def fit_vehicle_noise(sequences: list[tuple[list[dict], np.ndarray]], init: Vehi
 
 
 def record_inputs(sequence, config, learned) -> tuple[list[dict], np.ndarray]:
-    """Run the fused engine (the node's, with ``learned``) over a :class:`~bevo_ros.datasets.Sequence`
-    in stamp order; returns the filter inputs of frames 1.. and their ground-truth motion."""
-    from .config import build_odometry
+    """Run the fused engine (the node's, with ``learned``) over a :class:`~bevo_ros.datasets.Sequence`;
+    returns the filter inputs of frames 1.. and their ground-truth motion."""
+    from .datasets import run_engine
 
-    odo = build_odometry(config, learned, camera=sequence.camera)
-    odo.mode = "fused"
-    stamps = sequence.imu_stamps.tolist()
-    frames = sequence.frame_stamps.tolist()
-    steps, k = [], 0
-    for i, s in enumerate(stamps):
-        steps += odo.add_imu(s, sequence.gyro[i].tolist(), sequence.accel[i].tolist())
-        while k < len(frames) and frames[k] <= s:
-            steps += odo.add_image(frames[k], sequence.images[k].numpy())
-            k += 1
-    while k < len(frames):
-        steps += odo.add_image(frames[k], sequence.images[k].numpy())
-        k += 1
-    steps += odo.flush()
-    if len(steps) != len(frames):
-        raise ValueError(f"{sequence.name}: {len(frames) - len(steps)} frame(s) dropped while recording filter inputs")
+    steps = run_engine(sequence, config, learned, mode="fused")
+    if len(steps) != len(sequence):
+        raise ValueError(f"{sequence.name}: {len(sequence) - len(steps)} frame(s) dropped while recording filter inputs")
     return [s.filter_inputs for s in steps[1:]], sequence.gt_motion().double().numpy()
