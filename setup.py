@@ -3,6 +3,8 @@ from glob import glob
 from setuptools import find_packages, setup
 
 package_name = "bevo_ros"
+# tools/<name>.py installed as executables (bevo_ros.cli.TOOLS; kept literal: setup.py must not import the package)
+TOOLS = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting", "map_from_bag")
 
 setup(
     name=package_name,
@@ -12,6 +14,11 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/params", glob("params/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ("share/" + package_name + "/rviz", glob("rviz/*.rviz")),
+        # the tools' scripts; bevo_ros.cli runs them as lib/bevo_ros/<tool> (ros2 run, launch)
+        ("share/" + package_name + "/tools", [f"tools/{name}.py" for name in TOOLS]),
+        ("share/" + package_name, ["LICENSE"]),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -24,6 +31,7 @@ setup(
         "console_scripts": [
             "bevo_node = bevo_ros.node:main",
             "bevo_localizer = bevo_ros.localizer_node:main",
+            *(f"{name} = bevo_ros.cli:{name}" for name in TOOLS),
         ],
     },
 )

@@ -28,7 +28,8 @@ PathLike = str | Path
 
 # Default topic names (the node, the tools and the tests agree on them).
 IMU_TOPIC = "/imu/data"
-IMAGE_TOPIC = "/camera/image_raw"
+IMAGE_TOPIC = "/camera/image_rect"  # rectified images (image_pipeline naming); bevo_node's default
+LEGACY_IMAGE_TOPIC = "/camera/image_raw"  # bags written before issue 11: read_recording falls back to it
 CAMERA_INFO_TOPIC = "/camera/camera_info"
 GT_ODOMETRY_TOPIC = "/ground_truth/odometry"
 GT_IMU_TOPIC = "/ground_truth/imu"
@@ -39,6 +40,8 @@ IMU_MSG = "sensor_msgs/msg/Imu"
 IMAGE_MSG = "sensor_msgs/msg/Image"
 CAMERA_INFO_MSG = "sensor_msgs/msg/CameraInfo"
 ODOMETRY_MSG = "nav_msgs/msg/Odometry"
+TF_MSG = "tf2_msgs/msg/TFMessage"
+TF_STATIC_TOPIC = "/tf_static"
 
 
 class BagError(ValueError):
@@ -249,6 +252,61 @@ def odometry_message(stamp: float | int, T: np.ndarray, frame_id: str, child_fra
                                                             covariance=_covariance(twist_covariance, 6, 0.0)))
 
 
+def tf_message(stamp: float | int, transforms: Sequence[tuple[str, str, np.ndarray]]):
+    """tf2_msgs/TFMessage of ``(parent, child, T_parent_child (4, 4))`` transforms."""
+    types = typestore().types
+    out = []
+    for parent, child, T in transforms:
+        T = np.asarray(T, dtype=np.float64).reshape(4, 4)
+        out.append(types["geometry_msgs/msg/TransformStamped"](
+            header=_header(stamp, parent), child_frame_id=child,
+            transform=types["geometry_msgs/msg/Transform"](translation=_vector3(T[:3, 3]),
+                                                           rotation=_quaternion(quaternion_from_matrix(T[:3, :3])))))
+    return types[TF_MSG](transforms=out)
+
+
+def offered_qos(latched: bool = False, depth: int = 10):
+    """The offered QoS a recorder stores for a topic: reliable, keep-last; ``latched`` = transient
+    local (``/tf_static``), so a player can offer it the same way to late subscribers."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    inf = QosTime(sec=2147483647, nsec=4294967295)  # rosbag2's "infinite" duration
+    return Qos(history=QosHistory.KEEP_LAST, depth=int(depth), reliability=QosReliability.RELIABLE,
+               durability=QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+               deadline=inf, lifespan=inf, liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=inf,
+               avoid_ros_namespace_conventions=False)
+
+
+@dataclass
+class TopicQos:
+    """What a player needs of a recorded offered QoS (rosbag2 metadata)."""
+
+    reliable: bool = True
+    transient_local: bool = False
+    depth: int = 0  # 0: not recorded
+
+
+def topic_qos(bag_path: PathLike) -> dict[str, TopicQos]:
+    """``{topic: TopicQos}`` from the bag's recorded offered QoS (defaults where none is recorded:
+    reliable, volatile). A topic offered transient local by any publisher is replayed latched."""
+    from rosbags.interfaces import QosDurability, QosReliability
+
+    reader = _open_reader(bag_path)
+    try:
+        out: dict[str, TopicQos] = {}
+        for conn in reader.connections:
+            q = out.setdefault(conn.topic, TopicQos())
+            for prof in getattr(conn.ext, "offered_qos_profiles", None) or []:
+                q.transient_local |= prof.durability == QosDurability.TRANSIENT_LOCAL
+                q.reliable &= prof.reliability != QosReliability.BEST_EFFORT
+                q.depth = max(q.depth, int(prof.depth))
+            if _is_ros1(conn) and getattr(conn.ext, "latching", 0):
+                q.transient_local = True
+        return out
+    finally:
+        reader.close()
+
+
 # ----------------------------------------------------------------------------------------------
 # Writer
 # ----------------------------------------------------------------------------------------------
@@ -398,7 +456,9 @@ class BagWriter:
             raise RuntimeError("BagWriter must be used as a context manager ('with BagWriter(...) as bag:')")
         conn = self._connections.get(topic)
         if conn is None:
-            conn = self._writer.add_connection(topic, msgtype, typestore=typestore())
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore(),
+                                               offered_qos_profiles=[offered_qos(topic == TF_STATIC_TOPIC,
+                                                                                 1 if topic == TF_STATIC_TOPIC else 10)])
             self._connections[topic] = conn
             self._msgtypes[topic] = msgtype
         elif self._msgtypes[topic] != msgtype:
@@ -427,6 +487,12 @@ class BagWriter:
     def write_camera_info(self, stamp: float | int, K: np.ndarray, width: int, height: int,
                           frame_id: str = "camera_optical_frame", topic: str = CAMERA_INFO_TOPIC, **kwargs) -> None:
         self.write(topic, CAMERA_INFO_MSG, camera_info_message(stamp, K, width, height, frame_id, **kwargs), stamp)
+
+    def write_tf_static(self, stamp: float | int, transforms: Sequence[tuple[str, str, np.ndarray]],
+                        topic: str = TF_STATIC_TOPIC) -> None:
+        """The rig's static transforms ``(parent, child, T_parent_child)``, latched (transient local
+        offered QoS recorded in the metadata, as a recording of tf2_ros's static broadcaster)."""
+        self.write(topic, TF_MSG, tf_message(stamp, transforms), stamp)
 
     def write_odometry(self, stamp: float | int, T: np.ndarray, frame_id: str = "odom",
                        child_frame_id: str = "base_link", topic: str = GT_ODOMETRY_TOPIC, **kwargs) -> None:
@@ -639,6 +705,8 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
         raise ValueError(f"unknown required topic keys {sorted(unknown)} (use {sorted(names)})")
     path = Path(bag_path)
     topics = bag_topics(path)
+    if image_topic == IMAGE_TOPIC and image_topic not in topics and LEGACY_IMAGE_TOPIC in topics:
+        names["image"] = image_topic = LEGACY_IMAGE_TOPIC
     missing = [names[k] for k in required if names[k] not in topics]
     if missing:
         raise BagError(f"{path}: required topic(s) {', '.join(missing)} missing "

@@ -24,7 +24,8 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
                     frame_range: tuple[int, int] | None = None) -> Path:
     """Write a :class:`bevo_ros.synthetic.SyntheticDrive` as a rosbag2 with KITTI-like topics.
 
-    Sensor topics carry only what sensors give (raw IMU, images, CameraInfo); ground truth goes to
+    Sensor topics carry only what sensors give (raw IMU, images, CameraInfo) plus the rig on
+    ``/tf_static`` (base_link -> imu_link, base_link -> camera_optical_frame); ground truth goes to
     ``/ground_truth/odometry`` (base pose in ``odom``, identity at the first written frame) and
     ``/ground_truth/imu`` (gravity-referenced attitude). ``frame_range`` = (first, stop) frames;
     the IMU is cut to the same time span.
@@ -40,6 +41,10 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
     with bag.BagWriter(path, storage=storage, overwrite=overwrite) as w:
         k = 0
         imu_sel = np.nonzero((drive.imu_stamps >= t_lo - 0.5) & (drive.imu_stamps <= t_hi))[0]
+        t_first = float(drive.imu_stamps[imu_sel[0]]) if len(imu_sel) else float(t_lo)
+        # the rig, latched: the synthetic IMU is the base frame; the camera is T_base_cam
+        w.write_tf_static(t_first, [("base_link", "imu_link", np.eye(4)),
+                                    ("base_link", "camera_optical_frame", cam.T_base_cam.double().numpy())])
         for i in range(f0, f1):
             s = drive.frame_stamps[i]
             while k < len(imu_sel) and drive.imu_stamps[imu_sel[k]] <= s:
@@ -171,3 +176,27 @@ def road_relative_gt(poses: torch.Tensor) -> torch.Tensor:
     """
     roll, pitch, _ = rpy_from_rotation(poses[:, :3, :3])
     return torch.stack([pitch, roll], dim=-1)
+
+
+def run_engine(sequence: Sequence, config: BevoConfig, learned, mode: str | None = None) -> list:
+    """The node's engine (``build_odometry``) fed a :class:`Sequence` in stamp order (IMU first on
+    equal stamps), then flushed. Returns every ``OdometryStep``; ``mode`` overrides ``odometry.mode``."""
+    import dataclasses
+
+    from .config import build_odometry
+
+    if mode is not None:
+        config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))
+    odo = build_odometry(config, learned, camera=sequence.camera)
+    stamps, frames = sequence.imu_stamps.tolist(), sequence.frame_stamps.tolist()
+    steps, k = [], 0
+    for i, s in enumerate(stamps):
+        steps += odo.add_imu(s, sequence.gyro[i].tolist(), sequence.accel[i].tolist())
+        while k < len(frames) and frames[k] <= s:
+            steps += odo.add_image(frames[k], sequence.images[k].numpy())
+            k += 1
+    for stamp in frames[k:]:
+        steps += odo.add_image(stamp, sequence.images[k].numpy())
+        k += 1
+    return steps + odo.flush()
+

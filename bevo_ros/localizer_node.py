@@ -393,35 +393,9 @@ class BevoLocalizerNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from bevo_ros.ros_process import run_node  # SIGINT/SIGTERM: exit 0, no traceback
 
-    argv = list(sys.argv if args is None else args)
-    try:
-        rclpy.init(args=argv)
-    except Exception as exc:  # noqa: BLE001
-        print(f"[FATAL] [{NODE_NAME}]: cannot initialise ROS 2: {exc}", file=sys.stderr)
-        return EXIT_CONFIG_ERROR
-    logger = rclpy.logging.get_logger(NODE_NAME)
-    node = None
-    try:
-        try:
-            node = BevoLocalizerNode()
-        except ConfigError as exc:
-            logger.fatal(f"refusing to start: {exc}")
-            return EXIT_CONFIG_ERROR
-        except Exception as exc:  # noqa: BLE001
-            logger.fatal(f"refusing to start: {type(exc).__name__}: {exc}")
-            return EXIT_CONFIG_ERROR
-        try:
-            rclpy.spin(node)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(lambda argv: BevoLocalizerNode(), NODE_NAME, args, refuse=(ConfigError,))
 
 
 if __name__ == "__main__":

@@ -2,7 +2,9 @@
 
     ros2 run bevo_ros bevo_node --ros-args --params-file params/kitti.yaml
 
-Subscribes to IMU, images and (optionally) CameraInfo; runs the DUKF on every IMU message and
+Subscribes (relative topic names) to IMU, images (raw or compressed) and CameraInfo, and reads
+the rig from /tf_static (bevo_ros.ros: calibration, extrinsics, per-input diagnostics, parameter
+descriptors); runs the DUKF on every IMU message and
 BEV + phase correlation on every frame through the same engine the offline tools use; publishes
 nav_msgs/Odometry (header stamp = the image's stamp), a bounded nav_msgs/Path, a BEV image (only
 when subscribed), TF ``odom -> base_link`` and ``/diagnostics``. Every parameter is documented in
@@ -28,7 +30,12 @@ from rclpy.node import Node
 from bevo_ros.config import (BevoConfig, ConfigError, build_odometry, camera_model, load_learned_params,
                              resolve_path)
 from bevo_ros.core.validation import TimeJumpGuard, intrinsics_problem
-from bevo_ros.ros_conversions import (ImageConversionError, bev_to_mono8, camera_info_intrinsics,
+from bevo_ros.ros import parameters as ros_params
+from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from_camera_info,
+                                 calibration_from_parameters, same_camera_info)
+from bevo_ros.ros.diagnostics import SensorMonitor, status_message
+from bevo_ros.ros.tf import StaticTransforms
+from bevo_ros.ros_conversions import (ImageConversionError, bev_to_mono8,
                                       gray_to_image_msg, heatmap_to_mono8, image_to_gray, imu_to_arrays,
                                       odometry_msg, pose_stamped_from_odometry, sec_to_stamp, stamp_to_sec,
                                       transform_from_odometry)
@@ -42,14 +49,15 @@ EXIT_CONFIG_ERROR = 2
 class NodeSettings:
     """Parameters of the ROS wiring (the engine's come from :class:`BevoConfig`)."""
 
-    imu_topic: str = "/imu/data"
-    image_topic: str = "/camera/image_raw"
-    camera_info_topic: str = "/camera/camera_info"
+    # relative names (REP-144 style): a namespace (__ns, launch) moves them all
+    imu_topic: str = "imu/data"
+    image_topic: str = "camera/image_rect"
+    camera_info_topic: str = "camera/camera_info"
     use_camera_info: bool = True
     camera_info_use_p: bool = True
-    odometry_topic: str = "/bevo/odometry"
-    path_topic: str = "/bevo/path"
-    bev_image_topic: str = "/bevo/bev_image"
+    odometry_topic: str = "bevo/odometry"
+    path_topic: str = "bevo/path"
+    bev_image_topic: str = "bevo/bev_image"
     bev_image_heatmap: bool = True
     odom_frame: str = "odom"
     base_frame: str = "base_link"
@@ -69,22 +77,42 @@ class NodeSettings:
     log_throttle_period: float = 5.0
     latency_window: int = 1000
     torch_threads: int = 1
+    # ---- the ROS graph (issue 11): calibration, extrinsics, input health, transports
+    camera_info_timeout: float = 2.0
+    undistort: str = "auto"
+    extrinsics_from_tf: bool = True
+    image_transport: str = "raw"
+    imu_timeout: float = 1.0
+    image_timeout: float = 2.0
+    sensor_late_factor: float = 5.0
 
 
 DESCRIPTIONS = {
     # node wiring
     "imu_topic": "sensor_msgs/Imu input topic",
-    "image_topic": "sensor_msgs/Image input topic (rectified; mono8, rgb8/bgr8/rgba8/bgra8, mono16 accepted)",
+    "image_topic": "sensor_msgs/Image input topic, relative (rectified: image_rect; mono8, rgb8/bgr8/rgba8/bgra8, "
+                   "mono16, bayer_*, yuv422/uyvy accepted)",
     "camera_info_topic": "sensor_msgs/CameraInfo topic (read when use_camera_info is true)",
-    "use_camera_info": "subscribe to CameraInfo: its intrinsics and image size replace the camera.* ones "
-                       "(which are used until it arrives; without them the node waits for it)",
+    "use_camera_info": "calibrate from CameraInfo (intrinsics, size, distortion); the camera.* parameters are "
+                       "the fallback, used only if no CameraInfo arrives within camera_info_timeout",
+    "camera_info_timeout": "seconds after the first image without CameraInfo before the camera.* parameters are "
+                           "used instead (0: use them at once)",
+    "undistort": "'auto' (undistort with OpenCV when CameraInfo D is non-zero and the topic is not image_rect*), "
+                 "'on' (whenever D is non-zero) or 'off' (images are rectified)",
+    "extrinsics_from_tf": "take base_frame -> camera frame and base_frame -> IMU frame from /tf_static when "
+                          "published (camera.base_T_camera and an IMU aligned with base_frame otherwise)",
+    "image_transport": "'raw' (sensor_msgs/Image on image_topic) or 'compressed' (sensor_msgs/CompressedImage "
+                       "on <image_topic>/compressed, decoded with OpenCV)",
+    "imu_timeout": "/diagnostics: IMU silent for longer than this (s) is an ERROR",
+    "image_timeout": "/diagnostics: images silent for longer than this (s) are an ERROR",
+    "sensor_late_factor": "/diagnostics: an input is late (WARN) when silent for this many times its measured period",
     "camera_info_use_p": "use CameraInfo P[:3,:3] (rectified camera matrix) rather than K",
     "odometry_topic": "nav_msgs/Odometry output topic",
     "path_topic": "nav_msgs/Path output topic (published only when subscribed)",
     "bev_image_topic": "sensor_msgs/Image mono8 BEV output (computed only when subscribed)",
     "bev_image_heatmap": "put the correlation heat-map beside the BEV when the engine provides it",
     "odom_frame": "frame_id of the odometry (the fixed odometry frame)",
-    "base_frame": "child_frame_id of the odometry (the vehicle/IMU frame)",
+    "base_frame": "child_frame_id of the odometry (the vehicle frame, REP-103 x forward z up)",
     "publish_tf": "broadcast odom_frame -> base_frame on /tf",
     "path_max_length": "poses kept in the path (oldest dropped first); 0 disables the path",
     "input_qos": "'sensor_data' (best effort, live sensors) or 'reliable' (bag replay)",
@@ -106,14 +134,15 @@ DESCRIPTIONS = {
     "latency_window": "number of recent frames the latency percentiles cover",
     "torch_threads": "torch CPU threads of the node (1: the engine's small tensors gain nothing from more); 0 = torch's default",
     # engine (bevo_ros.config.BevoConfig)
-    "camera.fx": "focal length x (px) of the rectified image; 0 = from CameraInfo",
+    "camera.fx": "focal length x (px) of the rectified image (fallback when no CameraInfo arrives)",
     "camera.fy": "focal length y (px); 0 = from CameraInfo",
     "camera.cx": "principal point x (px)",
     "camera.cy": "principal point y (px)",
     "camera.width": "image width (px); images of another size are dropped",
     "camera.height_px": "image height (px)",
     "camera.height": "camera centre height above the road (m)",
-    "camera.base_T_camera": "camera optical frame pose in the base (IMU) frame, 4x4 row-major",
+    "camera.base_T_camera": "camera optical frame pose in base_frame, 4x4 row-major (used when /tf_static has no "
+                            "base_frame -> camera frame)",
     "bev.size": "BEV grid is size x size pixels",
     "bev.metres_per_pixel": "BEV ground sampling distance (m/px)",
     "bev.forward_offset": "distance from the base origin to the BEV near edge (m)",
@@ -125,7 +154,8 @@ DESCRIPTIONS = {
     "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
     "filter.max_acceleration": "IMU samples whose specific-force norm exceeds this (m/s^2) are dropped (imu_accel_range)",
     "filter.max_angular_rate": "IMU samples with a gyro axis above this (rad/s) are dropped (imu_gyro_range)",
-    "learned_params_file": "learned O/Q YAML; relative paths resolve beside the parameters file, then the package",
+    "learned_params_file": "learned O/Q YAML; a relative path resolves beside the parameters file that set it, "
+                           "then the package share",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
 }
 
@@ -193,7 +223,7 @@ def _tf_backend(node) -> tuple[str, Callable[[Any], None] | None]:
 class BevoNode(Node):
     """See the module docstring. ``engine_factory(config, learned, camera)`` is for tests."""
 
-    def __init__(self, params_file: str | None = None, engine_factory: Callable | None = None,
+    def __init__(self, params_file: str | list[str] | None = None, engine_factory: Callable | None = None,
                  node_name: str = NODE_NAME, **node_kwargs) -> None:
         super().__init__(node_name, **node_kwargs)
         try:
@@ -202,25 +232,39 @@ class BevoNode(Node):
             self.destroy_node()  # a node that refuses to start leaves nothing behind in the context
             raise
 
-    def _setup(self, params_file: str | None, engine_factory: Callable | None, node_name: str) -> None:
-        from rcl_interfaces.msg import ParameterDescriptor
+    def _setup(self, params_file: str | list[str] | None, engine_factory: Callable | None, node_name: str) -> None:
         from rclpy.clock import Clock, ClockType
+        from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
         self._engine_factory = engine_factory or build_odometry
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
 
-        # ---- parameters: one per NodeSettings field and per flat BevoConfig key
+        # ---- parameters: one per NodeSettings field and per flat BevoConfig key (bevo_ros.ros.parameters:
+        # ranges, read_only for what is fixed at start, live ones applied by _on_parameters_set)
         flat_defaults = {f.name: getattr(NodeSettings(), f.name) for f in dataclasses.fields(NodeSettings)}
         flat_defaults.update(BevoConfig().to_flat())
+        self._flat_defaults = flat_defaults
         flat: dict[str, Any] = {}
         for name, default in flat_defaults.items():
-            desc = ParameterDescriptor(description=DESCRIPTIONS.get(name, "engine setting, see params/kitti.yaml"),
-                                       dynamic_typing=True)
-            flat[name] = self.declare_parameter(name, default, desc).value
+            desc = ros_params.descriptor(name, default, DESCRIPTIONS.get(name, "engine setting, see params/kitti.yaml"))
+            try:
+                flat[name] = self.declare_parameter(name, default, desc).value
+            except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
+                raise ConfigError(f"parameter '{name}': {exc}") from None
         self.settings = NodeSettings(**{f.name: _coerce(f.name, flat[f.name], getattr(NodeSettings(), f.name))
                                         for f in dataclasses.fields(NodeSettings)})
         _validate(self.settings)
         self.config = BevoConfig.from_flat(flat, source=f"{node_name} parameters")
+        config_flat = self.config.to_flat()
+        for name in flat_defaults:
+            why = ros_params.check(name, getattr(self.settings, name) if hasattr(self.settings, name)
+                                   else config_flat.get(name))
+            if why:
+                raise ConfigError(why)
+        if isinstance(params_file, (list, tuple)):  # all --params-file of the command line, in order
+            params_file = ros_params.params_file_setting(
+                [a for f in params_file for a in ("--params-file", f)], "learned_params_file",
+                self.get_fully_qualified_name())
         base_dir = Path(params_file).resolve().parent if params_file else None
         self.learned_path = resolve_path(self.config.learned_params_file, base_dir)
         self.learned = load_learned_params(self.learned_path)  # ConfigError: refuse to start
@@ -251,14 +295,33 @@ class BevoNode(Node):
         self._last_gap = 0.0
         self._path = collections.deque(maxlen=max(1, s.path_max_length))
         self._last_diag = (time.monotonic(), collections.Counter())
-        self._time_guard = TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward, s.time_jump_confirmations)
+        self._time_guards = {kind: TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward,
+                                                 s.time_jump_confirmations) for kind in ("imu", "image")}
         self._image_size: tuple[int, int] | None = None  # (width, height) of the last decoded image
 
-        if self.config.camera.has_intrinsics():
-            self._set_camera(camera_model(self.config.camera))
-        elif not s.use_camera_info:
-            raise ConfigError("camera intrinsics are not set (camera.fx, fy, cx, cy, width, height_px) and "
-                              "use_camera_info is false: set them or enable use_camera_info")
+        # calibration: CameraInfo first, the camera.* parameters as the fallback (see _on_image)
+        self.calibration: Calibration | None = None
+        self._first_image_wait: float | None = None  # steady time of the first image seen without calibration
+        self._camera_frame = ""  # header.frame_id of the images (for /tf_static)
+        self._imu_frame_warned: set[str] = set()
+        self._R_base_imu: dict[str, tuple[int, np.ndarray | None]] = {}  # IMU frame -> (tf version, R_base_imu)
+        self._extrinsics_source = "parameters camera.base_T_camera"
+        self._tf_version = -1  # /tf_static tree version the camera was built with
+        self.static_tf: StaticTransforms | None = None  # made with the interfaces below
+        self._imu_backlog: collections.deque = collections.deque(maxlen=max(s.imu_qos_depth, 1000))
+        self._info_sub = None
+        monotonic = time.monotonic
+        self.monitors = {"imu": SensorMonitor("IMU", self.resolve_topic_name(s.imu_topic), s.imu_timeout,
+                                              s.sensor_late_factor, clock=monotonic),
+                         "image": SensorMonitor("images", self.resolve_topic_name(s.image_topic), s.image_timeout,
+                                                s.sensor_late_factor, clock=monotonic)}
+        if not s.use_camera_info:
+            if not self.config.camera.has_intrinsics():
+                raise ConfigError("camera intrinsics are not set (camera.fx, fy, cx, cy, width, height_px) and "
+                                  "use_camera_info is false: set them or enable use_camera_info")
+            self._apply_calibration(calibration_from_parameters(self.config.camera))
+        elif s.camera_info_timeout == 0 and self.config.camera.has_intrinsics():
+            self._apply_calibration(calibration_from_parameters(self.config.camera))
 
         # ---- interfaces
         from diagnostic_msgs.msg import DiagnosticArray
@@ -275,12 +338,13 @@ class BevoNode(Node):
             return q
 
         self.odom_pub = self.create_publisher(Odometry, s.odometry_topic, s.output_qos_depth)
-        self.path_pub = self.create_publisher(PathMsg, s.path_topic, s.output_qos_depth) if s.path_max_length else None
+        self.path_pub = self.create_publisher(PathMsg, s.path_topic, s.output_qos_depth)  # path_max_length is live
         self.bev_pub = self.create_publisher(Image, s.bev_image_topic, s.output_qos_depth)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.tf_backend, self._send_tf = ("disabled", None)
+        self._tf_made = None  # (backend, send) once created (publish_tf is live)
         if s.publish_tf:
-            self.tf_backend, self._send_tf = _tf_backend(self)
+            self._tf_made = self.tf_backend, self._send_tf = _tf_backend(self)
             if self._send_tf is None:  # said once, here
                 self._log("tf_unavailable",
                           "publish_tf is true but neither tf2_ros nor tf2_msgs is available: TF is DISABLED "
@@ -293,11 +357,22 @@ class BevoNode(Node):
         # two-argument callbacks: rclpy then passes the message info (DDS reception time)
         self._imu_sub = self.create_subscription(Imu, s.imu_topic, lambda msg, info: imu_intake(msg, info),
                                                  in_qos(s.imu_qos_depth))
-        self._image_sub = self.create_subscription(Image, s.image_topic, lambda msg, info: image_intake(msg, info),
-                                                   in_qos(s.image_qos_depth))
+        if s.image_transport == "compressed":  # image_transport's naming: <base topic>/compressed
+            from sensor_msgs.msg import CompressedImage
+
+            self.image_input_topic, image_type = s.image_topic.rstrip("/") + "/compressed", CompressedImage
+        else:
+            self.image_input_topic, image_type = s.image_topic, Image
+        self.monitors["image"].topic = self.resolve_topic_name(self.image_input_topic)
+        self._image_sub = self.create_subscription(image_type, self.image_input_topic,
+                                                   lambda msg, info: image_intake(msg, info), in_qos(s.image_qos_depth))
         if s.use_camera_info:
-            self.create_subscription(CameraInfo, s.camera_info_topic,
-                                     self._guard("camera_info", self._on_camera_info), in_qos(s.image_qos_depth))
+            self._info_sub = self.create_subscription(CameraInfo, s.camera_info_topic,
+                                                      self._guard("camera_info", self._on_camera_info),
+                                                      in_qos(s.image_qos_depth))
+        self.static_tf = StaticTransforms(self) if s.extrinsics_from_tf else None
+        self.add_on_set_parameters_callback(self._guard("parameters", self._on_parameters_set))
+        self.add_post_set_parameters_callback(self._guard("parameters", self._on_parameters_applied))
         self.create_service(Trigger, "~/reset", self._guard("reset", self._on_reset))
         # Steady-clock timers: they tick with or without /clock (use_sim_time).
         self.create_timer(min(0.05, s.image_wait / 2), self._guard("flush_timer", self._on_flush_timer),
@@ -306,11 +381,14 @@ class BevoNode(Node):
                           clock=self._steady)
         self._install_clock_jump_handler()
 
-        cam = (f"{self.camera.width}x{self.camera.height_px} fx={float(self.camera.K[0, 0]):.2f}" if self.camera
-               else f"waiting for CameraInfo on {s.camera_info_topic}")
+        cam = (self.calibration.describe() if self.calibration is not None else
+               f"from CameraInfo on {self.resolve_topic_name(s.camera_info_topic)} (camera.* parameters after "
+               f"{s.camera_info_timeout:g} s without it)")
         self.get_logger().info(
-            f"ready: imu={s.imu_topic} image={s.image_topic} ({s.input_qos}) -> {s.odometry_topic}, "
-            f"camera {cam}, BEV {self.config.bev.size}px x {self.config.bev.metres_per_pixel} m, "
+            f"ready: imu={self.resolve_topic_name(s.imu_topic)} image={self.resolve_topic_name(self.image_input_topic)} "
+            f"({s.input_qos}) -> {self.resolve_topic_name(s.odometry_topic)}, camera {cam}, "
+            f"extrinsics {'from /tf_static when published (' + self.static_tf.backend + ')' if self.static_tf else 'parameters'}, "
+            f"BEV {self.config.bev.size}px x {self.config.bev.metres_per_pixel} m, "
             f"learned={self.learned_path}, tf={self.tf_backend}")
 
     # ------------------------------------------------------------------ helpers
@@ -357,6 +435,93 @@ class BevoNode(Node):
         self.drops[reason] += 1
         self._log(reason, f"dropped ({reason}): {text}", level)
 
+    # ------------------------------------------------------------------ calibration and extrinsics
+    def _apply_calibration(self, calib: Calibration) -> None:
+        """Use ``calib`` from now on; the log says where it came from."""
+        self.calibration = calib
+        self.get_logger().info(f"camera calibration from {calib.describe()}")
+        self._refresh_camera(force=True)
+
+    def _camera_extrinsics(self) -> tuple[np.ndarray, str]:
+        """``(base_T_camera (4, 4), source)``: /tf_static ``base_frame -> image frame`` when known."""
+        base = self.settings.base_frame
+        if self.static_tf is not None and self._camera_frame:
+            T = self.static_tf.lookup(base, self._camera_frame)
+            if T is not None:
+                return T, f"/tf_static {base} -> {self._camera_frame}"
+        return np.asarray(self.config.camera.base_T_camera, dtype=np.float64).reshape(4, 4), \
+            "parameters camera.base_T_camera"
+
+    def _refresh_camera(self, force: bool = False) -> None:
+        """(Re)build the camera model when the calibration or the camera's static TF changed."""
+        if self.calibration is None:
+            return
+        T, source = self._camera_extrinsics()
+        old = getattr(self, "_base_T_camera", None)
+        if not force and old is not None and np.allclose(old, T, rtol=0, atol=1e-9):
+            return
+        calib = self.calibration
+        settings = dataclasses.replace(self.config.camera, base_T_camera=T.reshape(-1).tolist())
+        try:
+            camera = camera_model(settings, K=calib.K, width=calib.width, height_px=calib.height)
+        except ConfigError as exc:  # e.g. a non-rigid transform on /tf_static
+            self._drop("bad_extrinsics", f"camera extrinsics from {source} unusable: {exc}", level="error")
+            return
+        if source != self._extrinsics_source or (old is not None and not np.allclose(old, T, rtol=0, atol=1e-9)):
+            self.get_logger().info(f"camera extrinsics from {source}: camera at "
+                                   f"{np.round(T[:3, 3], 3).tolist()} m in {self.settings.base_frame}")
+        self._base_T_camera, self._extrinsics_source = T, source
+        self._set_camera(camera)
+
+    def _imu_rotation(self, frame: str) -> np.ndarray | None:
+        """Rotation taking vectors from the IMU's ``frame`` into ``base_frame`` (None: same axes)."""
+        base = self.settings.base_frame
+        frame = frame.lstrip("/")
+        if not frame or frame == base.lstrip("/"):
+            return None
+        cached = self._R_base_imu.get(frame)
+        version = 0
+        if self.static_tf is not None:
+            if cached is None or cached[1] is None:
+                self.static_tf.poll()  # still unknown: a /tf_static already received counts now
+            version = self.static_tf.version
+        if cached is not None and cached[0] == version:
+            return cached[1]
+        T = self.static_tf.lookup(base, frame) if self.static_tf is not None else None
+        R = None if T is None else T[:3, :3].copy()
+        self._R_base_imu[frame] = (version, R)
+        if R is not None:
+            if cached is None or cached[1] is None or not np.allclose(cached[1], R, rtol=0, atol=1e-12):
+                self.get_logger().info(f"IMU frame '{frame}': rates and accelerations rotated into '{base}' "
+                                       f"(/tf_static), rotation {np.round(R, 4).tolist()}")
+        elif frame not in self._imu_frame_warned:
+            self._imu_frame_warned.add(frame)
+            self._log("imu_frame", f"IMU frame '{frame}' is not base_frame '{base}' and /tf_static has no "
+                                   f"{base} -> {frame}: the IMU axes are taken as the base axes (REP-103 x "
+                                   "forward, y left, z up)")
+        return R
+
+    def _await_calibration(self) -> None:
+        """No camera yet: read a CameraInfo already queued, else fall back to the parameters after
+        ``camera_info_timeout`` seconds since the first image."""
+        s = self.settings
+        if self._info_sub is not None:
+            for msg, _ in self._take_all(self._info_sub):
+                self._on_camera_info(msg)
+        if self.engine is not None:
+            return
+        now = time.monotonic()
+        if self._first_image_wait is None:
+            self._first_image_wait = now
+        if s.use_camera_info and now - self._first_image_wait >= s.camera_info_timeout and \
+                self.config.camera.has_intrinsics():
+            self.events["camera_info_timeout"] += 1
+            self.get_logger().warning(
+                f"no CameraInfo on {self.resolve_topic_name(s.camera_info_topic)} within camera_info_timeout="
+                f"{s.camera_info_timeout:g} s of the first image: using the camera.* parameters (a CameraInfo "
+                "arriving later replaces them)")
+            self._apply_calibration(calibration_from_parameters(self.config.camera))
+
     def _set_camera(self, camera) -> None:
         self.camera = camera
         if self.engine is None:
@@ -364,6 +529,11 @@ class BevoNode(Node):
             if hasattr(self.engine, "max_pending_images"):
                 self.engine.max_pending_images = self.settings.max_pending_images
             self._engine_counters = self._read_engine_counters()
+            backlog, self._imu_backlog = list(self._imu_backlog), collections.deque(maxlen=self._imu_backlog.maxlen)
+            for t, gyro, accel in backlog:  # IMU that arrived before the calibration, in order
+                steps = self._engine_call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
+                if steps is not None:
+                    self._last_imu_stamp = t
         else:
             self.engine.set_camera(camera)
 
@@ -426,8 +596,53 @@ class BevoNode(Node):
             self._engine_counters = self._read_engine_counters()
         self._pending.clear()
         self._path.clear()
+        self._imu_backlog.clear()
         self._last_imu_stamp = None
         self.events["reset"] += 1
+
+    # ------------------------------------------------------------------ live parameters
+    def _on_parameters_set(self, params: list):
+        """Validate ``ros2 param set`` (read-only ones are refused by rclpy with the reason)."""
+        from rcl_interfaces.msg import SetParametersResult
+
+        for p in params:
+            if p.name not in ros_params.LIVE:
+                continue
+            try:
+                value = _coerce(p.name, p.value, self._flat_defaults[p.name])
+            except ConfigError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            why = ros_params.check(p.name, value)
+            if why:
+                return SetParametersResult(successful=False, reason=why)
+        return SetParametersResult(successful=True)
+
+    def _on_parameters_applied(self, params: list) -> None:
+        """Apply live parameters (validated by :meth:`_on_parameters_set`)."""
+        s = self.settings
+        for p in params:
+            if p.name not in ros_params.LIVE:
+                continue
+            value = _coerce(p.name, p.value, self._flat_defaults[p.name])
+            setattr(s, p.name, value)
+            if p.name == "publish_tf":
+                if value and self._tf_made is None:
+                    self._tf_made = _tf_backend(self)  # once: a second /tf publisher would be a leak
+                self.tf_backend, self._send_tf = self._tf_made if value else ("disabled", None)
+            elif p.name == "path_max_length":
+                self._path = collections.deque(list(self._path)[-value:] if value else [], maxlen=max(1, value))
+            elif p.name == "max_pending_images" and self.engine is not None and hasattr(self.engine,
+                                                                                       "max_pending_images"):
+                self.engine.max_pending_images = value
+            elif p.name == "max_time_jump_back":
+                for g in self._time_guards.values():
+                    g.max_back = value
+            elif p.name in ("imu_timeout", "image_timeout"):
+                self.monitors[p.name.split("_")[0]].timeout = value
+            elif p.name == "sensor_late_factor":
+                for m in self.monitors.values():
+                    m.late_factor = value
+            self.get_logger().info(f"parameter {p.name} = {value!r} (live)")
 
     # ------------------------------------------------------------------ intake
     @staticmethod
@@ -487,42 +702,62 @@ class BevoNode(Node):
                 j += 1
 
     def _gated(self, kind: str, item: tuple) -> None:
-        """Hand one received ``(msg, arrival)`` to its handler through the time-jump guard: a lone
-        outlier stamp is dropped, a confirmed jump back resets the odometry first."""
+        """Count one received ``(msg, arrival)`` and hand it to its handler through the stream's
+        time-jump guard: a lone outlier stamp is dropped, a confirmed jump back resets first."""
         self.counts["imu_in" if kind == "imu" else "images_in"] += 1
-        v = self._time_guard.check(stamp_to_sec(item[0].header.stamp), (kind, item))
-        for k, (msg, _) in v.outliers:
-            label = "IMU" if k == "imu" else k
-            self._drop("stamp_outlier", f"{label} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the timeline "
-                                        f"({self._time_guard.ref:.6f}) by more than max_time_jump_back/forward and no "
-                                        f"other message confirmed the jump (time_jump_confirmations="
-                                        f"{self.settings.time_jump_confirmations})")
+        self.monitors[kind].tick()
+        self._gate(kind, item)
+
+    def _gate(self, kind: str, item: tuple) -> None:
+        guard = self._time_guards[kind]
+        v = guard.check(stamp_to_sec(item[0].header.stamp), item)
+        self._drop_outliers(kind, v.outliers)
         if v.accept:
-            (self._handle_imu if kind == "imu" else self._handle_image)(*item)
+            self._dispatch(kind, item)
             return
         if v.jump is None:
             return  # held until confirmed or found to be an outlier
         self.events[f"time_jump_{v.jump}"] += 1
+        release = [(kind, it) for it in v.release]
         if v.jump == "back":
             self._reset()
+            for other, g in self._time_guards.items():  # the other inputs move to the new timeline too
+                if g is not guard:
+                    more, outliers = g.rebase(guard.ref)
+                    self._drop_outliers(other, outliers)
+                    release += [(other, it) for it in more]
+            release.sort(key=lambda r: (stamp_to_sec(r[1][0].header.stamp), r[0] != "imu"))
         self._log(f"time_jump_{v.jump}", f"time jumped {v.jump} by {v.jump_size:.3f} s (confirmed by {len(v.release)} "
-                                         "messages; bag restarted?): "
+                                         f"{'IMU' if kind == 'imu' else kind} messages; bag restarted?): "
                                          + ("odometry reset, the trajectory restarts at identity" if v.jump == "back"
                                             else "continuing on the new timeline"))
-        for k, it in v.release:
-            (self._handle_imu if k == "imu" else self._handle_image)(*it)
+        for k, it in release:
+            self._dispatch(k, it)
+
+    def _dispatch(self, kind: str, item: tuple) -> None:
+        (self._handle_imu if kind == "imu" else self._handle_image)(*item)
+
+    def _drop_outliers(self, kind: str, items: list) -> None:
+        label = "IMU" if kind == "imu" else kind
+        for msg, _ in items:
+            self._drop("stamp_outlier", f"{label} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the {label} "
+                                        f"timeline ({self._time_guards[kind].ref:.6f}) by more than "
+                                        "max_time_jump_back/forward and no other message confirmed the jump "
+                                        f"(time_jump_confirmations={self.settings.time_jump_confirmations})")
 
     # ------------------------------------------------------------------ per message
-    def _on_imu(self, msg, arrival: float = 0.0) -> None:  # counted in _gated
+    def _on_imu(self, msg, arrival: float = 0.0) -> None:  # counted (and monitored) in _gated
         t = stamp_to_sec(msg.header.stamp)
         gyro, accel = imu_to_arrays(msg)
+        R = self._imu_rotation(msg.header.frame_id)
+        if R is not None:  # IMU mounted in another orientation (e.g. z down): into base_frame axes
+            gyro, accel = R @ gyro, R @ accel
         if not (math.isfinite(t) and np.isfinite(gyro).all() and np.isfinite(accel).all()):
             self._drop("imu_nonfinite", f"IMU message at {t:.6f} has NaN/inf "
                                         f"(gyro {gyro.tolist()}, accel {accel.tolist()})")
             return
-        if self.engine is None:
-            self._drop("no_camera_info", f"IMU at {t:.6f}: waiting for CameraInfo on "
-                                         f"{self.settings.camera_info_topic} before starting", level="info")
+        if self.engine is None:  # kept (bounded) and fused once the camera is known: the filter warms up
+            self._imu_backlog.append((t, gyro, accel))
             return
         self._last_gap = 0.0 if self._last_imu_stamp is None else t - self._last_imu_stamp
         steps = self._engine_call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
@@ -532,11 +767,24 @@ class BevoNode(Node):
         self._publish_steps(steps)
 
     def _on_image(self, msg, arrival: float | None = None) -> None:
-        arrival = time.time() if arrival is None else arrival  # counted in _gated
+        arrival = time.time() if arrival is None else arrival  # counted (and monitored) in _gated
         t = stamp_to_sec(msg.header.stamp)
+        frame = msg.header.frame_id
+        tf_version = -1
+        if self.static_tf is not None:
+            self.static_tf.poll()
+            tf_version = self.static_tf.version
+        if (frame and frame != self._camera_frame) or tf_version != self._tf_version:
+            self._camera_frame, self._tf_version = frame or self._camera_frame, tf_version
+            self._refresh_camera()
         if self.engine is None:
-            self._drop("no_camera_info", f"image at {t:.6f}: no intrinsics yet (waiting for CameraInfo on "
-                                         f"{self.settings.camera_info_topic})")
+            self._await_calibration()
+        if self.engine is None:
+            s = self.settings
+            fallback = (f"camera.* parameters after camera_info_timeout={s.camera_info_timeout:g} s"
+                        if self.config.camera.has_intrinsics() else "no camera.* fallback set")
+            self._drop("no_camera_info", f"image at {t:.6f}: no calibration yet (waiting for CameraInfo on "
+                                         f"{self.resolve_topic_name(s.camera_info_topic)}; {fallback})")
             return
         try:
             img = image_to_gray(msg)
@@ -544,11 +792,12 @@ class BevoNode(Node):
             self._drop(exc.reason, f"image at {t:.6f}: {exc}")
             return
         self._image_size = (img.shape[1], img.shape[0])
-        cam = self.camera
-        if (img.shape[1], img.shape[0]) != (cam.width, cam.height_px):
+        calib = self.calibration
+        if (img.shape[1], img.shape[0]) != (calib.width, calib.height):
             self._drop("bad_image_size", f"image at {t:.6f} is {img.shape[1]}x{img.shape[0]} but the calibration "
-                                         f"is {cam.width}x{cam.height_px} (camera.width/height_px or CameraInfo)")
+                                         f"is {calib.width}x{calib.height} (from {calib.source})")
             return
+        img = calib.rectify(img)
         inserted = t not in self._pending
         entry = (msg.header.stamp, arrival)
 
@@ -582,24 +831,24 @@ class BevoNode(Node):
 
     def _on_camera_info(self, msg) -> None:
         self.counts["camera_info_in"] += 1
+        if same_camera_info(self.calibration, msg):
+            return
+        s = self.settings
         try:
-            K, w, h = camera_info_intrinsics(msg, self.settings.camera_info_use_p)
-        except ValueError as exc:
+            calib = calibration_from_camera_info(msg, s.camera_info_use_p, s.undistort, s.image_topic,
+                                                 source=f"CameraInfo on {self.resolve_topic_name(s.camera_info_topic)}")
+        except CalibrationError as exc:
             self._drop("bad_camera_info", str(exc))
             return
-        problem = intrinsics_problem(K, w, h)
+        w, h = calib.width, calib.height
+        problem = intrinsics_problem(calib.K, w, h)
         if problem is None and self._image_size not in (None, (w, h)):
             problem = f"its size {w}x{h} disagrees with the images ({self._image_size[0]}x{self._image_size[1]})"
         if problem is not None:
             keep = "keeping the last good calibration" if self.camera is not None else "still waiting for a valid one"
             self._drop("bad_camera_info", f"CameraInfo rejected ({keep}): {problem}")
             return
-        if self.camera is not None and (w, h) == (self.camera.width, self.camera.height_px) and \
-                np.allclose(np.asarray(self.camera.K.detach().cpu(), dtype=np.float64), K, rtol=0, atol=1e-9):
-            return
-        self._set_camera(camera_model(self.config.camera, K=K, width=w, height_px=h))
-        self.get_logger().info(f"camera intrinsics from CameraInfo: {w}x{h} fx={K[0, 0]:.3f} fy={K[1, 1]:.3f} "
-                               f"cx={K[0, 2]:.3f} cy={K[1, 2]:.3f}")
+        self._apply_calibration(calib)
 
     def _on_flush_timer(self) -> None:
         if self.engine is None or not self._pending or not getattr(self.engine, "pending_images", 0):
@@ -642,8 +891,9 @@ class BevoNode(Node):
                 self.events["clock_jump_reset"] += 1
                 self._log("clock_jump_reset", "ROS time jumped backwards (bag restarted?): resetting the odometry")
                 self._reset()
-                for kind, item in self._time_guard.reset():  # held messages: judged again on the new timeline
-                    self._gated(kind, item)
+                for kind, guard in self._time_guards.items():  # held messages: judged again on the new timeline
+                    for item in guard.reset():
+                        self._gate(kind, item)
 
             self._jump_handle = self.get_clock().create_jump_callback(threshold, post_callback=self._guard(
                 "clock_jump", on_jump))
@@ -668,7 +918,7 @@ class BevoNode(Node):
                 self._quality.append(q)
             if self._send_tf is not None:
                 self._send_tf(transform_from_odometry(odom))
-            if self.path_pub is not None:
+            if s.path_max_length > 0:
                 self._path.append(pose_stamped_from_odometry(odom))
                 if self.path_pub.get_subscription_count() > 0:
                     from nav_msgs.msg import Path as PathMsg
@@ -727,6 +977,22 @@ class BevoNode(Node):
             values[f"event.{name}"] = str(n)
         return values
 
+    def _calibration_state(self):
+        """Where the camera model comes from: OK from CameraInfo (or the parameters when chosen with
+        use_camera_info false), WARN while waiting or when the parameters stand in for CameraInfo."""
+        from bevo_ros.ros.diagnostics import OK, WARN, SensorState
+
+        s, calib = self.settings, self.calibration
+        values = {"intrinsics": calib.source if calib else "none yet", "extrinsics": self._extrinsics_source,
+                  "undistorting": str(bool(calib and calib.maps is not None)).lower(),
+                  "imu_frames": ", ".join(f"{f}: {'tf' if r[1] is not None else 'as base'}"
+                                          for f, r in sorted(self._R_base_imu.items())) or "base_frame"}
+        if calib is None:
+            return SensorState(WARN, f"waiting for CameraInfo on {self.resolve_topic_name(s.camera_info_topic)}", values)
+        if s.use_camera_info and not calib.source.startswith("CameraInfo"):
+            return SensorState(WARN, "no CameraInfo: the camera.* parameters stand in for it", values)
+        return SensorState(OK, calib.describe(), values)
+
     def _publish_diagnostics(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
@@ -735,104 +1001,45 @@ class BevoNode(Node):
         drops = int(values["drops_total"])
         self._diag_drops = drops
         status = DiagnosticStatus(name=f"{self.get_name()}: odometry", hardware_id="bevo")
+        self._refresh_camera()  # a /tf_static that arrived (or changed) since
+        inputs = {key: m.state() for key, m in self.monitors.items()}  # per input: OK / WARN late / ERROR silent
+        worst = max((st.level for st in inputs.values()), default=0)
         if self.engine is None:
             status.level, status.message = DiagnosticStatus.WARN, "waiting for CameraInfo"
+        elif worst == 2:
+            status.level = DiagnosticStatus.ERROR
+            status.message = "; ".join(st.message for st in inputs.values() if st.level == 2)
         elif drops > prev_drops:
             status.level, status.message = DiagnosticStatus.WARN, f"{drops - prev_drops} input(s) dropped"
         elif float(values["image_rate_hz"]) > 0 and float(values["odometry_rate_hz"]) == 0:
             status.level, status.message = DiagnosticStatus.WARN, "images arrive but no odometry is produced"
+        elif worst == 1:
+            status.level = DiagnosticStatus.WARN
+            status.message = "; ".join(st.message for st in inputs.values() if st.level == 1)
         else:
             status.level, status.message = DiagnosticStatus.OK, "running"
+        values["calibration"] = self.calibration.source if self.calibration is not None else "none yet"
+        values["extrinsics"] = self._extrinsics_source
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        msg = DiagnosticArray(status=[status])
+        statuses = [status] + [status_message(self.get_name(), f"{key} input", st) for key, st in inputs.items()]
+        statuses.append(status_message(self.get_name(), "calibration", self._calibration_state()))
+        msg = DiagnosticArray(status=statuses)
         msg.header.stamp = self.get_clock().now().to_msg()
         self.diag_pub.publish(msg)
 
 
 # ------------------------------------------------------------------------------------ entry point
-def _params_file_from_args(argv: list[str]) -> str | None:
-    """The last ``--params-file X`` among the ROS arguments (for resolving relative paths)."""
-    found = None
-    for i, a in enumerate(argv):
-        if a == "--params-file" and i + 1 < len(argv):
-            found = argv[i + 1]
-    return found
-
-
-class _StopRequest:
-    """SIGINT/SIGTERM only set a flag the spin loop checks: the node then stops between two
-    callbacks, destroys its entities and shuts ROS down in that order. (rclpy's own handler shuts
-    the context down at once, under a running executor: a subscription taken at that moment
-    raised ``RuntimeError`` out of ``rclpy.spin`` with exit 1 and a traceback.)"""
-
-    SIGNALS = ("SIGINT", "SIGTERM")
-
-    def __init__(self) -> None:
-        import signal
-
-        self.requested = False
-        self._previous = {}
-        for name in self.SIGNALS:
-            sig = getattr(signal, name)
-            self._previous[sig] = signal.signal(sig, self._on_signal)
-
-    def _on_signal(self, signum, frame) -> None:  # noqa: ARG002 - signal handler signature
-        self.requested = True
-
-    def restore(self) -> None:
-        import signal
-
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
+def _params_file_from_args(argv: list[str]) -> list[str]:
+    """Every ``--params-file X`` among the ROS arguments, in order; the node picks the one that set
+    ``learned_params_file`` (for resolving it relative to that file)."""
+    return ros_params.params_files_from_args(argv)
 
 
 def main(args: list[str] | None = None) -> int:
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
+    from bevo_ros.ros_process import run_node
 
-    argv = list(sys.argv if args is None else args)
-    stop = _StopRequest()
-    try:
-        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    except Exception as exc:  # noqa: BLE001 - e.g. an unreadable --params-file
-        stop.restore()
-        print(f"[FATAL] [{NODE_NAME}]: cannot initialise ROS 2: {' '.join(str(exc).split())}", file=sys.stderr)
-        return EXIT_CONFIG_ERROR
-    logger = rclpy.logging.get_logger(NODE_NAME)
-    node = executor = None
-    try:
-        try:
-            node = BevoNode(params_file=_params_file_from_args(argv))
-        except ConfigError as exc:
-            logger.fatal(f"refusing to start: {' '.join(str(exc).split())}")  # one line
-            return EXIT_CONFIG_ERROR
-        except Exception as exc:  # noqa: BLE001 - a clear line, no traceback
-            logger.fatal(f"refusing to start: {type(exc).__name__}: {' '.join(str(exc).split())}")
-            return EXIT_CONFIG_ERROR
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        try:
-            while not stop.requested and rclpy.ok():
-                executor.spin_once(timeout_sec=0.1)  # a signal is seen within 0.1 s when idle
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        except Exception:  # noqa: BLE001
-            if not (stop.requested or not rclpy.ok()):
-                raise
-            # raised by rclpy while the process is being stopped: nothing left to do but stop
-        if stop.requested:
-            logger.info("stopping (signal received)")
-    finally:
-        try:
-            if executor is not None:
-                executor.shutdown(timeout_sec=1.0)
-            if node is not None:
-                node.destroy_node()
-        finally:
-            rclpy.try_shutdown()
-            stop.restore()
-    return 0
+    return run_node(lambda argv: BevoNode(params_file=_params_file_from_args(argv)), NODE_NAME, args,
+                    refuse=(ConfigError,))
 
 
 if __name__ == "__main__":

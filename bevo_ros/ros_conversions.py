@@ -22,6 +22,16 @@ IMAGE_ENCODINGS = {
 }
 
 
+# Encodings converted to grey with OpenCV (sensor_msgs/image_encodings names -> cv2 code, bytes per
+# pixel). ROS names Bayer patterns by their first row, OpenCV by the second: cv_bridge's mapping.
+CV2_GRAY_ENCODINGS = {
+    "bayer_rggb8": ("COLOR_BayerBG2GRAY", 1), "bayer_bggr8": ("COLOR_BayerRG2GRAY", 1),
+    "bayer_gbrg8": ("COLOR_BayerGR2GRAY", 1), "bayer_grbg8": ("COLOR_BayerGB2GRAY", 1),
+    "yuv422": ("COLOR_YUV2GRAY_UYVY", 2), "uyvy": ("COLOR_YUV2GRAY_UYVY", 2),
+    "yuyv": ("COLOR_YUV2GRAY_YUY2", 2), "yuv422_yuy2": ("COLOR_YUV2GRAY_YUY2", 2),
+}
+
+
 class ImageConversionError(ValueError):
     """An image the node cannot use; ``reason`` is the drop-counter key."""
 
@@ -68,11 +78,15 @@ def image_to_gray(msg: Any) -> np.ndarray:
         ImageConversionError: unsupported encoding (reason ``bad_encoding``) or a data/step size
             inconsistent with width x height (reason ``bad_image``).
     """
+    if hasattr(msg, "format"):  # sensor_msgs/CompressedImage
+        return compressed_to_gray(msg)
     enc = msg.encoding
+    if enc in CV2_GRAY_ENCODINGS:
+        return _cv2_to_gray(msg)
     if enc not in IMAGE_ENCODINGS:
         raise ImageConversionError(
             "bad_encoding",
-            f"unsupported image encoding '{enc}' (supported: {', '.join(IMAGE_ENCODINGS)})")
+            f"unsupported image encoding '{enc}' (supported: {', '.join([*IMAGE_ENCODINGS, *CV2_GRAY_ENCODINGS])})")
     channels, depth = IMAGE_ENCODINGS[enc]
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h <= 0 or w <= 0:
@@ -97,6 +111,45 @@ def image_to_gray(msg: Any) -> np.ndarray:
         b, g, r = img[..., 0], img[..., 1], img[..., 2]
     gray = 0.299 * r + 0.587 * g + 0.114 * b
     return np.clip(np.round(gray), 0, 255).astype(np.uint8)
+
+
+def _rows(msg: Any, row_bytes: int) -> np.ndarray:
+    """``(H, row_bytes)`` uint8 view of an Image's pixel rows (step padding dropped)."""
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise ImageConversionError("bad_image", f"empty image {w}x{h}")
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    if step < row_bytes or data.size < step * h:
+        raise ImageConversionError(
+            "bad_image", f"image {w}x{h} {msg.encoding}: step {step} and data size {data.size} do not match "
+                         f"(need step >= {row_bytes} and size >= {step * h})")
+    return data[: step * h].reshape(h, step)[:, :row_bytes]
+
+
+def _cv2_to_gray(msg: Any) -> np.ndarray:
+    """Bayer (demosaiced) and packed YUV 4:2:2 images -> grey with OpenCV's conversion codes."""
+    import cv2
+
+    code, bpp = CV2_GRAY_ENCODINGS[msg.encoding]
+    w = int(msg.width)
+    if bpp == 2 and w % 2:
+        raise ImageConversionError("bad_image", f"{msg.encoding} image width {w} is odd (4:2:2 pairs pixels)")
+    rows = np.ascontiguousarray(_rows(msg, w * bpp))
+    src = rows.reshape(int(msg.height), w, bpp) if bpp == 2 else rows
+    return cv2.cvtColor(src, getattr(cv2, code))
+
+
+def compressed_to_gray(msg: Any) -> np.ndarray:
+    """sensor_msgs/CompressedImage (jpeg, png, ...) -> ``(H, W)`` uint8 grey, via ``cv2.imdecode``."""
+    import cv2
+
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    if img is None:
+        raise ImageConversionError("bad_compressed",
+                                   f"compressed image ({msg.format or 'no format'}, {data.size} bytes) cannot be "
+                                   "decoded by OpenCV")
+    return img
 
 
 def gray_to_image_msg(img: np.ndarray, header: Any = None, encoding: str = "mono8"):
@@ -215,7 +268,7 @@ def heatmap_to_mono8(heat: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 
 __all__ = [
-    "IMAGE_ENCODINGS", "ImageConversionError", "stamp_to_sec", "stamp_to_ns", "sec_to_stamp",
+    "IMAGE_ENCODINGS", "CV2_GRAY_ENCODINGS", "ImageConversionError", "compressed_to_gray", "stamp_to_sec", "stamp_to_ns", "sec_to_stamp",
     "imu_to_arrays", "image_to_gray", "gray_to_image_msg", "camera_info_intrinsics",
     "quaternion_from_rpy", "rpy_from_quaternion", "odometry_msg", "pose_stamped_from_odometry",
     "transform_from_odometry", "bev_to_mono8", "heatmap_to_mono8",

@@ -60,12 +60,24 @@ def test_colcon_build_and_ros2_run_style_start(tmp_path, monkeypatch):
     prefix = Path(get_package_prefix("bevo_ros"))
     assert prefix == pkg_install
     exe = _find_executable(prefix, "bevo_ros", "bevo_node")
-    params = Path(get_package_share_directory("bevo_ros")) / "params" / "kitti.yaml"
+    share = Path(get_package_share_directory("bevo_ros"))
+    params = share / "params" / "kitti.yaml"
     assert params.is_file() and (params.parent / "learned_default.yaml").is_file()
+    # issue 11: launch, RViz, the license and every tool are installed; each executable is found
+    from bevo_ros.cli import TOOLS
+
+    for f in ("launch/bevo.launch.py", "rviz/bevo.rviz", "LICENSE", "package.xml",
+              *(f"tools/{t}.py" for t in TOOLS)):
+        assert (share / f).is_file(), f"{f} not installed in {share}"
+    tool_exes = {t: _find_executable(prefix, "bevo_ros", t) for t in TOOLS}
 
     env = dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONPATH=os.pathsep.join([str(site)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]),
                PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    for name, tool_exe in tool_exes.items():  # the installed wrappers run the installed tools
+        help_run = subprocess.run([str(tool_exe), "--help"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                                  timeout=120)
+        assert help_run.returncode == 0 and "usage:" in help_run.stdout, f"{name}: {help_run.stderr[-2000:]}"
     proc = subprocess.Popen([str(exe), "--ros-args", "--params-file", str(params)], cwd=tmp_path, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = []

@@ -185,3 +185,63 @@ def test_gravity_attitude_on_real_drives(kitti_root, drive):
     print(f"\n{drive}: fused pitch/roll RMS {results['fused'].round(2)} deg; paper {results['paper'].round(2)} deg")
     assert results["fused"].max() <= 0.5
     assert results["fused"].mean() < results["paper"].mean()
+
+
+# ------------------------------------------------------------------------------ learning the filter
+def _measurement_drive(n: int, seed: int, noise=(0.05, 0.02, 0.003)):
+    """Recorded filter inputs of a car at 7-13 m/s weaving (exact truth), with measurement noise
+    unlike the filter's defaults (the correlation's forward motion 5 cm, lateral 2 cm)."""
+    rng = np.random.default_rng(seed)
+    dt = 0.1
+    t = np.arange(n) * dt
+    v, w = 10 + 3 * np.sin(0.3 * t), 0.1 * np.sin(0.2 * t)
+    truth = np.stack([v * dt, v * dt * np.tan(w * dt / 2), w * dt], -1)
+    inputs = [dict(dt=dt, gyro_yaw=truth[i, 2] + 0.002 * dt + rng.normal(0, 1e-4),
+                   forward=truth[i, 0] + rng.normal(0, noise[0]), forward_var=0.01**2,
+                   lateral=truth[i, 1] + rng.normal(0, noise[1]), lateral_var=0.02**2,
+                   rotation=truth[i, 2] + rng.normal(0, noise[2]), rotation_var=noise[2] ** 2, quality=0.5)
+              for i in range(n)]
+    return inputs, truth
+
+
+def test_vehicle_noise_gradients_are_exact():
+    from bevo_ros.vehicle_training import TRAINED, motion_nll, replay, _noise_with
+
+    inputs, truth = _measurement_drive(12, 0)
+    t = torch.as_tensor(truth, dtype=torch.float64)
+    base = VehicleNoise()
+    p0 = torch.tensor([math.log(getattr(base, k)) for k in TRAINED], dtype=torch.float64, requires_grad=True)
+
+    def f(p):
+        m, v = replay(_noise_with(base, p), inputs)
+        return motion_nll(m, v, t)
+
+    assert torch.autograd.gradcheck(f, (p0,), eps=1e-6, atol=1e-6)
+
+
+def test_learning_beats_the_default_noise_on_held_out_frames():
+    from bevo_ros.vehicle_training import fit_vehicle_noise, motion_nll, replay
+
+    train, held_out = _measurement_drive(200, 1), _measurement_drive(200, 2)
+    fit = fit_vehicle_noise([train], steps=60, lr=0.2, log=lambda _: None)
+    t = torch.as_tensor(held_out[1], dtype=torch.float64)
+    scores = {}
+    for name, noise in (("default", VehicleNoise()), ("learned", fit.noise)):
+        m, v = replay(noise, held_out[0])
+        scores[name] = (float(motion_nll(m, v, t)), ((m - t) ** 2).mean(0).sqrt().numpy())
+    print(f"\nheld-out NLL default {scores['default'][0]:.3f} -> learned {scores['learned'][0]:.3f}; "
+          f"RMSE dx/dy/dyaw default {scores['default'][1]} learned {scores['learned'][1]}")
+    assert scores["learned"][0] < scores["default"][0] - 0.5
+    assert scores["learned"][1][1] < 0.2 * scores["default"][1][1]  # lateral: the arc prior is exact here
+    assert scores["learned"][1][0] <= scores["default"][1][0] * 1.02
+
+
+def test_replay_reproduces_the_engine(camera):
+    """Training replays exactly what the engine computed (same inputs, same filter)."""
+    from bevo_ros.vehicle_training import replay
+
+    d = preset_drive("curve", seed=3, duration=2.0, render="lazy", camera=camera)
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+    steps = feed(engine(camera, "fused"), d, images)
+    m, _ = replay(VehicleNoise(**FUSED.vehicle), [s.filter_inputs for s in steps[1:]])
+    assert np.abs(m.numpy() - np.array([s.motion for s in steps[1:]])).max() < 1e-9

@@ -75,7 +75,16 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
         size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
         print(f"{storage}: {counts}, {size / 1e6:.2f} MB")
         assert counts == {bag.IMU_TOPIC: N_FRAMES, bag.IMAGE_TOPIC: N_FRAMES, bag.CAMERA_INFO_TOPIC: N_FRAMES,
-                          bag.GT_ODOMETRY_TOPIC: N_FRAMES, bag.GT_IMU_TOPIC: N_FRAMES}
+                          bag.GT_ODOMETRY_TOPIC: N_FRAMES, bag.GT_IMU_TOPIC: N_FRAMES, bag.TF_STATIC_TOPIC: 1}
+        # /tf_static: the rig (base = IMU, camera = the calibration chain), offered latched
+        (_, _, tf), = bag.iter_messages(path, [bag.TF_STATIC_TOPIC])
+        frames = {(t.header.frame_id, t.child_frame_id): t.transform for t in tf.transforms}
+        assert set(frames) == {("base_link", "imu_link"), ("base_link", "camera_optical_frame")}
+        from bevo_ros.ros.tf import matrix_from_transform
+        assert np.allclose(matrix_from_transform(frames[("base_link", "camera_optical_frame")]), T_base_cam, atol=1e-6)  # KITTI rotations: 7 digits
+        assert np.allclose(matrix_from_transform(frames[("base_link", "imu_link")]), np.eye(4))
+        qos = bag.topic_qos(path)
+        assert qos[bag.TF_STATIC_TOPIC].transient_local and not qos[bag.IMU_TOPIC].transient_local
         # IMU: exact values and exact nanosecond stamps.
         assert np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns)
         assert np.array_equal(rec.gyro, oxts.gyro) and np.array_equal(rec.accel, oxts.accel)
@@ -112,7 +121,7 @@ def test_both_storages_hold_identical_messages(bags):
     a = list(bag.iter_raw_messages(bags["sqlite3"]))
     b = list(bag.iter_raw_messages(bags["mcap"]))
     print(f"{len(a)} messages per storage; first: {a[0].topic} at {a[0].stamp_ns}")
-    assert len(a) == len(b) == 5 * N_FRAMES
+    assert len(a) == len(b) == 5 * N_FRAMES + 1  # + the one /tf_static
     assert [(m.topic, m.stamp_ns, m.data) for m in a] == [(m.topic, m.stamp_ns, m.data) for m in b]
     stamps = [m.stamp_ns for m in a]
     assert stamps == sorted(stamps)
@@ -236,3 +245,27 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     (cam / "timestamps.txt").write_text("".join((cam / "timestamps.txt").read_text().splitlines(True)[:4]))
     _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "o2"], "image_00/timestamps.txt",
                   "4 timestamps but 5 images")
+
+
+def test_a_killed_conversion_leaves_nothing_after_the_next_run(kitti_root, tmp_path, capsys):
+    """SIGKILL cannot be cleaned up after: the next run of the same output removes the partial."""
+    import signal
+    import subprocess
+    import time
+
+    out = tmp_path / "o"
+    cmd = [sys.executable, str(REPO / "tools" / "kitti_to_bag.py"), "--odometry", str(kitti_root / "odometry"),
+           "-o", str(out), "--quiet"]
+    proc = subprocess.Popen(cmd, env=dict(os.environ, PYTHONPATH=str(REPO)), stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while _no_partial(out) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert proc.poll() is None, "the conversion ended before it could be killed"
+    time.sleep(0.2)  # some frames written
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not out.exists() and not _no_partial(out)  # what a kill leaves
+    assert convert("--odometry", kitti_root / "odometry", "-o", out, "--count", "3") == 0
+    assert "partial output of an interrupted run" in capsys.readouterr().err
+    assert _no_partial(out) and bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["o"]

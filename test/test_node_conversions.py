@@ -64,8 +64,8 @@ def test_mono16_is_scaled_to_8_bits(bigendian):
 
 
 def test_unsupported_encoding_and_bad_sizes_name_the_reason():
-    msg = _image(np.zeros((2, 2, 2), np.uint8), "yuv422")
-    with pytest.raises(rc.ImageConversionError, match="unsupported image encoding 'yuv422'") as err:
+    msg = _image(np.zeros((2, 2, 4), np.uint8), "32FC1")
+    with pytest.raises(rc.ImageConversionError, match="unsupported image encoding '32FC1'") as err:
         rc.image_to_gray(msg)
     assert err.value.reason == "bad_encoding"
     short = _image(np.zeros((4, 4), np.uint8), "mono8")
@@ -135,3 +135,114 @@ def test_bev_and_heatmap_images():
     msg = rc.gray_to_image_msg(img)
     assert (msg.width, msg.height, msg.step, msg.encoding) == (4, 4, 4, "mono8")
     assert np.array_equal(rc.image_to_gray(msg), img)
+
+
+# ------------------------------------------------------------------ camera encodings (issue 11)
+def _colour_scene(h: int = 48, w: int = 64) -> np.ndarray:
+    """A smooth RGB image whose channels differ (a wrong Bayer/YUV layout shows)."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    r = 200 - 60 * np.sin(x / 9.0)
+    g = 100 + 50 * np.cos(y / 7.0)
+    b = 40 + 30 * np.sin((x + y) / 11.0)
+    return np.clip(np.round(np.stack([r, g, b], -1)), 0, 255).astype(np.uint8)
+
+
+def _bt601(rgb: np.ndarray) -> np.ndarray:
+    f = rgb.astype(np.float64)
+    return 0.299 * f[..., 0] + 0.587 * f[..., 1] + 0.114 * f[..., 2]
+
+
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+def test_bayer_is_demosaiced_to_grey(pattern):
+    rgb = _colour_scene()
+    ch = {"r": 0, "g": 1, "b": 2}
+    mosaic = np.zeros(rgb.shape[:2], np.uint8)
+    for k, (dy, dx) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):  # pattern = 2x2 block, row-major
+        mosaic[dy::2, dx::2] = rgb[dy::2, dx::2, ch[pattern[k]]]
+    out = rc.image_to_gray(_image(mosaic, f"bayer_{pattern}8"))
+    inner = (slice(4, -4), slice(4, -4))
+    err = np.abs(out[inner].astype(np.float64) - _bt601(rgb)[inner])
+    print(f"bayer_{pattern}8: mean |grey - BT.601| = {err.mean():.2f}")
+    assert out.shape == mosaic.shape and out.dtype == np.uint8
+    assert err.mean() < 4.0  # a wrong pattern (R and B swapped) is ~30 grey levels off here
+
+
+@pytest.mark.parametrize("enc,layout", [("yuv422", "uyvy"), ("uyvy", "uyvy"), ("yuyv", "yuyv"),
+                                        ("yuv422_yuy2", "yuyv")])
+def test_packed_yuv422_gives_its_luma(enc, layout):
+    rng = np.random.default_rng(1)
+    luma = rng.integers(16, 236, size=(6, 8), dtype=np.uint8)
+    chroma = rng.integers(16, 240, size=(6, 8), dtype=np.uint8)
+    packed = np.stack([chroma, luma], -1) if layout == "uyvy" else np.stack([luma, chroma], -1)
+    msg = _image(packed, enc, pad=4)  # 2 bytes per pixel, padded rows
+    msg.width = 8
+    assert rc.image_to_gray(msg).tolist() == luma.tolist()
+
+
+def test_compressed_png_and_jpeg_are_decoded():
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    grey = np.round(_bt601(_colour_scene())).astype(np.uint8)
+    png = CompressedImage(format="mono8; png compressed ")
+    png.data = cv2.imencode(".png", grey)[1].tobytes()
+    assert np.array_equal(rc.image_to_gray(png), grey)
+    jpg = CompressedImage(format="rgb8; jpeg compressed bgr8")
+    jpg.data = cv2.imencode(".jpg", cv2.cvtColor(_colour_scene(), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    assert np.abs(rc.image_to_gray(jpg).astype(float) - _bt601(_colour_scene())).mean() < 3.0
+    broken = CompressedImage(format="jpeg")
+    broken.data = b"not an image"
+    with pytest.raises(rc.ImageConversionError, match="cannot be decoded") as err:
+        rc.image_to_gray(broken)
+    assert err.value.reason == "bad_compressed"
+
+
+# ------------------------------------------------------------------ distortion (issue 11)
+def _camera_info(w, h, K, D=(), model="plumb_bob", P=None):
+    info = CameraInfo(width=w, height=h, distortion_model=model)
+    info.k = np.asarray(K, float).reshape(-1).tolist()
+    info.d = list(map(float, D))
+    info.r = np.eye(3).reshape(-1).tolist()
+    P = np.hstack([np.asarray(K, float), np.zeros((3, 1))]) if P is None else np.asarray(P, float)
+    info.p = P.reshape(-1).tolist()
+    return info
+
+
+def test_distorted_camera_info_builds_undistortion_maps_that_invert_the_lens():
+    import cv2
+
+    from bevo_ros.ros.camera import CalibrationError, calibration_from_camera_info
+
+    w, h = 320, 240
+    K = np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]])
+    D = np.array([-0.3, 0.1, 0.001, -0.002, 0.0])
+    # a textured undistorted scene, and what the lens makes of it: for each distorted pixel, the
+    # undistorted pixel it sees
+    rng = np.random.default_rng(0)
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (h, w)).astype(np.uint8), (0, 0), 2.0)
+    grid = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 1, 2).astype(np.float64)
+    und = cv2.undistortPoints(grid, K, D, P=K).reshape(h, w, 2).astype(np.float32)
+    distorted = cv2.remap(scene, und[..., 0], und[..., 1], cv2.INTER_LINEAR)
+
+    calib = calibration_from_camera_info(_camera_info(w, h, K, D), image_topic="camera/image_raw")
+    assert calib.maps is not None and "undistorted" in calib.source
+    restored = calib.rectify(distorted)
+    inner = (slice(40, -40), slice(50, -50))
+    err_restored = np.abs(restored[inner].astype(float) - scene[inner]).mean()
+    err_raw = np.abs(distorted[inner].astype(float) - scene[inner]).mean()
+    print(f"undistortion: mean abs error {err_restored:.2f} grey levels (distorted image: {err_raw:.2f})")
+    assert err_restored < 2.0 < err_raw
+    np.testing.assert_allclose(calib.K, K)
+
+    # image_rect* are rectified by image_proc with this very CameraInfo: P describes them as they are
+    assert calibration_from_camera_info(_camera_info(w, h, K, D), image_topic="camera/image_rect").maps is None
+    assert calibration_from_camera_info(_camera_info(w, h, K, D), undistort="on",
+                                        image_topic="camera/image_rect").maps is not None
+    assert calibration_from_camera_info(_camera_info(w, h, K, D), undistort="off",
+                                        image_topic="camera/image_raw").maps is None
+    assert calibration_from_camera_info(_camera_info(w, h, K), image_topic="camera/image_raw").maps is None
+    fisheye = calibration_from_camera_info(_camera_info(w, h, K, [0.1, 0.01, 0.0, 0.0], "equidistant"),
+                                           image_topic="camera/image_raw")
+    assert fisheye.maps is not None
+    with pytest.raises(CalibrationError, match="distortion_model 'kannala_unknown'.*not supported"):
+        calibration_from_camera_info(_camera_info(w, h, K, D, "kannala_unknown"), image_topic="camera/image_raw")

@@ -59,7 +59,7 @@ def drive():
 def base_overrides(drive, **extra):
     ov = camera_overrides(drive.camera)
     ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, log_throttle_period=0.0,
-              diagnostics_period=0.2)
+              diagnostics_period=0.2, use_camera_info=False)  # the camera.* parameters only (CameraInfo: below)
     ov.update(extra)
     return ov
 
@@ -286,10 +286,10 @@ def test_bad_inputs_are_dropped_counted_and_logged(harness_factory, drive):
 
     # unsupported encoding
     bad = img_at(0.001)
-    bad.encoding = "yuv422"
+    bad.encoding = "32FC1"
     h.send("image", bad)
     assert h.node.drops["bad_encoding"] == 1
-    assert "unsupported image encoding 'yuv422'" in h.logged("bad_encoding")[0]
+    assert "unsupported image encoding '32FC1'" in h.logged("bad_encoding")[0]
     # wrong size
     h.send("image", img_at(0.002, np.zeros((hh // 2, w // 2), np.uint8)))
     assert h.node.drops["bad_image_size"] == 1

@@ -45,7 +45,8 @@ def test_every_node_parameter_has_a_description():
     assert not missing, f"bevo_ros/node.py DESCRIPTIONS lacks {missing}"
 
 
-def test_kitti_yaml_loads_through_rcl_into_the_node():
+@pytest.mark.parametrize("namespace", ["", "car1"])  # launch's namespace:=car1 must not lose the file
+def test_kitti_yaml_loads_through_rcl_into_the_node(namespace):
     from bevo_ros.node import BevoNode
 
     import torch
@@ -55,14 +56,16 @@ def test_kitti_yaml_loads_through_rcl_into_the_node():
     ctx = rclpy.context.Context()
     rclpy.init(args=["--ros-args", "--params-file", str(KITTI_PARAMS)], context=ctx, domain_id=DOMAIN_ID)
     try:
-        node = BevoNode(context=ctx, params_file=str(KITTI_PARAMS))
+        node = BevoNode(context=ctx, params_file=str(KITTI_PARAMS), namespace=namespace)
         try:
             config, flat = load_config(KITTI_PARAMS)
             assert node.config == config
             for f in dataclasses.fields(NodeSettings):
                 assert getattr(node.settings, f.name) == flat[f.name], f.name
             assert node.learned_path == (REPO / "params" / "learned_default.yaml").resolve()
-            assert (node.camera.width, node.camera.height_px) == (1226, 370)
+            # CameraInfo first: no camera until it arrives (the 1226x370 parameters are the fallback)
+            assert node.camera is None and node.calibration is None
+            assert (config.camera.width, config.camera.height_px) == (1226, 370)
         finally:
             node.destroy_node()
     finally:

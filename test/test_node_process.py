@@ -46,7 +46,8 @@ def context():
 def test_node_process_end_to_end(context, tmp_path):
     drive = small_drive(duration=1.2)
     ov = camera_overrides(drive.camera)
-    ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, diagnostics_period=0.3)
+    ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, diagnostics_period=0.3,
+              use_camera_info=False)
     params = write_params(tmp_path / "params.yaml", ov)
     node = NodeProcess(params, str(DOMAIN_ID)).start()
     tester = rclpy.create_node("process_tester", context=context)
@@ -55,7 +56,7 @@ def test_node_process_end_to_end(context, tmp_path):
     try:
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
         imu_pub = tester.create_publisher(Imu, "/imu/data", RELIABLE)
-        image_pub = tester.create_publisher(Image, "/camera/image_raw", RELIABLE)
+        image_pub = tester.create_publisher(Image, "/camera/image_rect", RELIABLE)
         odom, tf, diag = [], [], []
         tester.create_subscription(Odometry, "/bevo/odometry", odom.append, RELIABLE)
         tester.create_subscription(DiagnosticArray, "/diagnostics", diag.append, 10)
@@ -82,7 +83,7 @@ def test_node_process_end_to_end(context, tmp_path):
 
         # a bad input: logged with its reason and counted in /diagnostics; the node carries on
         bad = image_msg(float(drive.imu_stamps[-1]) + 0.05, drive.images[0])
-        bad.encoding = "yuv422"
+        bad.encoding = "32FC1"
         image_pub.publish(bad)
 
         def diag_value(key):
@@ -93,7 +94,7 @@ def test_node_process_end_to_end(context, tmp_path):
             return None
 
         assert spin_until(executor, lambda: diag_value("drop.bad_encoding") == "1", 10), diag[-1:] or "no diagnostics"
-        assert node.wait_for("unsupported image encoding 'yuv422'", 5), node.output
+        assert node.wait_for("unsupported image encoding '32FC1'", 5), node.output
         assert diag_value("odometry_published") == str(drive.num_frames)
         assert float(diag_value("latency_p99_ms")) > 0
 
@@ -120,11 +121,13 @@ def test_node_process_end_to_end(context, tmp_path):
         executor.shutdown()
 
 
-@pytest.mark.parametrize("problem", ["missing", "malformed"])
+@pytest.mark.parametrize("problem", ["missing", "malformed", "yaml_syntax"])
 def test_bad_learned_file_refuses_to_start(tmp_path, problem):
     learned = tmp_path / "learned.yaml"
     if problem == "malformed":
         learned.write_text("format: bevo_learned_params/1\nprocess_noise_density: {pitch: 1e-4}\n")
+    elif problem == "yaml_syntax":
+        learned.write_text("format: bevo_learned_params/1\nprocess_noise_density: {pitch: 1e-4\n  roll: [\n")
     params = write_params(tmp_path / "params.yaml", {"learned_params_file": str(learned)})
     node = NodeProcess(params, str(DOMAIN_ID)).start()
     try:
@@ -134,6 +137,8 @@ def test_bad_learned_file_refuses_to_start(tmp_path, problem):
     out = node.output
     assert rc == 2, f"exit code {rc}\n{out}"
     assert "Traceback" not in out, out
-    expected = "not found" if problem == "missing" else "'process_noise_density.roll' missing"
-    lines = [line for line in out.splitlines() if "refusing to start" in line]
-    assert len(lines) == 1 and str(learned) in lines[0] and expected in lines[0], out
+    expected = {"missing": "not found", "malformed": "'process_noise_density.roll' missing",
+                "yaml_syntax": "is not valid YAML: line 3, column"}[problem]
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert len(lines) == 1 and "refusing to start" in lines[0], out  # one line, whatever the problem
+    assert str(learned) in lines[0] and expected in lines[0], out

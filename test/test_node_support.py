@@ -114,7 +114,7 @@ def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) ->
 def write_params(path: Path, overrides: dict[str, Any], base: Path = KITTI_PARAMS) -> Path:
     """``base`` (a bevo_node parameters file) with ``overrides`` applied, written to ``path``."""
     doc = yaml.safe_load(base.read_text())
-    params = doc["bevo_node"]["ros__parameters"]
+    params = (doc.get("/**") or doc["bevo_node"])["ros__parameters"]
     for k, v in overrides.items():
         params[k] = v
     if not Path(str(params.get("learned_params_file", ""))).is_absolute():

@@ -156,3 +156,33 @@ def test_bad_input_exit_2(tmp_path):
                           capture_output=True, text=True, timeout=60)
     print(proc.stderr.strip())
     assert proc.returncode == 2 and "missing: bag not found" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_recorded_qos_replays_tf_static_latched_and_namespace(tmp_path, listener):
+    """/tf_static recorded transient local is offered latched: a subscriber that appears after it
+    was published still gets it; --namespace moves the sensor topics but not /tf_static."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Imu
+    from tf2_msgs.msg import TFMessage
+
+    path = tmp_path / "latched"
+    with bag.BagWriter(path, storage="mcap") as w:
+        w.write_tf_static(T0, [("base_link", "imu_link", np.eye(4))])
+        for i in range(N_IMU):
+            w.write_imu(T0 + i * 50_000_000, [0.0, 0.0, 0.0], [0.0, 0.0, 9.81])
+    assert bag.topic_qos(path)[bag.TF_STATIC_TOPIC].transient_local
+    ns_imu: list = []
+    listener.node.create_subscription(Imu, "/car1/imu/data", ns_imu.append,
+                                      QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    proc = _play(str(path), "--rate", "0.5", "--namespace", "car1", "--wait-for-subscribers", "5", "-q")
+    try:
+        listener.spin_while(proc, until=lambda: len(ns_imu) >= 2)
+        assert not listener.msgs[bag.IMU_TOPIC], "--namespace: the root topic must stay silent"
+        late: list = []  # subscribed after /tf_static went out
+        listener.node.create_subscription(TFMessage, "/tf_static", late.append, QoSProfile(
+            depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        listener.spin_while(proc, until=lambda: len(late) >= 1)
+        assert late and late[0].transforms[0].child_frame_id == "imu_link"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=30)

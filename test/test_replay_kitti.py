@@ -51,7 +51,7 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path, t
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
         env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         play = subprocess.Popen([str(VENV_BIN / "python"), str(REPO / "tools" / "play_bag.py"), str(bag_path),
-                                 "--rate", "2.0", "--topics", "/imu/data", "/camera/image_raw",
+                                 "--rate", "2.0", "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
                                  "--wait-for-subscribers", "30"],
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert spin_until(executor, lambda: play.poll() is not None and len(odom) >= 51, 120), \

@@ -127,6 +127,14 @@ def test_a_second_wild_stamp_makes_the_first_an_outlier_and_one_confirmation_acc
     assert g.reset() == ["held"] and g.ref is None and g.check(-3.0).accept
 
 
+def test_rebase_moves_a_stream_to_the_timeline_another_stream_confirmed():
+    g = TimeJumpGuard(1.0, 1.0, 3)
+    _feed(g, [100.0, 100.1, 50.0])  # 50.0: the start of a restarted bag, held
+    g.held.append((7.0, "wild"))
+    release, outliers = g.rebase(50.02)
+    assert release == [2] and outliers == ["wild"] and g.ref == 50.02 and g.check(50.1).accept
+
+
 # ------------------------------------------------------------------------------------------ YAML
 def test_a_yaml_syntax_error_is_one_line_naming_the_file(tmp_path):
     bad = tmp_path / "learned.yaml"

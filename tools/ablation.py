@@ -9,6 +9,8 @@ Five variants, each run with the engine's own BEV projection and phase correlati
   w/o DUKF  raw accelerometer pitch/roll (no filter), then the same road-tilt low-pass
   BEVO      the learned O and Q
   w/ GT     the ground-truth road-relative attitude fed to the BEV (--gt-attitude)
+  fused     odometry.mode fused (the default engine: acceleration-aware attitude, gyro yaw, motion
+            filter with gates), with --fused-learned; the five rows above are the paper's pipeline
 
 Metrics per variant: per-frame relative pose error (mean translation m, mean |yaw| deg), endpoint
 drift (% of the path), ATE RMSE (m, after rigid alignment), KITTI t_rel/r_rel when the path is at
@@ -42,7 +44,7 @@ DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 # the vehicle's own acceleration, which is exactly what a hand-tuned filter gets wrong.
 EMPIRICAL_O = 2.5e-7
 EMPIRICAL_Q = 2.6e-5
-VARIANTS = ("w/o O", "w/o Q", "w/o DUKF", "BEVO", "w/ GT")
+VARIANTS = ("w/o O", "w/o Q", "w/o DUKF", "BEVO", "w/ GT", "fused")
 GT_MODES = ("imu-highpass", "imu", "road-poses", "zero")
 
 EPILOG = """\
@@ -75,6 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
     src.add_argument("--train", action="store_true", help="train O/Q on the bags first (bevo_ros.training)")
+    p.add_argument("--fused-learned", default=str(REPO_ROOT / "params" / "learned_default.yaml"),
+                   help="learned-parameters YAML of the fused row (default params/learned_default.yaml)")
     p.add_argument("--epochs", type=int, default=10, help="with --train: epochs (default 10)")
     p.add_argument("--lr", type=float, default=0.3, help="with --train: Adam learning rate (default 0.3)")
     p.add_argument("--seed", type=int, default=0, help="with --train: seed of the initial O/Q (default 0)")
@@ -163,7 +167,37 @@ def _num(v, fmt: str) -> str:
     return "n/a" if v is None or not math.isfinite(v) else format(v, fmt)
 
 
-def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empirical_q: float, device) -> list[dict]:
+def _fused_row(seq, config, learned, gt: np.ndarray, ref) -> dict:
+    """The fused engine over ``seq``: the same metrics as the paper rows."""
+    from bevo_ros.datasets import run_engine
+    from bevo_ros.evaluation import evaluate_trajectories
+
+    t0 = time.perf_counter()
+    steps = run_engine(seq, config, learned, mode="fused")
+    if len(steps) != len(seq):
+        raise ValueError(f"{seq.name}: the fused engine dropped {len(seq) - len(steps)} frame(s)")
+    motion = np.array([s.motion for s in steps[1:]])
+    est = planar_poses(motion)
+    m = evaluate_trajectories(gt, est, convention="base")
+    truth = seq.gt_motion().double().numpy()
+    road = np.array([s.pitch_roll_road for s in steps])
+    att = np.degrees(road - ref.numpy())
+    yaw_err = np.abs((motion[:, 2] - truth[:, 2] + math.pi) % (2 * math.pi) - math.pi)
+    return {
+        "variant": "fused", "O": list(learned.process_noise_density), "Q": list(learned.measurement_noise_variance),
+        "rpe_trans_mean_m": float(np.linalg.norm(motion[:, :2] - truth[:, :2], axis=1).mean()),
+        "rpe_yaw_mean_deg": math.degrees(float(yaw_err.mean())),
+        "rpe_trans_rmse_m": m.rpe_trans_rmse, "rpe_yaw_rmse_deg": m.rpe_yaw_rmse,
+        "drift_percent": m.drift_percent, "drift_m": m.drift_m, "ate_rmse_m": m.ate_rmse,
+        "t_rel": m.t_rel, "r_rel": m.r_rel, "path_m": m.path_length,
+        "attitude_rmse_deg": [float(v) for v in np.sqrt((att ** 2).mean(axis=0))],
+        "failed_pairs": 0, "pairs": len(steps) - 1, "kl_loss": float("nan"),
+        "seconds": time.perf_counter() - t0, "_est": est, "_road": road,
+    }
+
+
+def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empirical_q: float, device,
+                 fused_learned=None) -> list[dict]:
     """Every variant over ``seq`` (frames as given; IMU from the recording start)."""
     import torch
 
@@ -183,6 +217,9 @@ def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empiric
         "w/ GT": dict(o=None, q=None, source="given"),
     }
     for name in VARIANTS:
+        if name == "fused":
+            rows.append(_fused_row(seq, config, fused_learned, gt, ref))
+            continue
         sp = specs[name]
         dukf = make_dukf(sp["o"], sp["q"], config.filter.motion_model, device) if sp["o"] is not None else None
         t0 = time.perf_counter()
@@ -241,7 +278,7 @@ def plot_bag(path: Path, name: str, gt: np.ndarray, rows: list[dict], ref: np.nd
     ax = axes[0]
     ax.plot(-gt[:, 1, 3], gt[:, 0, 3], "k-", lw=2.2, label="ground truth")
     colours = {"w/o O": "tab:orange", "w/o Q": "tab:purple", "w/o DUKF": "tab:red", "BEVO": "tab:blue",
-               "w/ GT": "tab:green"}
+               "w/ GT": "tab:green", "fused": "tab:cyan"}
     for r in rows:
         e = r["_est"]
         ax.plot(-e[:, 1, 3], e[:, 0, 3], "-", color=colours[r["variant"]], lw=1.2,
@@ -351,6 +388,7 @@ def main(argv: list[str] | None = None) -> int:
             learned = load_learned_params(path)
             learned_src = f"from {path}"
         print(f"learned O = {list(learned.process_noise_density)}, Q = {list(learned.measurement_noise_variance)}")
+        fused_learned = load_learned_params(args.fused_learned)
 
         md = ["# BEVO ablation (paper Table 3)", "",
               f"Parameters: {args.params}. Frames evaluated: {eval_mode}. Every variant runs the engine's BEV "
@@ -373,7 +411,8 @@ def main(argv: list[str] | None = None) -> int:
                 mode = mode[c:d]
             t0 = time.perf_counter()
             label = mode if isinstance(mode, str) else "simulator (exact road-relative attitude)"
-            rows = run_variants(part, config, learned, mode, args.empirical_O, args.empirical_Q, device)
+            rows = run_variants(part, config, learned, mode, args.empirical_O, args.empirical_Q, device,
+                                fused_learned=fused_learned)
             frames = f"frames {c}..{d - 1} of {len(s)}" + (" (held out from training)" if eval_mode == "held-out" else "")
             md.append(table_markdown(s.name, rows, frames, label))
             gt = part.gt_poses.double().numpy()

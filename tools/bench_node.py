@@ -275,7 +275,7 @@ def main() -> int:
     ap.add_argument("--torch-threads", type=int, default=None,
                     help="node parameter torch_threads (default: the parameters file's)")
     ap.add_argument("--imu-topic", default="/imu/data")
-    ap.add_argument("--image-topic", default="/camera/image_raw")
+    ap.add_argument("--image-topic", default="/camera/image_rect")
     ap.add_argument("--domain-id", type=int, default=int(os.environ.get("BEVO_BENCH_DOMAIN_ID", 77)))
     ap.add_argument("--node", default=str(Path(sys.executable).parent / "bevo_node"), help="bevo_node executable")
     ap.add_argument("--cache-dir", default=str(REPO / "out" / "bench_cache"))
@@ -285,7 +285,7 @@ def main() -> int:
     messages, overrides, desc = bag_messages(args) if args.bag else synthetic_messages(args)
     base = Path(args.params) if args.params else REPO / "params" / "kitti.yaml"
     doc = yaml.safe_load(base.read_text())
-    params = doc["bevo_node"]["ros__parameters"]
+    params = (doc.get("/**") or doc["bevo_node"])["ros__parameters"]
     params.update(overrides)
     learned = Path(str(params.get("learned_params_file", "params/learned_default.yaml")))
     if not learned.is_absolute():

@@ -4,8 +4,12 @@
 Topics (names are options):
   /imu/data               sensor_msgs/Imu: the OXTS rates and accelerations only
                           (orientation_covariance[0] = -1: no ground truth leaks in)
-  /camera/image_raw       sensor_msgs/Image, mono8 (cameras 0/1) or rgb8 (cameras 2/3)
+  /camera/image_rect      sensor_msgs/Image, mono8 (cameras 0/1) or rgb8 (cameras 2/3): KITTI's
+                          images are rectified (image_pipeline naming)
   /camera/camera_info     sensor_msgs/CameraInfo, rectified: D = 0 (plumb_bob), R = I, P from calib
+  /tf_static              tf2_msgs/TFMessage, latched (transient local offered QoS in the metadata):
+                          base_link -> imu_link (identity: KITTI's base is the OXTS IMU) and
+                          base_link -> camera_optical_frame (the raw calibration chain)
   /ground_truth/odometry  nav_msgs/Odometry of base_link (the IMU) in odom (= base at the first
                           written frame), from poses/NN.txt through the IMU->camera calibration
   /ground_truth/imu       sensor_msgs/Imu carrying the OXTS unit's own roll/pitch/yaw
@@ -153,10 +157,13 @@ def odometry_source(args) -> Source:
         if len(all_poses) < n:
             raise UserError(f"{poses_txt}: {len(all_poses)} poses but {n} images")
         poses = all_poses[:n]
-        T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(
-            _raw_calib_dir(args, oxts_dir.parent, date or oxts_dir.parent.parent.name), args.camera))
     elif args.poses:
         raise UserError(f"{poses_txt}: --poses file not found")
+    calib_date = date or oxts_dir.parent.parent.name
+    if poses is not None or kitti.find_raw_calib_dir(oxts_dir.parent, calib_date) is not None or args.raw_calib:
+        # the rig's extrinsics: ground truth in the base frame, and /tf_static
+        T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(
+            _raw_calib_dir(args, oxts_dir.parent, calib_date), args.camera))
     return Source(images, stamps, oxts, calib[key], args.camera, poses, T_base_cam,
                   f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})")
 
@@ -197,7 +204,7 @@ def raw_source(args) -> Source:
         lo, hi = offset, min(len(images), offset + len(all_poses))
         poses[lo:hi] = all_poses[: hi - lo]
     return Source(images, stamps, oxts, cam_calib[key].reshape(3, 4), args.camera, poses,
-                  T_base_cam if poses is not None else None, f"raw drive {drive_dir.name}")
+                  T_base_cam, f"raw drive {drive_dir.name}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -254,6 +261,10 @@ def convert(src: Source, args) -> dict[str, int]:
     with bag.BagWriter(args.output, storage=args.storage, overwrite=args.overwrite) as writer:
         for partial in writer.removed_partials:  # left by a killed earlier run
             print(f"kitti_to_bag: removed {partial}, the partial output of an interrupted run", file=sys.stderr)
+        if src.T_base_cam is not None and events and not args.no_tf_static:
+            # the rig on /tf_static (latched): base = the OXTS IMU (KITTI's convention), and the camera
+            writer.write_tf_static(events[0][0], [(args.base_frame, args.imu_frame, np.eye(4)),
+                                                  (args.base_frame, args.camera_frame, src.T_base_cam)])
         for stamp, _, kind, i in tqdm(events, desc="kitti_to_bag", unit="msg", disable=args.quiet, file=sys.stderr):
             if kind == "imu":
                 gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
@@ -316,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera-frame", default="camera_optical_frame", help="frame id of the images")
     p.add_argument("--odom-frame", default="odom", help="frame id of the ground-truth odometry")
     p.add_argument("--base-frame", default="base_link", help="child frame id of the ground-truth odometry")
+    p.add_argument("--no-tf-static", action="store_true",
+                   help="do not write /tf_static (base -> IMU identity, base -> camera optical frame)")
     p.add_argument("--gyro-var", type=float, default=1e-4, help="angular_velocity variance, (rad/s)^2")
     p.add_argument("--accel-var", type=float, default=1e-2, help="linear_acceleration variance, (m/s^2)^2")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or notes")

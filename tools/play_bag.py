@@ -4,8 +4,9 @@
 Messages are read with rosbags and published as their stored CDR bytes (no re-serialisation,
 so they arrive bit-exact), in bag-time order, paced by their bag times (scaled by --rate).
 /clock (rosgraph_msgs/Clock) carries the bag time for nodes run with use_sim_time:=true.
-Publishers are reliable with a deep queue (--qos-depth) so a subscriber that keeps up loses
-nothing. On a full ROS 2 install `ros2 bag play` reads the same bags.
+Each topic is offered with its recorded QoS (rosbag2 metadata: a latched /tf_static is replayed
+transient local, so a node started later still gets it; topics without a record are reliable,
+volatile), keep-last with a deep queue (--qos-depth) so a subscriber that keeps up loses nothing. On a full ROS 2 install `ros2 bag play` reads the same bags.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ EPILOG = """\
 examples:
   play_bag.py seq06_bag                          # real time, with /clock
   play_bag.py seq06_bag --rate 2 --start 1.5     # twice as fast, from 1.5 s into the bag
-  play_bag.py seq06_bag --topics /imu/data /camera/image_raw --wait-for-subscribers 10
+  play_bag.py seq06_bag --topics /imu/data /camera/image_rect --wait-for-subscribers 10
 DDS discovery follows ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE (use LOCALHOST on shared
 networks). Ctrl-C stops cleanly (exit code 130).
 """
@@ -58,6 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--qos-depth", type=int, default=1000, help="reliable keep-last depth of the publishers (default 1000)")
     p.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SEC",
                    help="before playing, wait up to SEC seconds until every topic has a subscriber")
+    p.add_argument("--namespace", default="", metavar="NS",
+                   help="publish the bag's topics under this namespace (/imu/data -> /NS/imu/data), for a node "
+                        "started in NS; /tf, /tf_static and /clock stay global")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     p.add_argument("--clock-topic", default="/clock")
     p.add_argument("--clock-rate", type=float, default=100.0, metavar="HZ",
@@ -69,16 +73,35 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+GLOBAL_TOPICS = ("/tf", "/tf_static", "/clock", "/rosout", "/parameter_events")
+
+
+def namespaced(topic: str, namespace: str) -> str:
+    """``/imu/data`` under ``car1`` -> ``/car1/imu/data`` (global topics unchanged)."""
+    ns = namespace.strip("/")
+    if not ns or topic in GLOBAL_TOPICS:
+        return topic
+    return f"/{ns}/{topic.lstrip('/')}"
+
+
 class Player:
     """Publishers for a bag's topics plus /clock."""
 
-    def __init__(self, node, topics: dict[str, str], args):
+    def __init__(self, node, topics: dict[str, str], args, recorded: dict[str, bag.TopicQos] | None = None):
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.qos_depth,
-                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+        def qos(topic: str) -> QoSProfile:
+            """The recorded offered QoS (durability, reliability); keep-last --qos-depth."""
+            rec = (recorded or {}).get(topic, bag.TopicQos())
+            return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.qos_depth,
+                              reliability=ReliabilityPolicy.RELIABLE if rec.reliable else ReliabilityPolicy.BEST_EFFORT,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL if rec.transient_local
+                              else DurabilityPolicy.VOLATILE)
+
         self.node = node
-        self.publishers = {t: node.create_publisher(message_class(mt), t, qos) for t, mt in topics.items()}
+        self.qos = {t: qos(t) for t in topics}
+        self.publishers = {t: node.create_publisher(message_class(mt), namespaced(t, args.namespace), self.qos[t])
+                           for t, mt in topics.items()}
         self.clock_pub = None
         if not args.no_clock:
             from rosgraph_msgs.msg import Clock
@@ -124,7 +147,7 @@ def play(player: Player, args, start_ns: int | None) -> None:
     """Publish every message at its bag time (scaled by ``args.rate``), with /clock."""
     wall0 = bag0 = None
     clock_period = 1.0 / args.clock_rate if args.clock_rate > 0 else None
-    for msg in bag.iter_raw_messages(args.bag, args.topics, start_ns=start_ns):
+    for msg in bag.iter_raw_messages(args.bag, list(player.publishers), start_ns=start_ns):
         if wall0 is None:
             wall0, bag0 = time.monotonic(), msg.stamp_ns
         if args.rate > 0:
@@ -156,11 +179,19 @@ def main(argv: list[str] | None = None) -> int:
             if missing:
                 raise UserError(f"{args.bag}: no topic {', '.join(missing)} (the bag has: {', '.join(sorted(topics))})")
             topics = {t: topics[t] for t in args.topics}
-        for mt in topics.values():
-            message_class(mt)
+        for t, mt in list(topics.items()):
+            try:
+                message_class(mt)
+            except UserError as exc:
+                if args.topics:
+                    raise
+                # e.g. /tf_static without tf2_msgs (BEVO_SKIP_TF2_MSGS): play the rest, say so
+                print(f"play_bag: skipping {t}: {exc}", file=sys.stderr)
+                del topics[t]
         if not any(count for t, (_, count) in bag.bag_topics(args.bag).items() if t in topics):
             raise UserError(f"{args.bag}: no messages to play")
         first_ns, _ = bag.bag_time_range(args.bag)
+        recorded = bag.topic_qos(args.bag)
     except (UserError, FileNotFoundError, ValueError) as exc:
         print(f"play_bag: error: {exc}", file=sys.stderr)
         return 2
@@ -176,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     player = None
     rc = 0
     try:
-        player = Player(node, topics, args)
+        player = Player(node, topics, args, recorded)
         if args.wait_for_subscribers > 0:
             missing = player.wait_for_subscribers(args.wait_for_subscribers)
             if missing and not args.quiet:

@@ -86,8 +86,53 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue from a checkpoint (its O/Q, Adam state and learning rate; --epochs is the total)")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda (falls back to CPU with a warning)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: fastest for 100x100 BEVs)")
+    p.add_argument("--vehicle-steps", type=int, default=100,
+                   help="fused mode: Adam steps fitting the vehicle motion filter's noise after O/Q (0 = keep it)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
+
+
+def _fit_vehicle(learned, seqs, config, args) -> None:
+    """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
+    ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
+    validation frames' NLL is not worse."""
+    from dataclasses import asdict
+
+    from bevo_ros.core.vehicle_filter import VehicleNoise
+    from bevo_ros.datasets import split_frames
+    from bevo_ros.vehicle_training import TRAINED, fit_vehicle_noise, motion_nll, record_inputs, replay
+
+    import torch
+
+    t0 = time.perf_counter()
+    train_parts, val_parts = [], []
+    for s in seqs:
+        inputs, truth = record_inputs(s, config, learned)
+        (_, cut), _ = split_frames(len(s), args.split)
+        train_parts.append((inputs[: cut - 1], truth[: cut - 1]))
+        val_parts.append((inputs, truth, cut - 1))
+    base = VehicleNoise(**learned.vehicle)
+    fit = fit_vehicle_noise(train_parts, base, steps=args.vehicle_steps)
+
+    def val_nll(noise) -> float:
+        total, n = 0.0, 0
+        for inputs, truth, cut in val_parts:
+            m, v = replay(noise, inputs)
+            t = torch.as_tensor(truth, dtype=torch.float64)
+            total += float(motion_nll(m[cut:], v[cut:], t[cut:])) * (len(inputs) - cut)
+            n += len(inputs) - cut
+        return total / max(n, 1)
+
+    before, after = val_nll(base), val_nll(fit.noise)
+    print(f"vehicle filter ({time.perf_counter() - t0:.1f} s): train NLL {fit.nll_before:.3f} -> {fit.nll_after:.3f}, "
+          f"validation NLL {before:.3f} -> {after:.3f}; per-frame RMSE (train) dx {fit.rmse_before[0]:.4f} -> "
+          f"{fit.rmse_after[0]:.4f} m, dy {fit.rmse_before[1]:.4f} -> {fit.rmse_after[1]:.4f} m")
+    if after <= before:
+        learned.vehicle = {k: float(asdict(fit.noise)[k]) for k in TRAINED}
+        learned.info["vehicle_filter_fit"] = {"train_nll": [fit.nll_before, fit.nll_after],
+                                             "validation_nll": [before, after]}
+    else:
+        print("vehicle filter: the fit did not improve the validation frames; keeping the previous values")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
         result = train(seqs, config, options, checkpoint=checkpoint, resume=args.resume, progress=not args.quiet,
                        extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
                                    "params_file": str(Path(args.params).resolve())})
+        if config.odometry.mode == "fused" and args.vehicle_steps > 0:
+            _fit_vehicle(result.learned, seqs, config, args)
         save_learned_params(result.learned, out)
     except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
         print(f"train_from_bag: error: {exc}", file=sys.stderr)

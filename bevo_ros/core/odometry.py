@@ -24,7 +24,7 @@ from .phase_correlation import DpcConfig, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
-from .vehicle_dynamics import compensate_floats, suspension_attitude
+from .vehicle_dynamics import GRAVITY, compensate_floats, suspension_attitude
 from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 
 MODES = ("fused", "paper")
@@ -67,6 +67,7 @@ class OdometryStep:
     measured_motion: np.ndarray | None = None  # (3,) the correlation's own (dx, dy, dyaw); None first
     accepted: tuple[bool, bool] = (True, True)  # fused mode: (translation, rotation) measurement used
     speed: float = float("nan")  # fused mode: the motion filter's forward speed, m/s
+    filter_inputs: dict | None = None  # fused mode: VehicleFilter.step's arguments this frame (training replays them)
 
 
 @dataclass
@@ -184,6 +185,9 @@ class BevoOdometry:
         self._yaw_rate = None  # its latest rate (trapezoid)
         self._prev_yaw_cum = 0.0
         self._ext_speed = None  # (stamp, VehicleState) from add_speed
+        self._acc_sq = None  # low-passed |f_c|^2 - g^2, m^2/s^4
+        self._fwd_sum = 0.0  # integral of the accelerometer's forward acceleration since the last frame, m/s
+        self._fwd_time = 0.0  # the time it covers, s
         self.counters.resets += 1
 
     def set_camera(self, camera: CameraModel) -> None:
@@ -268,19 +272,30 @@ class BevoOdometry:
             # A speed that does not come from the images (wheel odometry): v and dv/dt both removed.
             es = ext[1]
             esp, esv = es.speed_at(stamp - ext[0])
-            f, extra = compensate_floats(a, g, esp, es.a, esv, es.p[3])
+            f, extra = compensate_floats(a, g, esp, es.a, esv, es.var(1))
         else:
             # With the visual speed alone the forward acceleration is not subtracted, it only makes
             # the pitch measurement count less (variance P_aa + a^2): a visual dv/dt closes a loop (a
             # pitch error scales the BEV's speed, whose rate tilts the compensated pitch) that is
             # unstable at road speeds (the gravity pitch ran to 11 deg RMS on the KITTI sample).
             # The speed itself (centripetal v wz, -v wy) has no such loop gain.
-            # The error is the same for every sample for as long as the acceleration lasts: per
-            # sample its variance counts once per sample of its correlation time, not once in total
-            # (ACCEL_CORRELATION_TIME: braking preset pitch 2.2 -> 0.2 deg RMS at 100 Hz).
-            per_second = max(1.0, ACCEL_CORRELATION_TIME / max(self._imu_dt, 1e-4))
-            f, extra = compensate_floats(a, g, speed, 0.0, speed_var, (vs.p[3] + vs.a * vs.a) * per_second)
-        if self._state is None or stamp - self._last_imu > self.max_imu_gap:
+            # How large the unexplained forward acceleration is, from two loop-free cues: the
+            # accelerometer's own norm (|f_c|^2 - g^2, low-passed over the correlation time) and
+            # the motion filter's dv/dt (its square: a wrong mean only widens the variance). The
+            # error is the same for every sample for as long as the acceleration lasts, so its
+            # variance counts once per sample of that time (ACCEL_CORRELATION_TIME).
+            f, extra = compensate_floats(a, g, speed, 0.0, speed_var, 0.0)
+            tc = ACCEL_CORRELATION_TIME
+            per_second = max(1.0, tc / max(self._imu_dt, 1e-4))
+            sq = f[0] * f[0] + f[1] * f[1] + f[2] * f[2] - GRAVITY * GRAVITY
+            if self._acc_sq is None:
+                self._acc_sq = sq
+            else:
+                self._acc_sq += min(1.0, max(self._imu_dt, 1e-4) / tc) * (sq - self._acc_sq)
+            a_var = max(self._acc_sq, 0.0) + vs.a * vs.a
+            extra = (extra[0] + a_var * per_second / (GRAVITY * GRAVITY), extra[1])
+        restarted = self._state is None or stamp - self._last_imu > self.max_imu_gap
+        if restarted:
             if self._state is not None:
                 self.counters.imu_gaps += 1
             # Start from the mounting attitude with a wide variance and take the first sample as a
@@ -292,6 +307,10 @@ class BevoOdometry:
             self._imu_dt = stamp - self._last_imu
             self._state = self.dukf.step_scalar(*self._state, g, f, self._imu_dt, self._noise, extra)
         (pitch, roll) = self._state[0]
+        if self._last_imu is not None and stamp > self._last_imu and not restarted:
+            step = stamp - self._last_imu
+            self._fwd_sum += (a[0] + GRAVITY * math.sin(pitch)) * step
+            self._fwd_time += step
         # Yaw rate about the vertical (Z-Y-X Euler kinematics), integrated by trapezoids.
         rate = (g[1] * math.sin(roll) + g[2] * math.cos(roll)) / math.cos(pitch)
         if self._yaw_rate is not None:
@@ -427,6 +446,7 @@ class BevoOdometry:
             measured_motion=measured,
             accepted=accepted,
             speed=speed,
+            filter_inputs=None if first or self.mode != "fused" else self._last_filter_inputs,
         )
 
     def _fused_motion(self, curr, dt: float, yaw_cum: float, state: tuple):
@@ -435,7 +455,7 @@ class BevoOdometry:
         n = self.vehicle.noise
         predicted_bias = self._vstate.b
         dyaw = gyro_yaw - predicted_bias * dt
-        dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.p[5] * dt * dt)
+        dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.var(2) * dt * dt)
         dev, dt_ = self.device, self.dtype
         reg = register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
                                 angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev))
@@ -444,10 +464,17 @@ class BevoOdometry:
         rot = -float(reg.rotation_estimate[0])
         # The image rotation's spread, floored: the polar-magnitude estimate is not refined here.
         rot_var = float(reg.rotation_estimate_std[0]) ** 2 + math.radians(0.1) ** 2
-        frame = self.vehicle.step(self._vstate, dt, gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
-                                  lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot,
-                                  rotation_var=rot_var, quality=float(reg.quality[0]))
+        imu_accel = imu_var = None
+        if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
+            imu_accel = self._fwd_sum / self._fwd_time
+            imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
+        self._fwd_sum = self._fwd_time = 0.0
+        inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
+                      lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
+                      quality=float(reg.quality[0]), imu_accel=imu_accel, imu_accel_var=imu_var)
+        frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
+        self._last_filter_inputs = inputs
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
         if float(reg.quality[0]) < n.min_quality:
             self.counters.rejected_textureless += 1

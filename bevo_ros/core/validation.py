@@ -111,8 +111,9 @@ class StampVerdict:
 class TimeJumpGuard:
     """Separates lone outlier stamps from real time jumps (a bag restarted, a clock stepped).
 
-    A stamp within ``[ref - max_back, ref + max_forward]`` of the timeline ``ref`` (the newest
-    accepted stamp of any stream) is accepted. Any other is held: once ``confirmations`` held
+    One guard per input stream (streams may lag each other when the consumer is behind). A stamp
+    within ``[ref - max_back, ref + max_forward]`` of the timeline ``ref`` (the newest accepted
+    stamp of the stream) is accepted. Any other is held: once ``confirmations`` held
     messages agree with each other (each within the same window of the previous), the jump is
     confirmed and they are released; a message back on the old timeline first makes the held
     ones lone outliers (dropped). (With ROS time from /clock, the node's clock-jump handler is
@@ -138,6 +139,14 @@ class TimeJumpGuard:
         held = [item for _, item in self.held]
         self.ref, self.held = None, []
         return held
+
+    def rebase(self, ref: float) -> tuple[list, list]:
+        """Move to the timeline ``ref`` another stream's guard confirmed (the consumer reset):
+        returns ``(release, outliers)``, the held items on it and off it."""
+        release = [(t, it) for t, it in self.held if self._near(t, ref)]
+        outliers = [it for t, it in self.held if not self._near(t, ref)]
+        self.ref, self.held = max([ref] + [t for t, _ in release]), []
+        return [it for _, it in release], outliers
 
     def _near(self, t: float, ref: float) -> bool:
         return ref - self.max_back <= t <= ref + self.max_forward

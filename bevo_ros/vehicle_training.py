@@ -1,0 +1,122 @@
+"""Learning the vehicle motion filter's noise (fused mode), like the DUKF's O and Q.
+
+The engine records, per frame, exactly what it gave :meth:`VehicleFilter.step`
+(``OdometryStep.filter_inputs``). Replaying those inputs through the filter's tensor form is the
+engine's computation, differentiable in the log-noises; the loss is the Gaussian negative
+log-likelihood of the ground-truth frame motion ``(dx, dy, dyaw)`` under the filter's output
+(mean and variance), so the fit learns how much to smooth *and* how confident to be. Adam on the
+log-variances; the measurements themselves (BEV, correlation, gyro) are held fixed.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from .core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
+
+Tensor = torch.Tensor
+
+# The learned fields and how each enters the filter (all positive: learned as logs).
+TRAINED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std")
+
+__all__ = ["TRAINED", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise"]
+
+
+@dataclass
+class VehicleFit:
+    noise: VehicleNoise
+    nll_before: float
+    nll_after: float
+    rmse_before: tuple[float, float, float]  # dx, dy (m), dyaw (rad) per frame on the given frames
+    rmse_after: tuple[float, float, float]
+    steps: int
+
+
+def _noise_with(base: VehicleNoise, log_params: Tensor) -> VehicleNoise:
+    return replace(base, **{k: log_params[i].exp() for i, k in enumerate(TRAINED)})
+
+
+def replay(noise: VehicleNoise, inputs: list[dict]) -> tuple[Tensor, Tensor]:
+    """Run the filter over recorded per-frame inputs (a frame without inputs restarts nothing:
+    it is simply skipped). Returns motion ``(F, 3)`` and variance ``(F, 3)`` (float64; tensors when
+    ``noise`` holds tensors)."""
+    vf = VehicleFilter(noise)
+    like = torch.zeros(1, dtype=torch.float64)
+    state = initial_vehicle_state(like=like)
+    motions, variances = [], []
+    for inp in inputs:
+        kw = {k: (torch.as_tensor(v, dtype=torch.float64).reshape(1) if v is not None and k != "dt" else v)
+              for k, v in inp.items()}
+        frame = vf.step(state, **kw)
+        state = frame.state
+        motions.append(torch.stack([torch.as_tensor(m, dtype=torch.float64).reshape(1) for m in frame.motion], -1))
+        variances.append(torch.stack([torch.as_tensor(v, dtype=torch.float64).reshape(1) for v in frame.variance], -1))
+    return torch.cat(motions, 0), torch.cat(variances, 0)
+
+
+def motion_nll(motion: Tensor, variance: Tensor, truth: Tensor) -> Tensor:
+    """Mean Gaussian negative log-likelihood (per frame and axis) of ``truth (F, 3)``."""
+    var = variance.clamp_min(1e-12)
+    return 0.5 * (((truth - motion) ** 2) / var + var.log() + math.log(2 * math.pi)).mean()
+
+
+def _rmse(motion: Tensor, truth: Tensor) -> tuple[float, float, float]:
+    return tuple(float(v) for v in ((motion - truth) ** 2).mean(0).sqrt())
+
+
+def fit_vehicle_noise(sequences: list[tuple[list[dict], np.ndarray]], init: VehicleNoise | None = None,
+                      steps: int = 150, lr: float = 0.1, log=print) -> VehicleFit:
+    """Fit the filter's noise on ``[(inputs, truth (F, 3)), ...]`` (one pair per recording).
+
+    Returns the noise with the lowest training NLL seen (Adam can overshoot).
+    """
+    base = init or VehicleNoise()
+    if not sequences or not any(len(i) for i, _ in sequences):
+        raise ValueError("no frames to fit the vehicle filter on")
+    truths = [torch.as_tensor(np.asarray(t), dtype=torch.float64) for _, t in sequences]
+    params = torch.tensor([math.log(getattr(base, k)) for k in TRAINED], dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([params], lr=lr)
+
+    def evaluate(p: Tensor) -> tuple[Tensor, list[Tensor]]:
+        noise = _noise_with(base, p)
+        total, outs = 0.0, []
+        for (inputs, _), truth in zip(sequences, truths):
+            m, v = replay(noise, inputs)
+            total = total + motion_nll(m, v, truth) * len(inputs)
+            outs.append(m)
+        return total / sum(len(i) for i, _ in sequences), outs
+
+    with torch.no_grad():
+        nll0, outs0 = evaluate(params)
+    best = (float(nll0), params.detach().clone())
+    for i in range(steps):
+        opt.zero_grad()
+        nll, _ = evaluate(params)
+        if not torch.isfinite(nll):
+            log(f"vehicle filter fit: non-finite loss at step {i}; keeping the best so far")
+            break
+        nll.backward()
+        opt.step()
+        with torch.no_grad():
+            params.clamp_(-40.0, 20.0)
+        if nll.item() < best[0]:
+            best = (nll.item(), params.detach().clone())
+    with torch.no_grad():
+        nll1, outs1 = evaluate(best[1])
+    m0, m1, t = torch.cat(outs0), torch.cat(outs1), torch.cat(truths)
+    fitted = replace(base, **{k: float(best[1][i].exp()) for i, k in enumerate(TRAINED)})
+    return VehicleFit(fitted, float(nll0), float(nll1), _rmse(m0, t), _rmse(m1, t), steps)
+
+
+def record_inputs(sequence, config, learned) -> tuple[list[dict], np.ndarray]:
+    """Run the fused engine (the node's, with ``learned``) over a :class:`~bevo_ros.datasets.Sequence`;
+    returns the filter inputs of frames 1.. and their ground-truth motion."""
+    from .datasets import run_engine
+
+    steps = run_engine(sequence, config, learned, mode="fused")
+    if len(steps) != len(sequence):
+        raise ValueError(f"{sequence.name}: {len(sequence) - len(steps)} frame(s) dropped while recording filter inputs")
+    return [s.filter_inputs for s in steps[1:]], sequence.gt_motion().double().numpy()

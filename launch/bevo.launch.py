@@ -1,0 +1,72 @@
+"""bevo_node with its parameters, optionally a bag replay and RViz.
+
+    ros2 launch bevo_ros bevo.launch.py                                  # live sensors
+    ros2 launch bevo_ros bevo.launch.py bag:=bags/kitti06               # replay (use_sim_time on)
+    ros2 launch bevo_ros bevo.launch.py namespace:=car1 params_file:=/path/car.yaml rviz:=true
+
+Arguments:
+    params_file   bevo_node parameters (default: the installed share/bevo_ros/params/kitti.yaml);
+                  a relative learned_params_file in it resolves beside it
+    use_sim_time  follow /clock (default: true when bag is given, else false)
+    namespace     push the node (and its relative topics) into this namespace
+    bag           a rosbag2 to replay with the project's player (play_bag, /clock, recorded QoS)
+    rate          replay speed factor (default 1.0)
+    rviz          start RViz with share/bevo_ros/rviz/bevo.rviz (default false)
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, ExecuteProcess
+from launch.conditions import IfCondition
+from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
+from launch_ros.substitutions import ExecutableInPackage
+
+PACKAGE = "bevo_ros"
+
+
+def generate_launch_description():
+    share = get_package_share_directory(PACKAGE)
+    params_file = LaunchConfiguration("params_file")
+    use_sim_time = LaunchConfiguration("use_sim_time")
+    namespace = LaunchConfiguration("namespace")
+    bag = LaunchConfiguration("bag")
+    rate = LaunchConfiguration("rate")
+    rviz = LaunchConfiguration("rviz")
+    has_bag = PythonExpression(["'", bag, "' != ''"])
+
+    return LaunchDescription([
+        DeclareLaunchArgument("params_file", default_value=os.path.join(share, "params", "kitti.yaml"),
+                              description="bevo_node parameters file"),
+        DeclareLaunchArgument("use_sim_time", default_value=PythonExpression(["'true' if '", bag, "' else 'false'"]),
+                              description="follow /clock (true by default when a bag is replayed)"),
+        DeclareLaunchArgument("namespace", default_value="", description="namespace of the node and its topics"),
+        DeclareLaunchArgument("bag", default_value="", description="rosbag2 to replay (empty: live sensors)"),
+        DeclareLaunchArgument("rate", default_value="1.0", description="bag replay speed factor"),
+        DeclareLaunchArgument("rviz", default_value="false", description="start RViz"),
+        Node(
+            package=PACKAGE,
+            executable="bevo_node",
+            name="bevo_node",
+            namespace=namespace,
+            output="screen",
+            emulate_tty=True,
+            parameters=[params_file, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+        ),
+        ExecuteProcess(
+            cmd=[ExecutableInPackage(executable="play_bag", package=PACKAGE), bag, "--rate", rate,
+                 "--namespace", namespace, "--wait-for-subscribers", "10"],
+            output="screen",
+            condition=IfCondition(has_bag),
+        ),
+        Node(
+            package="rviz2",
+            executable="rviz2",
+            name="rviz2",
+            arguments=["-d", os.path.join(share, "rviz", "bevo.rviz")],
+            parameters=[{"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+            condition=IfCondition(rviz),
+        ),
+    ])
