@@ -595,12 +595,26 @@ def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start
 ENCODINGS = {"mono8": (1, 1), "8UC1": (1, 1), "mono16": (1, 2), "16UC1": (1, 2), "rgb8": (3, 1), "bgr8": (3, 1)}
 
 
+def _cv2_gray_encodings() -> dict:
+    from bevo_ros.ros_conversions import CV2_GRAY_ENCODINGS
+
+    return CV2_GRAY_ENCODINGS
+
+
 def decode_image(msg: Any, to_gray: bool = True) -> np.ndarray:
     """sensor_msgs/Image -> uint8 ``(H, W)`` (``to_gray``) or the native layout.
 
     Colour is converted with ITU-R BT.601 luma weights (as OpenCV does); mono16 is scaled to 8
     bits by /257 (65535 -> 255).
     """
+    if to_gray and (hasattr(msg, "format") or getattr(msg, "encoding", "") in _cv2_gray_encodings()):
+        # Bayer, packed YUV 4:2:2 and CompressedImage: the node's OpenCV conversions, one way for both
+        from bevo_ros.ros_conversions import ImageConversionError, image_to_gray
+
+        try:
+            return image_to_gray(msg)
+        except ImageConversionError as exc:
+            raise BagError(str(exc)) from None
     enc = msg.encoding
     if enc not in ENCODINGS:
         raise BagError(f"unsupported image encoding {enc!r} (supported: {', '.join(ENCODINGS)})")
@@ -728,7 +742,8 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
             rec.imu_frame_id = msg.header.frame_id
         elif topic == image_topic:
             frame_t.append(stamp_ns(msg.header.stamp))
-            rec.image_frame_id, rec.image_encoding = msg.header.frame_id, msg.encoding
+            rec.image_frame_id = msg.header.frame_id
+            rec.image_encoding = getattr(msg, "encoding", None) or getattr(msg, "format", "")  # CompressedImage: format
             if load_images:
                 try:
                     img = decode_image(msg)

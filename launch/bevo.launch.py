@@ -75,7 +75,8 @@ def generate_launch_description():
         ),
         ExecuteProcess(
             cmd=[ExecutableInPackage(executable="play_bag", package=PACKAGE), bag, "--rate", rate,
-                 "--namespace", namespace, "--wait-for-subscribers", "10"],
+                 "--namespace", namespace, "--wait-for-subscribers", "10",
+                 "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info"],
             output="screen",
             condition=IfCondition(has_bag),
         ),

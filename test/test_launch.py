@@ -148,6 +148,9 @@ def test_launch_file_names_only_what_exists(description):
         args.append(c if isinstance(c, str) else {"bag": "some_bag", "rate": "1.0", "namespace": "car1"}[c.args[0]])
     parsed = parser.parse_args(args)
     assert parsed.bag == "some_bag" and parsed.namespace == "car1" and "--wait-for-subscribers" in flags
+    defaults = NodeSettings()  # it waits for the node's own inputs (root-namespace bag names)
+    assert set(parsed.wait_topics) == {"/" + defaults.imu_topic, "/" + defaults.image_topic,
+                                       "/" + defaults.camera_info_topic}
 
     # RViz gets the installed config
     rviz = [n for n in nodes if n.kwargs["package"] == "rviz2"][0]

@@ -462,8 +462,9 @@ class BevoOdometry:
         measured = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
         cov = self._motion_covariance(reg, measured, state)
         rot = -float(reg.rotation_estimate[0])
-        # The image rotation's spread, floored: the polar-magnitude estimate is not refined here.
-        rot_var = float(reg.rotation_estimate_std[0]) ** 2 + math.radians(0.1) ** 2
+        # The image rotation's spread plus what the correlation spread does not see (an attitude
+        # error shears the BEV into a rotation): image_rotation_std.
+        rot_var = float(reg.rotation_estimate_std[0]) ** 2 + n.image_rotation_std**2
         imu_accel = imu_var = None
         if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
             imu_accel = self._fwd_sum / self._fwd_time
