@@ -576,7 +576,7 @@ def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start
 
 
 def decode_image(msg: Any) -> np.ndarray:
-    """sensor_msgs/Image (as read from a bag) -> uint8 grey ``(H, W)``: the node's conversion
+    """sensor_msgs/Image or CompressedImage (as read from a bag) -> uint8 grey ``(H, W)``: the node's conversion
     (:func:`bevo_ros.ros_conversions.image_to_gray`), so a bag gives the engine the very grey levels
     bevo_node gives it. Raises :class:`BagError` for an encoding or layout it cannot use."""
     from bevo_ros.ros_conversions import ImageConversionError, image_to_gray
@@ -692,7 +692,8 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
             rec.imu_frame_id = msg.header.frame_id
         elif topic == image_topic:
             frame_t.append(stamp_to_ns(msg.header.stamp))
-            rec.image_frame_id, rec.image_encoding = msg.header.frame_id, msg.encoding
+            rec.image_frame_id = msg.header.frame_id
+            rec.image_encoding = getattr(msg, "encoding", None) or getattr(msg, "format", "")  # CompressedImage: format
             if load_images:
                 try:
                     img = decode_image(msg)

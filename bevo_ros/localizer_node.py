@@ -9,7 +9,8 @@ a heat-map appended beside the BEV is cut off), and RViz's "2D Pose Estimate"
 (geometry_msgs/PoseWithCovarianceStamped on ``initialpose_topic``). Out: TF ``map -> odom``
 (REP-105), the base pose with covariance in ``map`` (``pose_topic``), ``/diagnostics`` (match
 quality, updates accepted / gated / low quality, status) and a debug image of the last match
-(map crop | mosaic | correlation, only while subscribed).
+(map crop | mosaic | correlation, only while subscribed). Topic names are relative (a namespace
+applies; ``initialpose`` resolves to RViz's ``/initialpose`` in the root namespace).
 
 Why its own node: REP-105 splits the continuous odometry (``odom -> base_link``, bevo_node) from
 the map correction (``map -> odom``) as AMCL and robot_localization do; the map, the mosaic and
@@ -46,11 +47,11 @@ EXIT_CONFIG_ERROR = 2
 @dataclass
 class LocalizerSettings:
     map_file: str = ""
-    odometry_topic: str = "/bevo/odometry"
-    bev_image_topic: str = "/bevo/bev_image"
-    initialpose_topic: str = "/initialpose"
-    pose_topic: str = "/bevo/map_pose"
-    debug_image_topic: str = "/bevo/localizer/debug_image"
+    odometry_topic: str = "bevo/odometry"
+    bev_image_topic: str = "bevo/bev_image"
+    initialpose_topic: str = "initialpose"
+    pose_topic: str = "bevo/map_pose"
+    debug_image_topic: str = "bevo/localizer/debug_image"
     map_frame: str = "map"
     publish_tf: bool = True
     initial_pose: list = dataclasses.field(default_factory=list)  # [x, y, yaw] to start without RViz

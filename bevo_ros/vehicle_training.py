@@ -20,7 +20,7 @@ from .core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_st
 Tensor = torch.Tensor
 
 # The learned fields and how each enters the filter (all positive: learned as logs).
-TRAINED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std")
+TRAINED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std")  # image_rotation_std: in the engine
 
 __all__ = ["TRAINED", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise"]
 

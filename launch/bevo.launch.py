@@ -12,6 +12,8 @@ Arguments:
     bag           a rosbag2 to replay with the project's player (play_bag, /clock, recorded QoS)
     rate          replay speed factor (default 1.0)
     rviz          start RViz with share/bevo_ros/rviz/bevo.rviz (default false)
+    localizer     also start bevo_localizer (BEVO+, map -> odom) on map_file (default false)
+    map_file      the localizer's map YAML (nav2 map_server convention)
 """
 import os
 
@@ -35,6 +37,8 @@ def generate_launch_description():
     bag = LaunchConfiguration("bag")
     rate = LaunchConfiguration("rate")
     rviz = LaunchConfiguration("rviz")
+    localizer = LaunchConfiguration("localizer")
+    map_file = LaunchConfiguration("map_file")
     has_bag = PythonExpression(["'", bag, "' != ''"])
 
     return LaunchDescription([
@@ -46,6 +50,9 @@ def generate_launch_description():
         DeclareLaunchArgument("bag", default_value="", description="rosbag2 to replay (empty: live sensors)"),
         DeclareLaunchArgument("rate", default_value="1.0", description="bag replay speed factor"),
         DeclareLaunchArgument("rviz", default_value="false", description="start RViz"),
+        DeclareLaunchArgument("localizer", default_value="false",
+                              description="start bevo_localizer (BEVO+: map -> odom from an aerial map)"),
+        DeclareLaunchArgument("map_file", default_value="", description="bevo_localizer's map YAML"),
         Node(
             package=PACKAGE,
             executable="bevo_node",
@@ -55,9 +62,21 @@ def generate_launch_description():
             emulate_tty=True,
             parameters=[params_file, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
         ),
+        Node(
+            package=PACKAGE,
+            executable="bevo_localizer",
+            name="bevo_localizer",
+            namespace=namespace,
+            output="screen",
+            emulate_tty=True,
+            parameters=[os.path.join(share, "params", "bevo_localizer.yaml"),
+                        {"map_file": map_file, "use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+            condition=IfCondition(localizer),
+        ),
         ExecuteProcess(
             cmd=[ExecutableInPackage(executable="play_bag", package=PACKAGE), bag, "--rate", rate,
-                 "--namespace", namespace, "--wait-for-subscribers", "10"],
+                 "--namespace", namespace, "--wait-for-subscribers", "10",
+                 "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info"],
             output="screen",
             condition=IfCondition(has_bag),
         ),

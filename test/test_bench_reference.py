@@ -59,6 +59,10 @@ def test_projection_is_the_engines_bev(ref_module, camera):
         assert diff.max() <= 2.5 / 255 and diff.mean() <= 0.5 / 255, (diff.max() * 255, diff.mean() * 255)
         # A 1-pixel (10 cm) shift of the grid would be far off: the comparison is sharp.
         assert np.abs(np.roll(bev, 1, axis=0) - engine_bev)[ref.mask > 0].mean() > 5 * diff.mean()
+        # The attitude-following variant (warpPerspective at the frame's homography) with the fixed
+        # maps' attitude's mask: the same BEV.
+        diff_at = np.abs(ref_module.OpenCvReference(camera, SPEC).project_at(image, pitch, roll) - engine_bev)
+        assert diff_at[ref.mask * engine_mask > 0].max() <= 2.5 / 255, diff_at.max() * 255
 
 
 def test_ccs_magnitude_matches_numpy(ref_module):

@@ -74,8 +74,9 @@ def _setup_py_executables() -> set[str]:
                  and any(isinstance(t, ast.Name) and t.id == "TOOLS" for t in n.targets))
     text = (REPO / "setup.py").read_text()
     assert '"bevo_node = bevo_ros.node:main"' in text
+    assert '"bevo_localizer = bevo_ros.localizer_node:main"' in text
     assert 'f"{name} = bevo_ros.cli:{name}" for name in TOOLS' in text
-    return {"bevo_node", *tools}
+    return {"bevo_node", "bevo_localizer", *tools}
 
 
 @pytest.fixture
@@ -107,7 +108,7 @@ def test_launch_file_names_only_what_exists(description):
     assert set(cli.TOOLS) <= executables
     nodes = kinds("Node")
     ours = [n for n in nodes if n.kwargs["package"] == "bevo_ros"]
-    assert [n.kwargs["executable"] for n in ours] == ["bevo_node"]
+    assert [n.kwargs["executable"] for n in ours] == ["bevo_node", "bevo_localizer"]
     assert all(n.kwargs["executable"] in executables for n in ours)
     others = {(n.kwargs["package"], n.kwargs["executable"]) for n in nodes if n not in ours}
     assert others <= {("rviz2", "rviz2")}, others
@@ -120,6 +121,15 @@ def test_launch_file_names_only_what_exists(description):
             assert set(entry) <= known, set(entry) - known
         else:
             assert isinstance(entry, Recorded) and entry.args == ("params_file",)
+
+    # bevo_localizer (launch option localizer:=true): its parameters file and overrides are its own
+    from bevo_ros.localizer_node import LocalizerSettings
+
+    loc = ours[1]
+    assert type(loc.kwargs["condition"]).__name__ == "IfCondition"
+    assert Path(loc.kwargs["parameters"][0]) == REPO / "params" / "bevo_localizer.yaml"
+    assert set(loc.kwargs["parameters"][1]) <= {f.name for f in __import__("dataclasses").fields(LocalizerSettings)} | {
+        "use_sim_time"}
 
     # the bag replay runs the project's player with arguments its parser accepts
     exe = kinds("ExecutableInPackage")
@@ -138,6 +148,9 @@ def test_launch_file_names_only_what_exists(description):
         args.append(c if isinstance(c, str) else {"bag": "some_bag", "rate": "1.0", "namespace": "car1"}[c.args[0]])
     parsed = parser.parse_args(args)
     assert parsed.bag == "some_bag" and parsed.namespace == "car1" and "--wait-for-subscribers" in flags
+    defaults = NodeSettings()  # it waits for the node's own inputs (root-namespace bag names)
+    assert set(parsed.wait_topics) == {"/" + defaults.imu_topic, "/" + defaults.image_topic,
+                                       "/" + defaults.camera_info_topic}
 
     # RViz gets the installed config
     rviz = [n for n in nodes if n.kwargs["package"] == "rviz2"][0]
@@ -160,7 +173,7 @@ def test_setup_installs_launch_rviz_params_tools_and_license():
     for pattern in ('glob("params/*.yaml")', 'glob("launch/*.launch.py")', 'glob("rviz/*.rviz")', '["LICENSE"]',
                     'f"tools/{name}.py" for name in TOOLS'):
         assert pattern in text, pattern
-    for name in _setup_py_executables() - {"bevo_node"}:
+    for name in _setup_py_executables() - {"bevo_node", "bevo_localizer"}:
         assert (REPO / "tools" / f"{name}.py").is_file(), name
 
 

@@ -159,6 +159,17 @@ def test_localizer_node_end_to_end(context, world):
         assert values["status"] == "tracking" and int(values["accepted"]) == c.accepted
         assert values["drop.bev_wrong_size"] == "1" and values["drop.initialpose_wrong_frame"] == "1"
         assert debug[-1].width == 3 * 128 + 4 and debug[-1].height == 128
+        # bevo_node reset (~/reset): its odometry restarts at identity. The map pose does not jump;
+        # map -> odom absorbs the new odom origin and the mosaic restarts.
+        n = len(poses)
+        t_reset = float(stamps[-1]) + 0.2
+        odom_pub.publish(odometry_msg(t_reset, np.zeros(3), 0.1))
+        odom_pub.publish(odometry_msg(t_reset + 0.1, np.array([1.0, 0.0, 0.0]), 0.1))
+        assert spin_until(ex, lambda: node.counts["odometry_resets"] == 1 and len(poses) >= n + 2, 5)
+        q = poses[n].pose.pose
+        after = np.array([q.position.x, q.position.y])
+        assert np.linalg.norm(after - est[:2]) < 0.3, (after, est)  # ~0.1 s of motion, no jump
+        assert len(node.localizer.mosaic.frames) == 0
     finally:
         ex.remove_node(node)
         ex.remove_node(tester)

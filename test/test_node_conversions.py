@@ -270,3 +270,24 @@ def test_rgb8_bag_gives_the_node_s_grey_levels_for_every_colour(tmp_path):
     differ = int((f64 != node).sum())
     print(f"\nfloat64 BT.601 differs from the one conversion on {differ} of {1 << 24} colours (by at most 1)")
     assert 0 < differ and np.abs(f64 - node).max() == 1  # the comparison above can see such a drift
+
+
+def test_offline_decoder_takes_the_same_camera_encodings():
+    """bag.decode_image (run_bag, training) decodes Bayer, YUV and compressed images as the node does."""
+    import cv2
+
+    from bevo_ros import bag
+
+    types = bag.typestore().types
+    grey = np.round(_bt601(_colour_scene())).astype(np.uint8)
+    hdr = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="c")
+    packed = np.stack([np.full_like(grey, 128), grey], -1)  # UYVY: chroma, luma
+    yuv = types["sensor_msgs/msg/Image"](header=hdr, height=grey.shape[0], width=grey.shape[1], encoding="uyvy",
+                                         is_bigendian=0, step=grey.shape[1] * 2, data=packed.reshape(-1).copy())
+    assert np.array_equal(bag.decode_image(yuv), grey)
+    png = types["sensor_msgs/msg/CompressedImage"](header=hdr, format="png",
+                                                   data=cv2.imencode(".png", grey)[1].reshape(-1))
+    assert np.array_equal(bag.decode_image(png), grey)
+    ros_msg = _image(packed, "uyvy")
+    ros_msg.width = grey.shape[1]
+    assert np.array_equal(rc.image_to_gray(ros_msg), bag.decode_image(yuv))

@@ -139,9 +139,8 @@ def harness(context):
 
     def make(**extra):
         ov = overrides()
-        # the camera.* parameters calibrate (CameraInfo is the node's default: tested in test_node_graph)
         ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, log_throttle_period=0.0,
-                  use_camera_info=False)
+                  use_camera_info=False)  # the camera.* parameters unless a test asks for CameraInfo
         ov.update(extra)
         made.append(Harness(context, ov, subscribe_outputs=False))
         return made[-1]

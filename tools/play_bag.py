@@ -29,6 +29,7 @@ examples:
   play_bag.py seq06_bag                          # real time, with /clock
   play_bag.py seq06_bag --rate 2 --start 1.5     # twice as fast, from 1.5 s into the bag
   play_bag.py seq06_bag --topics /imu/data /camera/image_rect --wait-for-subscribers 10
+  play_bag.py seq06_bag --wait-for-subscribers 10 --wait-topics /imu/data /camera/image_rect
 DDS discovery follows ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE (use LOCALHOST on shared
 networks). Ctrl-C stops cleanly (exit code 130).
 """
@@ -59,6 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--qos-depth", type=int, default=1000, help="reliable keep-last depth of the publishers (default 1000)")
     p.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SEC",
                    help="before playing, wait up to SEC seconds until every topic has a subscriber")
+    p.add_argument("--wait-topics", nargs="+", metavar="TOPIC",
+                   help="with --wait-for-subscribers: wait only for these (bag) topics, e.g. the node's inputs "
+                        "(topics nobody subscribes to, like ground truth, would otherwise hold the start)")
     p.add_argument("--namespace", default="", metavar="NS",
                    help="publish the bag's topics under this namespace (/imu/data -> /NS/imu/data), for a node "
                         "started in NS; /tf, /tf_static and /clock stay global")
@@ -120,11 +124,12 @@ class Player:
         self.clock_pub.publish(msg)
         self.clock_count += 1
 
-    def wait_for_subscribers(self, timeout: float) -> list[str]:
-        """Topics still without a subscriber after ``timeout`` seconds."""
+    def wait_for_subscribers(self, timeout: float, topics: list[str] | None = None) -> list[str]:
+        """Topics (all, or ``topics``) still without a subscriber after ``timeout`` seconds."""
         deadline = time.monotonic() + timeout
+        watched = {t: p for t, p in self.publishers.items() if not topics or t in topics}
         while True:
-            missing = [t for t, p in self.publishers.items() if p.get_subscription_count() == 0]
+            missing = [t for t, p in watched.items() if p.get_subscription_count() == 0]
             if not missing or time.monotonic() >= deadline:
                 return missing
             time.sleep(0.02)
@@ -209,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         player = Player(node, topics, args, recorded)
         if args.wait_for_subscribers > 0:
-            missing = player.wait_for_subscribers(args.wait_for_subscribers)
+            missing = player.wait_for_subscribers(args.wait_for_subscribers, args.wait_topics)
             if missing and not args.quiet:
                 print(f"play_bag: no subscriber after {args.wait_for_subscribers:g} s on: {', '.join(missing)}",
                       file=sys.stderr)
