@@ -54,7 +54,9 @@ def test_ablation_table_on_a_bumpy_synthetic_drive(ablation, tmp_path):
     print("\n" + (out / "ablation.md").read_text())
     assert by["w/ GT"]["rpe_trans_mean_m"] < by["w/o DUKF"]["rpe_trans_mean_m"]
     assert by["w/ GT"]["rpe_yaw_mean_deg"] < by["w/o DUKF"]["rpe_yaw_mean_deg"]
-    assert by["w/ GT"]["attitude_rmse_deg"] == [0.0, 0.0]
+    # The DUKF's road attitude beats the raw accelerometer's on both axes (measured 0.47/1.41 deg vs
+    # 5.00/4.90 deg); the GT variant's zero attitude error is true by construction, so not asserted.
+    assert all(b < 0.5 * r for b, r in zip(by["BEVO"]["attitude_rmse_deg"], by["w/o DUKF"]["attitude_rmse_deg"]))
     assert by["fused"]["rpe_yaw_mean_deg"] < by["BEVO"]["rpe_yaw_mean_deg"]  # the gyro's yaw
     assert by["BEVO"]["O"] == [1e-4, 1e-4] and by["w/o O"]["Q"] == [1e-2, 1e-2] and by["w/o Q"]["O"] == [1e-4, 1e-4]
 
