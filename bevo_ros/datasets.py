@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import torch
@@ -178,6 +179,39 @@ def road_relative_gt(poses: torch.Tensor) -> torch.Tensor:
     return torch.stack([pitch, roll], dim=-1)
 
 
+def stamp_order(imu_stamps, frame_stamps, image_first: bool = False,
+                trailing: bool = True) -> Iterator[tuple[str, int]]:
+    """The order the node receives a recording in: ``("imu", i)`` and ``("image", k)`` events by
+    stamp, IMU first on equal stamps (``image_first``: the image first); ``trailing``: frames after
+    the last IMU sample too. The one feeding order of the offline engine runs and the tests."""
+    frames = [float(t) for t in frame_stamps]
+    k = 0
+    for i, s in enumerate(float(t) for t in imu_stamps):
+        if not image_first:
+            yield "imu", i
+        while k < len(frames) and frames[k] <= s:
+            yield "image", k
+            k += 1
+        if image_first:
+            yield "imu", i
+    if trailing:
+        for k in range(k, len(frames)):
+            yield "image", k
+
+
+def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: bool = False,
+                trailing: bool = True) -> list:
+    """Feed ``odo`` (a ``BevoOdometry``) in :func:`stamp_order`, then flush; ``image(k)`` gives frame
+    ``k``. Returns every ``OdometryStep``."""
+    steps = []
+    for kind, j in stamp_order(imu_stamps, frame_stamps, image_first, trailing):
+        if kind == "imu":
+            steps += odo.add_imu(float(imu_stamps[j]), gyro[j], accel[j])
+        else:
+            steps += odo.add_image(float(frame_stamps[j]), image(j))
+    return steps + odo.flush()
+
+
 def run_engine(sequence: Sequence, config: BevoConfig, learned, mode: str | None = None) -> list:
     """The node's engine (``build_odometry``) fed a :class:`Sequence` in stamp order (IMU first on
     equal stamps), then flushed. Returns every ``OdometryStep``; ``mode`` overrides ``odometry.mode``."""
@@ -188,15 +222,6 @@ def run_engine(sequence: Sequence, config: BevoConfig, learned, mode: str | None
     if mode is not None:
         config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))
     odo = build_odometry(config, learned, camera=sequence.camera)
-    stamps, frames = sequence.imu_stamps.tolist(), sequence.frame_stamps.tolist()
-    steps, k = [], 0
-    for i, s in enumerate(stamps):
-        steps += odo.add_imu(s, sequence.gyro[i].tolist(), sequence.accel[i].tolist())
-        while k < len(frames) and frames[k] <= s:
-            steps += odo.add_image(frames[k], sequence.images[k].numpy())
-            k += 1
-    for stamp in frames[k:]:
-        steps += odo.add_image(stamp, sequence.images[k].numpy())
-        k += 1
-    return steps + odo.flush()
+    return feed_engine(odo, sequence.imu_stamps.tolist(), sequence.gyro.tolist(), sequence.accel.tolist(),
+                       sequence.frame_stamps.tolist(), lambda k: sequence.images[k].numpy())
 

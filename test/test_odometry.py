@@ -11,6 +11,7 @@ from bevo_ros.config import BevoConfig, LearnedParams, build_odometry
 from bevo_ros.core.odometry import OutOfOrderError
 from bevo_ros.core.phase_correlation import DpcConfig
 from bevo_ros.core.sequence import frame_attitudes, run_sequence
+from bevo_ros.datasets import feed_engine
 from bevo_ros.synthetic import make_drive
 
 # Trust the gyro (the synthetic accelerometer vibrates by 0.3-0.7 m/s^2, i.e. 2-4 deg).
@@ -36,19 +37,8 @@ def engine(d, mode: str = "paper", **overrides):
 
 def feed(odo, d, images, image_first: bool = False):
     """Messages in stamp order; with ``image_first`` an image precedes the IMU sample of its stamp."""
-    steps, k = [], 0
-    for i, s in enumerate(d.imu_stamps):
-        if image_first:
-            while k < len(images) and d.frame_stamps[k] <= s:
-                steps += odo.add_image(float(d.frame_stamps[k]), images[k])
-                k += 1
-            steps += odo.add_imu(float(s), d.gyro[i], d.accel[i])
-        else:
-            steps += odo.add_imu(float(s), d.gyro[i], d.accel[i])
-            while k < len(images) and d.frame_stamps[k] <= s:
-                steps += odo.add_image(float(d.frame_stamps[k]), images[k])
-                k += 1
-    return steps + odo.flush()
+    return feed_engine(odo, d.imu_stamps, d.gyro, d.accel, d.frame_stamps[: len(images)], images.__getitem__,
+                       image_first=image_first, trailing=False)
 
 
 def test_tracks_the_synthetic_drive_and_is_order_independent(drive):
@@ -102,13 +92,8 @@ def test_online_equals_batched_across_an_imu_gap(drive):
     t = d.imu_stamps - d.imu_stamps[0]
     keep = ~((t > 1.0) & (t < 1.8))  # 0.8 s without IMU, frames keep coming
     odo = engine(d)
-    steps, k = [], 0
-    for i in np.flatnonzero(keep):
-        steps += odo.add_imu(float(d.imu_stamps[i]), d.gyro[i], d.accel[i])
-        while k < len(images) and d.frame_stamps[k] <= d.imu_stamps[i]:
-            steps += odo.add_image(float(d.frame_stamps[k]), images[k])
-            k += 1
-    steps += odo.flush()
+    steps = feed_engine(odo, d.imu_stamps[keep], d.gyro[keep], d.accel[keep], d.frame_stamps[: len(images)],
+                        images.__getitem__, trailing=False)
     assert odo.counters.imu_gaps == 1 and len(steps) == len(images)
     pr_online = np.array([s.pitch_roll_road for s in steps])
     online = np.array([s.motion for s in steps[1:]])

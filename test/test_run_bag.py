@@ -11,7 +11,7 @@ import torch
 from bevo_ros import bag, kitti
 from bevo_ros.config import REPO_ROOT, BevoConfig, LearnedParams, build_odometry, load_config
 from bevo_ros.core.geometry import BevSpec
-from bevo_ros.datasets import load_sequence, split_frames, write_drive_bag
+from bevo_ros.datasets import feed_engine, load_sequence, split_frames, write_drive_bag
 from bevo_ros.synthetic import kitti_like_camera, make_drive
 
 SYNTH_PARAMS = str(REPO_ROOT / "params" / "synthetic.yaml")
@@ -53,13 +53,8 @@ def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path, tool):
     from bevo_ros.config import load_learned_params
 
     odo = build_odometry(config, load_learned_params(config.learned_params_file), camera=drive.camera)
-    steps, k = [], 0
-    for i, s in enumerate(drive.imu_stamps):
-        steps += odo.add_imu(float(s), drive.gyro[i], drive.accel[i])
-        while k < len(drive.frame_stamps) and drive.frame_stamps[k] <= s:
-            steps += odo.add_image(float(drive.frame_stamps[k]), np.asarray(drive.image(k)))
-            k += 1
-    steps += odo.flush()
+    steps = feed_engine(odo, drive.imu_stamps, drive.gyro, drive.accel, drive.frame_stamps,
+                        lambda k: np.asarray(drive.image(k)), trailing=False)
     tum = np.loadtxt(out / "trajectory_tum.txt")
     np.testing.assert_allclose(tum[:, 1:3], np.array([s.position[:2] for s in steps]), atol=1e-6)
     ev = tmp_path / "eval"
@@ -113,3 +108,15 @@ def test_kitti_sample_end_to_end(kitti_root, tmp_path, tool):
         assert (ev / name).stat().st_size > 0
     gt = kitti.read_poses(kitti_root / "odometry" / "poses" / "06.txt")[:51]
     np.testing.assert_allclose(kitti.read_poses(out / "gt_kitti.txt"), gt, atol=2e-6)
+
+
+def test_stamp_order_is_the_node_s_arrival_order():
+    """One feeding order (datasets.stamp_order): IMU first on an equal stamp, images up to the
+    latest IMU sample, optionally the image first and the frames after the last IMU sample."""
+    from bevo_ros.datasets import stamp_order
+
+    imu, frames = [0.0, 0.1, 0.2], [0.05, 0.1, 0.3]
+    assert list(stamp_order(imu, frames)) == [("imu", 0), ("imu", 1), ("image", 0), ("image", 1), ("imu", 2),
+                                              ("image", 2)]
+    assert list(stamp_order(imu, frames, image_first=True, trailing=False)) == [
+        ("imu", 0), ("image", 0), ("image", 1), ("imu", 1), ("imu", 2)]
