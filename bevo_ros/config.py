@@ -141,34 +141,35 @@ def _from_flat(cls: type, flat: dict[str, Any], prefix: str, source: str) -> Any
         if dataclasses.is_dataclass(default):
             kwargs[f.name] = _from_flat(type(default), flat, name + ".", source)
         elif name in flat:
-            kwargs[f.name] = _coerce(flat[name], default, name, source)
+            kwargs[f.name] = coerce_setting(flat[name], default, name, source)
     return cls(**kwargs)
 
 
-def _coerce(value: Any, default: Any, name: str, source: str) -> Any:
+def coerce_setting(value: Any, default: Any, name: str, source: str | None = None) -> Any:
+    """``value`` as the type of ``default`` (one rule for parameters files, the node's parameters and
+    ``ros2 param set``): a bool only from a bool; an int from an integral number; a float from a
+    finite number (an int written for a float is fine, a bool is not); a list of floats of the
+    default's length; a string only from a string. Raises ConfigError naming ``name`` (and ``source``)."""
     try:
         if isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise TypeError
-            return value
-        if isinstance(default, int):
-            if isinstance(value, bool) or int(value) != value:
-                raise TypeError
-            return int(value)
-        if isinstance(default, float):
-            out = float(value)
-            if not math.isfinite(out):
-                raise TypeError
-            return out
-        if isinstance(default, list):
+            if isinstance(value, bool):
+                return value
+        elif isinstance(default, int):
+            if not isinstance(value, bool) and int(value) == value:
+                return int(value)
+        elif isinstance(default, float):
+            if not isinstance(value, bool) and math.isfinite(float(value)):
+                return float(value)
+        elif isinstance(default, list):
             out = [float(v) for v in value]
-            if len(out) != len(default):
-                raise TypeError
-            return out
-        return str(value)
+            if len(out) == len(default) and not any(isinstance(v, bool) for v in value):
+                return out
+        elif isinstance(value, str):
+            return value
     except (TypeError, ValueError):
-        raise ConfigError(f"{source}: parameter '{name}' = {value!r} is not a valid {type(default).__name__}"
-                          + (f" of length {len(default)}" if isinstance(default, list) else "")) from None
+        pass
+    raise ConfigError((f"{source}: " if source else "") + f"parameter '{name}' = {value!r} is not a valid "
+                      f"{type(default).__name__}" + (f" of length {len(default)}" if isinstance(default, list) else ""))
 
 
 def read_yaml(path: Path, what: str) -> Any:

@@ -27,7 +27,7 @@ from typing import Any, Callable
 import numpy as np
 from rclpy.node import Node
 
-from bevo_ros.config import (BevoConfig, ConfigError, build_odometry, camera_model, load_learned_params,
+from bevo_ros.config import (BevoConfig, ConfigError, build_odometry, camera_model, coerce_setting, load_learned_params,
                              resolve_path)
 from bevo_ros.core.device import resolve_device
 from bevo_ros.core.validation import TimeJumpGuard, intrinsics_problem
@@ -161,24 +161,6 @@ DESCRIPTIONS = {
 }
 
 
-def _coerce(name: str, value: Any, default: Any) -> Any:
-    try:
-        if isinstance(default, bool):
-            if isinstance(value, bool):
-                return value
-        elif isinstance(default, int):
-            if not isinstance(value, bool) and int(value) == value:
-                return int(value)
-        elif isinstance(default, float):
-            if not isinstance(value, bool) and math.isfinite(float(value)):
-                return float(value)
-        elif isinstance(value, str):
-            return value
-    except (TypeError, ValueError):
-        pass
-    raise ConfigError(f"parameter '{name}' = {value!r} is not a valid {type(default).__name__}")
-
-
 def _validate(s: NodeSettings) -> None:
     if s.input_qos not in ("sensor_data", "reliable"):
         raise ConfigError(f"parameter 'input_qos' must be 'sensor_data' or 'reliable', got {s.input_qos!r}")
@@ -252,7 +234,7 @@ class BevoNode(Node):
                 flat[name] = self.declare_parameter(name, default, desc).value
             except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
                 raise ConfigError(f"parameter '{name}': {exc}") from None
-        self.settings = NodeSettings(**{f.name: _coerce(f.name, flat[f.name], getattr(NodeSettings(), f.name))
+        self.settings = NodeSettings(**{f.name: coerce_setting(flat[f.name], getattr(NodeSettings(), f.name), f.name)
                                         for f in dataclasses.fields(NodeSettings)})
         _validate(self.settings)
         self.config = BevoConfig.from_flat(flat, source=f"{node_name} parameters")
@@ -611,7 +593,7 @@ class BevoNode(Node):
             if p.name not in ros_params.LIVE:
                 continue
             try:
-                value = _coerce(p.name, p.value, self._flat_defaults[p.name])
+                value = coerce_setting(p.value, self._flat_defaults[p.name], p.name)
             except ConfigError as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
             why = ros_params.check(p.name, value)
@@ -625,7 +607,7 @@ class BevoNode(Node):
         for p in params:
             if p.name not in ros_params.LIVE:
                 continue
-            value = _coerce(p.name, p.value, self._flat_defaults[p.name])
+            value = coerce_setting(p.value, self._flat_defaults[p.name], p.name)
             setattr(s, p.name, value)
             if p.name == "publish_tf":
                 if value and self._tf_made is None:

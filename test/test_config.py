@@ -125,3 +125,26 @@ def test_one_device_rule_and_one_bev_grid_from_the_settings():
 
         with pytest.warns(RuntimeWarning, match="CUDA is not available"):
             assert cfg.build_odometry(c, cfg.LearnedParams(), camera=kitti_like_camera()).device == torch.device("cpu")
+
+
+@pytest.mark.parametrize("value, default, expected", [
+    (3, 1.0, 3.0), (2.5, 1.0, 2.5), (4.0, 1, 4), (True, False, True), ("x", "y", "x"),
+    ([1, 2], [0.0, 0.0], [1.0, 2.0]),
+])
+def test_one_coercion_rule_accepts(value, default, expected):
+    from bevo_ros.config import coerce_setting
+
+    got = coerce_setting(value, default, "p")
+    assert got == expected and type(got) is type(expected)
+
+
+@pytest.mark.parametrize("value, default", [
+    (True, 1.0), (float("nan"), 1.0), (2.5, 1), (True, 1), (1, False), ("on", False), (1, "cpu"), (True, "auto"),
+    ([1.0], [0.0, 0.0]), ([True, 1.0], [0.0, 0.0]), ("x", 1.0),
+])
+def test_one_coercion_rule_rejects_with_the_name(value, default):
+    """The same rule for parameters files (BevoConfig), the node's settings and `ros2 param set`."""
+    from bevo_ros.config import coerce_setting
+
+    with pytest.raises(ConfigError, match=r"file.yaml: parameter 'a\.b' = .* is not a valid"):
+        coerce_setting(value, default, "a.b", "file.yaml")
