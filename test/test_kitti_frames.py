@@ -28,6 +28,7 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import vehicle_motion_from_registration
 from bevo_ros.core.phase_correlation import DpcConfig, prepare, register_prepared
 from bevo_ros.kitti import base_relative_motion, camera_model_from_kitti, read_poses
+from conftest import load_tool
 
 SPEC = BevSpec()
 CALIBRATION_PAIRS = 10
@@ -59,13 +60,12 @@ def estimate(imgs, cam, pitch_deg: float, config: DpcConfig) -> tuple[np.ndarray
 
 def calibrate_pitch(imgs, cam, gt, config: DpcConfig, lo: float = -1.0, hi: float = 4.0) -> float:
     """Constant camera pitch (deg, nose down) whose BEV scale matches the ground-truth distance
-    travelled over the given frames (bisection: the estimated distance falls as the pitch rises)."""
+    travelled over the given frames: the mounting calibration's root finder (bevo calibrate), the
+    sharpest correlation winning where several pitches match."""
     target = float(gt[:, 0].sum())
-    for _ in range(14):
-        mid = 0.5 * (lo + hi)
-        m, _ = estimate(imgs, cam, mid, config)
-        lo, hi = (mid, hi) if m[:, 0].sum() > target else (lo, mid)
-    return 0.5 * (lo + hi)
+    roots = load_tool("calibrate_mounting").find_roots(
+        lambda p: float(estimate(imgs, cam, p, config)[0][:, 0].sum()) - target, lo, hi)
+    return max(roots, key=lambda p: float(estimate(imgs, cam, p, config)[1].mean()))
 
 
 def errors(m: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
