@@ -521,7 +521,15 @@ class BevoNode(Node):
         else:
             self.engine.set_camera(camera)
 
-    _WATCHED_COUNTERS = ("dropped_no_imu", "dropped_pending_overflow", "imu_gaps", "dropped_invalid_bev")
+    _WATCHED_COUNTERS = ("dropped_no_imu", "dropped_pending_overflow", "imu_gaps", "dropped_invalid_bev",
+                         "rejected_textureless", "rejected_translation", "rejected_rotation")
+    # fused mode: frames whose measurement the motion filter rejected (the pose is carried by its
+    # prediction, the odometry still published): events, not drops
+    _ENGINE_REJECTIONS = (
+        ("rejected_textureless", "a correlation peak below odometry.min_quality (black, covered or textureless frame)"),
+        ("rejected_translation", "a forward motion beyond the odometry.gate Mahalanobis gate"),
+        ("rejected_rotation", "an image rotation disagreeing with the gyro beyond the odometry.gate"),
+    )
     # engine counter -> node drop reason, and why (formatted with the node settings as ``s``)
     _ENGINE_DROPS = (
         ("dropped_no_imu", "no_imu", "with no IMU sample at or before their stamp (frames before any IMU)"),
@@ -546,6 +554,10 @@ class BevoNode(Node):
             if d.get(counter, 0) > 0:
                 self.drops[reason] += d[counter]
                 self._log(reason, f"dropped ({reason}): {d[counter]} image(s) " + why.format(s=self.settings))
+        for counter, why in self._ENGINE_REJECTIONS:
+            if d.get(counter, 0) > 0:
+                self.events[counter] += d[counter]
+                self._log(counter, f"{d[counter]} frame(s) with {why}: carried by the motion filter's prediction")
         if d.get("imu_gaps", 0) > 0:
             self.events["imu_gap"] += d["imu_gaps"]
             self._log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.config.filter.max_imu_gap} s "

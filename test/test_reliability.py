@@ -199,6 +199,23 @@ def test_absurd_camera_info_is_rejected_and_the_last_good_calibration_kept(harne
     assert f"disagrees with the images ({w}x{hh})" in log[2]
 
 
+def test_the_node_reports_a_rejected_black_frame_and_keeps_publishing(harness):
+    """Fused mode in the node: the black frame is an event in /diagnostics, not a drop, and its
+    odometry is the motion filter's prediction (a still car stays still)."""
+    still = stationary(seconds=2.0)
+    t_black = T0 + 1.0
+    msgs = [m if not (m[0] == "image" and abs(m[1] - t_black) < 1e-9) else ("image", m[1], np.zeros_like(m[2]))
+            for m in still]
+    h = harness()
+    for kind, msg in as_ros(msgs):
+        h.send(kind, msg)
+    h.settle()
+    assert h.node.events["rejected_textureless"] >= 1, dict(h.node.events)
+    assert not h.node.drops, dict(h.node.drops)
+    assert h.node.counts["odometry_out"] >= sum(m[0] == "image" for m in msgs) - 1
+    assert "carried by the motion filter's prediction" in h.logged("rejected_textureless")[0]
+
+
 def test_lone_outlier_stamps_are_dropped_not_a_reset(harness):
     drive = small_drive(duration=1.2)
     messages = drive_messages(drive)

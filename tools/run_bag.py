@@ -61,6 +61,7 @@ def run(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_
     odo = build_odometry(config, load_learned_params(learned_path), camera=camera_for_recording(rec, config))
     first_stamp = rec.frame_stamps_ns[first_frame] if first_frame else None
     steps: list[OdometryStep] = []
+    drops: dict[str, int] = {}
     total = len(rec.frame_stamps_ns)
     bar = None
     if progress:
@@ -81,10 +82,16 @@ def run(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_
                     continue
                 out = odo.add_image(stamp, bag.decode_image(msg))
         except (ValueError, OutOfOrderError) as exc:  # the node drops and counts these too
-            print(f"run_bag: dropped {topic} at {stamp:.9f}: {exc}", file=sys.stderr)
+            reason = getattr(exc, "reason", type(exc).__name__)
+            drops[reason] = drops.get(reason, 0) + 1
+            if drops[reason] <= 3:  # the first few of each reason, then a summary (no flood)
+                print(f"run_bag: dropped {topic} at {stamp:.9f}: {exc}", file=sys.stderr)
             continue
         steps.extend(out)
     steps.extend(odo.flush())
+    for reason, n in drops.items():
+        if n > 3:
+            print(f"run_bag: dropped {n} message(s) in all for {reason}", file=sys.stderr)
     if bar is not None:
         bar.close()
     return steps, rec, odo

@@ -325,7 +325,9 @@ class BevoOdometry:
         self._yaw_rate = rate
         self._last_imu = stamp
         # The suspension's lean lasts as long as the acceleration: keep it out of the low-pass.
-        dyn_p, dyn_r = suspension_attitude(vs.a, speed * g[2], *self.suspension_gradients)
+        # The lean on the suspension: forward acceleration from the accelerometer (no loop through
+        # the images' scale), lateral from the speed and the yaw rate.
+        dyn_p, dyn_r = suspension_attitude(self._acc_fx or 0.0, speed * g[2], *self.suspension_gradients)
         rp, rr = self._road_tilt.update(stamp, pitch - dyn_p, roll - dyn_r)
         road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])
         self._history.append((stamp, road, self._state, self._yaw_cum))
