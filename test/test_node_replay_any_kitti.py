@@ -20,12 +20,9 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import KITTI_PARAMS, VENV_BIN, NodeProcess, spin_until, write_params  # noqa: E402
+from test_node_support import KITTI_PARAMS, VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
-from nav_msgs.msg import Odometry  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from conftest import domain_id_for  # noqa: E402
 
@@ -70,15 +67,8 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
     expected = np.loadtxt(tmp_path / "offline" / "trajectory_tum.txt")
 
     node = NodeProcess(KITTI_PARAMS, str(DOMAIN_ID), extra_args=["-p", "use_sim_time:=true"]).start()
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    tester = rclpy.create_node("replay_sizes_tester", context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(tester)
-    odom: list[Odometry] = []
-    tester.create_subscription(Odometry, "/bevo/odometry", odom.append,
-                               QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    listener = OdometryListener(DOMAIN_ID, "replay_sizes_tester")
+    odom = listener.odom
     try:
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
         env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
@@ -87,9 +77,9 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
                                  "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info"],
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         n = drive.num_frames
-        assert spin_until(executor, lambda: play.poll() is not None and len(odom) >= n - 1, 120), \
+        assert listener.spin_until(lambda: play.poll() is not None and len(odom) >= n - 1, 120), \
             f"{len(odom)} of {n} odometry messages; play_bag rc {play.poll()}\n{node.output}"
-        spin_until(executor, lambda: len(odom) >= n, 3)
+        listener.spin_until(lambda: len(odom) >= n, 3)
         print("\n" + play.stdout.read().strip())
         out = node.output
         print(out)
@@ -98,8 +88,7 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
         w, h = KITTI_CAMERAS[size][:2]
         assert f"camera calibration from CameraInfo on /camera/camera_info: {w}x{h}" in out, out
         assert "camera extrinsics from /tf_static base_link -> camera_optical_frame" in out, out
-        got = np.array([[m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.pose.pose.position.x,
-                         m.pose.pose.position.y] for m in odom])
+        got = listener.positions()
         # The README command replays with sensor_data (best-effort) QoS: on a loaded machine one image
         # can be lost on the way. Every frame the node published up to such a loss equals run_bag.
         assert len(expected) == n and len(got) >= n - 1, out
@@ -114,6 +103,4 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
         assert path > 3.0 and diff < 1e-6 and k >= n // 2
     finally:
         node.interrupt()
-        executor.remove_node(tester)
-        tester.destroy_node()
-        rclpy.shutdown(context=ctx)
+        listener.close()

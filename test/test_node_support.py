@@ -188,3 +188,40 @@ def spin_until(executor, cond: Callable[[], bool], timeout: float = 10.0, step: 
             return True
         executor.spin_once(timeout_sec=step)
     return cond()
+
+
+class OdometryListener:
+    """A tester node on ``domain_id`` collecting ``/bevo/odometry`` (reliable, deep) into ``odom``;
+    ``spin_until(cond, timeout)`` spins it; ``close()`` tears it down."""
+
+    def __init__(self, domain_id: int, name: str) -> None:
+        import rclpy
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.odom: list = []
+        self.node.create_subscription(Odometry, "/bevo/odometry", self.odom.append,
+                                      QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+
+    def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
+        return spin_until(self.executor, cond, timeout)
+
+    def positions(self) -> np.ndarray:
+        """``(N, 3)`` stamp, x, y of the odometry received."""
+        return np.array([[m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.pose.pose.position.x,
+                          m.pose.pose.position.y] for m in self.odom])
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.remove_node(self.node)
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+

@@ -11,12 +11,9 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import VENV_BIN, NodeProcess, spin_until, write_params  # noqa: E402
+from test_node_support import VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
-from nav_msgs.msg import Odometry  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from conftest import domain_id_for  # noqa: E402
 
@@ -41,15 +38,8 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path, t
     # the image of its stamp; the node would then (correctly) process the image with the IMU so far,
     # which is not the offline order this test compares against.
     node = NodeProcess(params, str(DOMAIN_ID), extra_args=["-p", "use_sim_time:=true", "-p", "image_wait:=3.0"]).start()
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    tester = rclpy.create_node("replay_tester", context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(tester)
-    odom: list[Odometry] = []
-    tester.create_subscription(Odometry, "/bevo/odometry", odom.append,
-                               QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    listener = OdometryListener(DOMAIN_ID, "replay_tester")
+    odom = listener.odom
     try:
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
         env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
@@ -57,17 +47,15 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path, t
                                  "--rate", "2.0", "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
                                  "--wait-for-subscribers", "30"],
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        assert spin_until(executor, lambda: play.poll() is not None and len(odom) >= 51, 120), \
+        assert listener.spin_until(lambda: play.poll() is not None and len(odom) >= 51, 120), \
             f"{len(odom)} odometry messages; play_bag rc {play.poll()}\n{node.output}"
         print("\n" + play.stdout.read().strip())
         assert play.returncode == 0
-        got = np.array([[m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.pose.pose.position.x,
-                         m.pose.pose.position.y] for m in odom])
+        got = listener.positions()
         np.testing.assert_allclose(got[:, 0], expected[:, 0], atol=1e-9)  # stamps copied from the images
         diff = np.abs(got[:, 1:] - expected[:, 1:3]).max()
         print(f"node (DDS replay, use_sim_time) vs run_bag: {len(odom)} poses, max position difference {diff:.2e} m")
         assert diff < 1e-6
     finally:
         node.interrupt()
-        tester.destroy_node()
-        rclpy.shutdown(context=ctx)
+        listener.close()
