@@ -40,9 +40,9 @@ def _noise_with(base: VehicleNoise, log_params: Tensor) -> VehicleNoise:
 
 
 def replay(noise: VehicleNoise, inputs: list[dict]) -> tuple[Tensor, Tensor]:
-    """Run the filter over recorded per-frame inputs (a frame without inputs restarts nothing:
-    it is simply skipped). Returns motion ``(F, 3)`` and variance ``(F, 3)`` (float64; tensors when
-    ``noise`` holds tensors)."""
+    """Run the filter over recorded per-frame inputs (``OdometryStep.filter_inputs`` of frames
+    1..F) from an unknown-speed start, as the engine does. Returns motion ``(F, 3)`` and variance
+    ``(F, 3)``, float64 tensors (differentiable in ``noise`` when it holds tensors)."""
     vf = VehicleFilter(noise)
     like = torch.zeros(1, dtype=torch.float64)
     state = initial_vehicle_state(like=like)

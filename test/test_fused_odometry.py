@@ -13,6 +13,7 @@ import torch
 
 from bevo_ros.config import REPO_ROOT, BevoConfig, CameraSettings, LearnedParams, build_odometry, load_learned_params
 from bevo_ros.core.geometry import CameraModel
+from bevo_ros.datasets import feed_engine
 from bevo_ros.core.pose import integrate_motions
 from bevo_ros.core.vehicle_dynamics import compensate_floats, compensate_specific_force
 from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
@@ -35,16 +36,10 @@ def engine(camera, mode: str, learned: LearnedParams | None = None):
     return build_odometry(config, learned or (FUSED if mode == "fused" else PAPER), camera=camera)
 
 
-def feed(odo, d, images=None, speeds: bool = False):
-    steps, k = [], 0
-    for i, s in enumerate(d.imu_stamps):
-        if speeds:
-            odo.add_speed(float(s), float(np.linalg.norm(d.imu_velocity_gravity[i])), 0.05**2)
-        steps += odo.add_imu(float(s), d.gyro[i], d.accel[i])
-        while k < len(d.frame_stamps) and d.frame_stamps[k] <= s:
-            steps += odo.add_image(float(d.frame_stamps[k]), images[k] if images is not None else d.image(k))
-            k += 1
-    return steps + odo.flush()
+def feed(odo, d, images=None):
+    """The drive through the engine in the node's order (``datasets.feed_engine``)."""
+    return feed_engine(odo, d.imu_stamps, d.gyro, d.accel, d.frame_stamps,
+                       (lambda k: images[k]) if images is not None else d.image, trailing=False)
 
 
 def scores(steps, d) -> dict[str, float]:

@@ -167,33 +167,40 @@ def _num(v, fmt: str) -> str:
     return "n/a" if v is None or not math.isfinite(v) else format(v, fmt)
 
 
-def _fused_row(seq, config, learned, gt: np.ndarray, ref) -> dict:
-    """The fused engine over ``seq``: the same metrics as the paper rows."""
-    from bevo_ros.datasets import run_engine
+def _row(variant: str, o, q, motion, trans_err_mean: float, yaw_err_mean: float, road: np.ndarray,
+         ref, gt: np.ndarray, failed: int, pairs: int, loss: float, t0: float) -> dict:
+    """One table row: per-frame ``motion (F-1, 3)`` (array or tensor) and the road attitude ``(F, 2)`` fed to the BEV."""
     from bevo_ros.evaluation import evaluate_trajectories
+
+    est = planar_poses(motion)
+    m = evaluate_trajectories(gt, est, convention="base")
+    att = np.degrees(road - ref.numpy())
+    return {
+        "variant": variant, "O": None if o is None else list(o), "Q": None if q is None else list(q),
+        "rpe_trans_mean_m": trans_err_mean, "rpe_yaw_mean_deg": math.degrees(yaw_err_mean),
+        "rpe_trans_rmse_m": m.rpe_trans_rmse, "rpe_yaw_rmse_deg": m.rpe_yaw_rmse,
+        "drift_percent": m.drift_percent, "drift_m": m.drift_m, "ate_rmse_m": m.ate_rmse,
+        "t_rel": m.t_rel, "r_rel": m.r_rel, "path_m": m.path_length,
+        "attitude_rmse_deg": [float(v) for v in np.sqrt((att ** 2).mean(axis=0))],
+        "failed_pairs": failed, "pairs": pairs, "kl_loss": loss,
+        "seconds": time.perf_counter() - t0, "_est": est, "_road": road,
+    }
+
+
+def _fused_row(seq, config, learned, gt: np.ndarray, ref) -> dict:
+    """The fused engine over ``seq``: the same metrics as the paper rows (no KL loss)."""
+    from bevo_ros.datasets import run_engine
 
     t0 = time.perf_counter()
     steps = run_engine(seq, config, learned, mode="fused")
     if len(steps) != len(seq):
         raise ValueError(f"{seq.name}: the fused engine dropped {len(seq) - len(steps)} frame(s)")
     motion = np.array([s.motion for s in steps[1:]])
-    est = planar_poses(motion)
-    m = evaluate_trajectories(gt, est, convention="base")
     truth = seq.gt_motion().double().numpy()
-    road = np.array([s.pitch_roll_road for s in steps])
-    att = np.degrees(road - ref.numpy())
     yaw_err = np.abs((motion[:, 2] - truth[:, 2] + math.pi) % (2 * math.pi) - math.pi)
-    return {
-        "variant": "fused", "O": list(learned.process_noise_density), "Q": list(learned.measurement_noise_variance),
-        "rpe_trans_mean_m": float(np.linalg.norm(motion[:, :2] - truth[:, :2], axis=1).mean()),
-        "rpe_yaw_mean_deg": math.degrees(float(yaw_err.mean())),
-        "rpe_trans_rmse_m": m.rpe_trans_rmse, "rpe_yaw_rmse_deg": m.rpe_yaw_rmse,
-        "drift_percent": m.drift_percent, "drift_m": m.drift_m, "ate_rmse_m": m.ate_rmse,
-        "t_rel": m.t_rel, "r_rel": m.r_rel, "path_m": m.path_length,
-        "attitude_rmse_deg": [float(v) for v in np.sqrt((att ** 2).mean(axis=0))],
-        "failed_pairs": 0, "pairs": len(steps) - 1, "kl_loss": float("nan"),
-        "seconds": time.perf_counter() - t0, "_est": est, "_road": road,
-    }
+    return _row("fused", learned.process_noise_density, learned.measurement_noise_variance, motion,
+                float(np.linalg.norm(motion[:, :2] - truth[:, :2], axis=1).mean()), float(yaw_err.mean()),
+                np.array([s.pitch_roll_road for s in steps]), ref, gt, 0, len(steps) - 1, float("nan"), t0)
 
 
 def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empirical_q: float, device,
@@ -201,7 +208,6 @@ def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empiric
     """Every variant over ``seq`` (frames as given; IMU from the recording start)."""
     import torch
 
-    from bevo_ros.evaluation import evaluate_trajectories
     from bevo_ros.training import make_dukf, sequence_pass
 
     o_l, q_l = tuple(learned.process_noise_density), tuple(learned.measurement_noise_variance)
@@ -226,22 +232,8 @@ def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empiric
         with torch.no_grad():
             r = sequence_pass(dukf, seq, config, source=sp["source"], device=device,
                               given_pitch_roll_road=ref if sp["source"] == "given" else None)
-        est = planar_poses(r.motion)
-        m = evaluate_trajectories(gt, est, convention="base")
-        att = np.degrees((r.pitch_roll_road - ref).numpy())
-        rows.append({
-            "variant": name,
-            "O": list(sp["o"]) if sp["o"] is not None else None,
-            "Q": list(sp["q"]) if sp["q"] is not None else None,
-            "rpe_trans_mean_m": float(r.trans_err.mean()), "rpe_yaw_mean_deg": math.degrees(float(r.yaw_err.mean())),
-            "rpe_trans_rmse_m": m.rpe_trans_rmse, "rpe_yaw_rmse_deg": m.rpe_yaw_rmse,
-            "drift_percent": m.drift_percent, "drift_m": m.drift_m, "ate_rmse_m": m.ate_rmse,
-            "t_rel": m.t_rel, "r_rel": m.r_rel, "path_m": m.path_length,
-            "attitude_rmse_deg": [float(v) for v in np.sqrt((att ** 2).mean(axis=0))],
-            "failed_pairs": r.n_failed, "pairs": r.pairs, "kl_loss": r.loss,
-            "seconds": time.perf_counter() - t0,
-            "_est": est, "_road": r.pitch_roll_road.numpy(),
-        })
+        rows.append(_row(name, sp["o"], sp["q"], r.motion, float(r.trans_err.mean()), float(r.yaw_err.mean()),
+                         r.pitch_roll_road.numpy(), ref, gt, r.n_failed, r.pairs, r.loss, t0))
     return rows
 
 

@@ -96,8 +96,6 @@ def _fit_vehicle(learned, seqs, config, args) -> None:
     """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
     ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
     validation frames' NLL is not worse."""
-    from dataclasses import asdict
-
     from bevo_ros.core.vehicle_filter import VehicleNoise
     from bevo_ros.datasets import split_frames
     from bevo_ros.vehicle_training import TRAINED, fit_vehicle_noise, motion_nll, record_inputs, replay
@@ -128,7 +126,7 @@ def _fit_vehicle(learned, seqs, config, args) -> None:
           f"validation NLL {before:.3f} -> {after:.3f}; per-frame RMSE (train) dx {fit.rmse_before[0]:.4f} -> "
           f"{fit.rmse_after[0]:.4f} m, dy {fit.rmse_before[1]:.4f} -> {fit.rmse_after[1]:.4f} m")
     if after <= before:
-        learned.vehicle = {k: float(asdict(fit.noise)[k]) for k in TRAINED}
+        learned.vehicle = {k: float(getattr(fit.noise, k)) for k in TRAINED}
         learned.info["vehicle_filter_fit"] = {"train_nll": [fit.nll_before, fit.nll_after],
                                              "validation_nll": [before, after]}
     else:

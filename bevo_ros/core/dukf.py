@@ -410,12 +410,11 @@ class DUKF(nn.Module):
         self._check_inputs(gyro, None, dt)
         return self._predict(state, gyro, dt)
 
-    def update(self, state: DukfState, accel: Tensor, extra_var: Tensor | None = None) -> DukfState:
+    def update(self, state: DukfState, accel: Tensor) -> DukfState:
         """Correct the prior with the accelerometer angles.
 
         Args:
-            state: prior at t; accel: ``(B, 3)`` specific force, m/s^2; extra_var: ``(B, 2)``
-            rad^2 added to Q for this message (e.g. the acceleration compensation's uncertainty).
+            state: prior at t; accel: ``(B, 3)`` specific force, m/s^2.
 
         Returns:
             Posterior belief at t.
@@ -423,7 +422,7 @@ class DUKF(nn.Module):
         b = self._check_state(state)
         _check_shape(accel, (b, 3), "accel")
         self._check_inputs(None, accel, None)
-        return self._update(state, accel, extra_var)
+        return self._update(state, accel)
 
     def noise_floats(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """``(O, Q)`` as plain floats, for :meth:`step_scalar` (read once, not per message)."""
@@ -449,8 +448,8 @@ class DUKF(nn.Module):
 
         Args:
             mean: (pitch, roll); cov: (P00, P01, P11); gyro, accel: 3 floats; dt > 0 s;
-            noise: ``noise_floats()``; extra_var: added to Q for this message (rad^2, pitch/roll),
-            e.g. the vehicle-acceleration compensation's uncertainty.
+            noise: ``noise_floats()``; extra_var: added to Q for this message (rad^2, pitch/roll):
+            the fused engine's vehicle-acceleration uncertainty (0 reproduces the tensor path).
 
         Returns:
             the posterior ``(mean, cov)`` in the same form.
@@ -498,8 +497,7 @@ class DUKF(nn.Module):
         c11 = pd - (pb * k01 + pd * k11)
         return new_mean, (c00 + jit, 0.5 * (c01 + c10), c11 + jit)
 
-    def step(self, state: DukfState, gyro: Tensor, accel: Tensor, dt: Tensor,
-             extra_var: Tensor | None = None) -> DukfState:
+    def step(self, state: DukfState, gyro: Tensor, accel: Tensor, dt: Tensor) -> DukfState:
         """``predict`` then ``update`` for one IMU message.
 
         Args:
@@ -513,11 +511,10 @@ class DUKF(nn.Module):
         _check_shape(accel, (b, 3), "accel")
         _check_shape(dt, (b,), "dt")
         self._check_inputs(gyro, accel, dt)
-        return self._update(self._predict(state, gyro, dt), accel, extra_var)
+        return self._update(self._predict(state, gyro, dt), accel)
 
     def filter(
-        self, gyro: Tensor, accel: Tensor, dt: Tensor, state: DukfState | None = None,
-        extra_var: Tensor | None = None,
+        self, gyro: Tensor, accel: Tensor, dt: Tensor, state: DukfState | None = None
     ) -> tuple[Tensor, Tensor, DukfState]:
         """Run over whole sequences (differentiable end to end).
 
@@ -527,7 +524,6 @@ class DUKF(nn.Module):
             state: belief before sample 0. If None, sample 0 initialises the filter
                 (``init_state(accel=accel[:, 0])``, so ``mean[:, 0]`` is its accelerometer angles
                 with covariance Q) and ``dt[:, 0]`` is not used.
-            extra_var: ``(B, T, 2)`` rad^2 added to Q per sample (see :meth:`update`), or None.
 
         Returns:
             ``mean (B, T, 2)``, ``cov (B, T, 2, 2)`` (posteriors after each sample), last state.
@@ -543,8 +539,6 @@ class DUKF(nn.Module):
         if state is None:
             self._check_inputs(gyro, accel, dt[:, 1:])
             state = self.init_state(accel=accel[:, 0])
-            if extra_var is not None:  # an uncertain first sample starts an uncertain filter
-                state = DukfState(state.mean, state.cov + torch.diag_embed(extra_var[:, 0].to(state.cov)))
             means.append(state.mean)
             covs.append(state.cov)
             first = 1
@@ -553,16 +547,14 @@ class DUKF(nn.Module):
             if self._check_state(state) != b:
                 raise ValueError(f"state batch {state.mean.shape[0]} != input batch {b}")
         for i in range(first, t):
-            state = self._update(self._predict(state, gyro[:, i], dt[:, i]), accel[:, i],
-                                 None if extra_var is None else extra_var[:, i])
+            state = self._update(self._predict(state, gyro[:, i], dt[:, i]), accel[:, i])
             means.append(state.mean)
             covs.append(state.cov)
         return torch.stack(means, dim=1), torch.stack(covs, dim=1), state
 
-    def forward(self, gyro: Tensor, accel: Tensor, dt: Tensor, state: DukfState | None = None,
-                extra_var: Tensor | None = None):
+    def forward(self, gyro: Tensor, accel: Tensor, dt: Tensor, state: DukfState | None = None):
         """Alias of :meth:`filter`."""
-        return self.filter(gyro, accel, dt, state, extra_var)
+        return self.filter(gyro, accel, dt, state)
 
     # --------------------------------------------------------------------------- unchecked math
     # Tiny tensors: the cost is per kernel launch (~1 us), so these use few, batched ops (bmm
@@ -580,7 +572,7 @@ class DUKF(nn.Module):
         p = p + o * dt.view(b, 1, 1)
         return DukfState(mu.squeeze(1), 0.5 * (p + p.transpose(1, 2)) + jit)
 
-    def _update(self, state: DukfState, accel: Tensor, extra_var: Tensor | None = None) -> DukfState:
+    def _update(self, state: DukfState, accel: Tensor) -> DukfState:
         mu, p = state.mean, state.cov
         eye, jit = self._consts(mu.dtype, mu.device)[3:]
         z = accel_to_pitch_roll(accel)
@@ -589,12 +581,7 @@ class DUKF(nn.Module):
         # identity is exact: M = mu, Sigma = P + Q, Sigma_XZ = P. These closed forms save a
         # Cholesky and ~15 kernel launches per step; the tests check them against filterpy's
         # full sigma-point update to 1e-9.
-        q = self.log_measurement_var.exp().to(mu)
-        if extra_var is not None:
-            q = q + extra_var.to(mu)  # (B, 2)
-            s = p + torch.diag_embed(q)
-        else:
-            s = p + q * eye
+        s = p + self.log_measurement_var.exp().to(mu) * eye
         # K = Sigma_XZ S^-1 with S and Sigma_XZ = P symmetric, so K^T = solve(S, P).
         kt = torch.linalg.solve(s, p)
         mean = mu + torch.bmm((z - mu).unsqueeze(1), kt).squeeze(1)  # mu + K (z - M), row vectors

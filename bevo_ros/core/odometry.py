@@ -180,7 +180,7 @@ class BevoOdometry:
         self._speed = 0.0  # forward speed of the latest VO step, m/s
         self._pose = torch.zeros(3, dtype=torch.float64)
         self._pose_cov = torch.zeros(3, 3, dtype=torch.float64)
-        self._vstate = initial_vehicle_state()  # fused: [v, a, gyro yaw bias], speed unknown
+        self._vstate = initial_vehicle_state()  # fused: [v, a, gyro yaw bias, accel bias], speed unknown
         self._yaw_cum = 0.0  # fused: gyro yaw about the vertical integrated since the start, rad
         self._yaw_rate = None  # its latest rate (trapezoid)
         self._prev_yaw_cum = 0.0
@@ -275,27 +275,23 @@ class BevoOdometry:
             esp, esv = es.speed_at(stamp - ext[0])
             f, extra = compensate_floats(a, g, esp, es.a, esv, es.var(1))
         else:
-            # With the visual speed alone the forward acceleration is not subtracted, it only makes
-            # the pitch measurement count less (variance P_aa + a^2): a visual dv/dt closes a loop (a
-            # pitch error scales the BEV's speed, whose rate tilts the compensated pitch) that is
-            # unstable at road speeds (the gravity pitch ran to 11 deg RMS on the KITTI sample).
-            # The speed itself (centripetal v wz, -v wy) has no such loop gain.
-            # How large the unexplained forward acceleration is, without a loop through the images:
-            # the accelerometer's forward reading with gravity removed at the predicted pitch,
-            # low-passed over ACCEL_CORRELATION_TIME (plus the motion filter's dv/dt; a wrong mean
-            # only widens the variance). Braking makes the pitch measurement count for little;
-            # a pitch error alone (a few tenths of m/s^2) keeps it. The error is the same for every
-            # sample for as long as the acceleration lasts, so it counts once per sample of that
-            # time (10 Hz presets: 18.5 -> 13.6 % per frame against the accelerometer's norm).
-            f, extra = compensate_floats(a, g, speed, 0.0, speed_var, 0.0)
+            # With the visual speed alone the forward acceleration is not subtracted: a visual dv/dt
+            # closes a loop (a pitch error scales the BEV's speed, whose rate tilts the compensated
+            # pitch) that ran the KITTI sample's gravity pitch to 11 deg RMS; the speed terms
+            # (centripetal v wz, -v wy) have no such loop gain. The forward acceleration only makes
+            # the pitch measurement count less: its size from the accelerometer's forward reading at
+            # the predicted pitch, low-passed over ACCEL_CORRELATION_TIME (plus the filter's dv/dt;
+            # a wrong mean only widens the variance), counted once per sample of that time, as the
+            # error is the same for every sample while the acceleration lasts (10 Hz presets:
+            # 18.5 -> 13.6 % per frame against the accelerometer's norm as the cue).
             tc = ACCEL_CORRELATION_TIME
-            per_second = max(1.0, tc / max(self._imu_dt, 1e-4))
             if self._state is not None:
-                forward = f[0] + GRAVITY * math.sin(self._state[0][0])
+                forward = a[0] + GRAVITY * math.sin(self._state[0][0])
                 alpha = min(1.0, max(self._imu_dt, 1e-4) / tc)
                 self._acc_fx = forward if self._acc_fx is None else self._acc_fx + alpha * (forward - self._acc_fx)
-            a_var = (self._acc_fx or 0.0) ** 2 + vs.a * vs.a
-            extra = (extra[0] + a_var * per_second / (GRAVITY * GRAVITY), extra[1])
+            per_second = max(1.0, tc / max(self._imu_dt, 1e-4))
+            a_var = ((self._acc_fx or 0.0) ** 2 + vs.a * vs.a) * per_second
+            f, extra = compensate_floats(a, g, speed, 0.0, speed_var, a_var)
         restarted = self._state is None or stamp - self._last_imu > self.max_imu_gap
         if restarted:
             if self._state is not None:
@@ -314,7 +310,7 @@ class BevoOdometry:
             self._state = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise, extra)
         self._gyro_prev = g
         (pitch, roll) = self._state[0]
-        if self._last_imu is not None and stamp > self._last_imu and not restarted:
+        if self.vehicle.noise.imu_accel_density > 0 and not restarted:  # the optional inertial speed input
             step = stamp - self._last_imu
             self._fwd_sum += (a[0] + GRAVITY * math.sin(pitch)) * step
             self._fwd_time += step
@@ -324,9 +320,8 @@ class BevoOdometry:
             self._yaw_cum += 0.5 * (rate + self._yaw_rate) * (stamp - self._last_imu)
         self._yaw_rate = rate
         self._last_imu = stamp
-        # The suspension's lean lasts as long as the acceleration: keep it out of the low-pass.
-        # The lean on the suspension: forward acceleration from the accelerometer (no loop through
-        # the images' scale), lateral from the speed and the yaw rate.
+        # The suspension's lean lasts as long as the acceleration: keep it out of the low-pass
+        # (forward acceleration from the accelerometer, no loop through the images' scale).
         dyn_p, dyn_r = suspension_attitude(self._acc_fx or 0.0, speed * g[2], *self.suspension_gradients)
         rp, rr = self._road_tilt.update(stamp, pitch - dyn_p, roll - dyn_r)
         road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])

@@ -21,8 +21,8 @@ real attitude relative to the road, which the BEV needs, but it lasts as long as
 the bend: the road-tilt low-pass would absorb it as "road slope". :func:`suspension_attitude`
 models it so the low-pass sees only what is left (road slope and camber).
 
-Every function has a batched tensor form (training, differentiable) and the engine calls
-:func:`compensate_floats`, the same arithmetic in floats, once per IMU message; a test pins them.
+The engine calls :func:`compensate_floats` once per IMU message; :func:`compensate_specific_force`
+is the same arithmetic on batched, differentiable tensors (a test pins the two).
 """
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ covariance is kept as its 6 unique entries.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import torch
 
@@ -143,20 +143,23 @@ def _tan(x):
     return torch.tan(x) if isinstance(x, Tensor) else math.tan(x)
 
 
-def _scalar_update(x: list, p: list, k: int, z, r, gate, enabled):
-    """Sequential scalar Kalman update of state entry ``k`` with measurement ``z``, variance ``r``.
+def _scalar_update(x: list, p: list, k: int | tuple[int, ...], z, r, gate, enabled):
+    """Sequential scalar Kalman update with measurement ``z`` of ``x[k]`` (or of the sum of the
+    entries ``k``, a tuple), variance ``r``, behind a Mahalanobis ``gate`` (sigmas).
 
     ``x`` = the state list; ``p`` = its covariance, nested lists (symmetric). Returns
     (x, p, accepted, distance).
     """
     n = len(x)
-    y = z - x[k]
-    s = p[k][k] + r
+    ks = (k,) if isinstance(k, int) else k
+    hp = [sum(p[i][j] for j in ks) for i in range(n)]  # P H^T
+    y = z - sum(x[j] for j in ks)
+    s = sum(hp[j] for j in ks) + r
     d = _sqrt(y * y / s)
     ok = enabled & (d < gate) if isinstance(d, Tensor) else (enabled and d < gate)
-    gain = [p[i][k] / s for i in range(n)]
+    gain = [hp[i] / s for i in range(n)]
     new_x = [_where(ok, x[i] + gain[i] * y, x[i]) for i in range(n)]
-    new_p = [[_where(ok, p[i][j] - gain[i] * p[k][j], p[i][j]) for j in range(n)] for i in range(n)]
+    new_p = [[_where(ok, p[i][j] - gain[i] * hp[j], p[i][j]) for j in range(n)] for i in range(n)]
     return new_x, new_p, ok, d
 
 
@@ -203,18 +206,12 @@ class VehicleFilter:
                 a braking onset is in the prediction, not a surprise for the gate).
         """
         n = self.noise
-        if imu_accel is not None:  # z = a + beta: the inertial forward acceleration
-            r = imu_accel_var + n.imu_accel_density / dt
-            x, P = list(s.x), [row[:] for row in s.P]
-            y = imu_accel - (x[1] + x[3])
-            hp = [P[i][1] + P[i][3] for i in range(N_STATE)]  # P H^T
-            sv = hp[1] + hp[3] + r
-            gain = [hp[i] / sv for i in range(N_STATE)]
-            x = [x[i] + gain[i] * y for i in range(N_STATE)]
-            P = [[P[i][j] - gain[i] * hp[j] for j in range(N_STATE)] for i in range(N_STATE)]
+        if imu_accel is not None:  # z = a + beta: the inertial forward acceleration, never gated
+            x, P, _, _ = _scalar_update(s.x, s.P, (1, 3), imu_accel, imu_accel_var + n.imu_accel_density / dt,
+                                        math.inf, True)
             s = VehicleState(x, P)
         p = self.predict(s, dt)
-        x, P = list(p.x), [row[:] for row in p.P]
+        x, P = p.x, p.P
         have = forward is not None
         if have and quality is not None:
             informative = quality >= n.min_quality
@@ -252,11 +249,3 @@ class VehicleFilter:
             dy, var_dy = prior, var_prior
         return VehicleFrame((dx, dy, dyaw), (var_dx, var_dy, var_dyaw), (acc_t, acc_r), (d_t, d_r), state)
 
-
-def noise_from_dict(d: dict) -> VehicleNoise:
-    """VehicleNoise from a mapping of its field names (unknown keys rejected)."""
-    names = {f.name for f in fields(VehicleNoise)}
-    bad = set(d) - names
-    if bad:
-        raise ValueError(f"unknown vehicle filter parameters: {sorted(bad)}")
-    return VehicleNoise(**{k: float(v) for k, v in d.items()})
