@@ -71,10 +71,11 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
     odom = listener.odom
     try:
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
+        assert listener.wait_for_publisher(), "the odometry publisher was not discovered"
         env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         play = subprocess.Popen([str(VENV_BIN / "python"), str(REPO / "tools" / "play_bag.py"), str(bag_path),
                                  "--rate", "1.0", "--wait-for-subscribers", "30",  # the README's command
-                                 "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info"],
+                                 "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info", "/tf_static"],
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         n = drive.num_frames
         assert listener.spin_until(lambda: play.poll() is not None and len(odom) >= n - 1, 120), \

@@ -213,6 +213,13 @@ class OdometryListener:
     def spin_until(self, cond: Callable[[], bool], timeout: float) -> bool:
         return spin_until(self.executor, cond, timeout)
 
+    def wait_for_publisher(self, timeout: float = 30.0) -> bool:
+        """Until the node's odometry publisher is discovered (its volatile messages published before
+        that would be lost to this listener), plus a moment for the reliable match."""
+        found = self.spin_until(lambda: self.node.count_publishers("/bevo/odometry") > 0, timeout)
+        self.spin_until(lambda: False, 0.5)
+        return found
+
     def positions(self) -> np.ndarray:
         """``(N, 3)`` stamp, x, y of the odometry received."""
         return np.array([[m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.pose.pose.position.x,

@@ -42,6 +42,7 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path, t
     odom = listener.odom
     try:
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
+        assert listener.wait_for_publisher(), "the odometry publisher was not discovered"
         env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         play = subprocess.Popen([str(VENV_BIN / "python"), str(REPO / "tools" / "play_bag.py"), str(bag_path),
                                  "--rate", "2.0", "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
