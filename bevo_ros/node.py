@@ -973,6 +973,14 @@ class BevoNode(Node):
             values[f"event.{name}"] = str(n)
         return values
 
+    def summary(self) -> str:
+        """One line of totals: inputs received, odometry published, drops and filter events by reason."""
+        c = self.counts
+        drops = ", ".join(f"{k} {n}" for k, n in sorted(self.drops.items()) if n) or "none"
+        events = ", ".join(f"{k} {n}" for k, n in sorted(self.events.items()) if n) or "none"
+        return (f"imu {c['imu_in']}, images {c['images_in']}, camera_info {c['camera_info_in']} received; "
+                f"odometry {c['odometry_out']} published; dropped: {drops}; events: {events}")
+
     def _calibration_state(self):
         """Where the camera model comes from: OK from CameraInfo (or the parameters when chosen with
         use_camera_info false), WARN while waiting or when the parameters stand in for CameraInfo."""

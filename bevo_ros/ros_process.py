@@ -78,7 +78,8 @@ def run_node(make_node: Callable[[list[str]], object], name: str, argv: list[str
                 raise
             # raised by rclpy while the process is being stopped: nothing left to do but stop
         if stop.requested:
-            logger.info("stopping (signal received)")
+            summary = getattr(node, "summary", None)  # what came in and went out, for whoever reads the log
+            logger.info("stopping (signal received)" + (f": {summary()}" if callable(summary) else ""))
     finally:
         try:
             if executor is not None:

@@ -9,7 +9,8 @@ Arguments:
                   a relative learned_params_file in it resolves beside it
     use_sim_time  follow /clock (default: true when bag is given, else false)
     namespace     push the node (and its relative topics) into this namespace
-    bag           a rosbag2 to replay with the project's player (play_bag, /clock, recorded QoS)
+    bag           a rosbag2 to replay with the project's player (play_bag, /clock, recorded QoS);
+                  the node then also loads params/replay.yaml (reliable inputs: no frame lost)
     rate          replay speed factor (default 1.0)
     rviz          start RViz with share/bevo_ros/rviz/bevo.rviz (default false)
     localizer     also start bevo_localizer (BEVO+, map -> odom) on map_file (default false)
@@ -20,7 +21,7 @@ import os
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess
-from launch.conditions import IfCondition
+from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
@@ -53,6 +54,7 @@ def generate_launch_description():
         DeclareLaunchArgument("localizer", default_value="false",
                               description="start bevo_localizer (BEVO+: map -> odom from an aerial map)"),
         DeclareLaunchArgument("map_file", default_value="", description="bevo_localizer's map YAML"),
+        # live sensors: the params file as it is (best-effort sensor inputs)
         Node(
             package=PACKAGE,
             executable="bevo_node",
@@ -61,6 +63,19 @@ def generate_launch_description():
             output="screen",
             emulate_tty=True,
             parameters=[params_file, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+            condition=UnlessCondition(has_bag),
+        ),
+        # a bag replay: params/replay.yaml on top (reliable inputs: no frame lost, same result as `bevo run`)
+        Node(
+            package=PACKAGE,
+            executable="bevo_node",
+            name="bevo_node",
+            namespace=namespace,
+            output="screen",
+            emulate_tty=True,
+            parameters=[params_file, os.path.join(share, "params", "replay.yaml"),
+                        {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+            condition=IfCondition(has_bag),
         ),
         Node(
             package=PACKAGE,

@@ -108,24 +108,36 @@ def test_launch_file_names_only_what_exists(description):
     assert set(cli.TOOLS) <= executables
     nodes = kinds("Node")
     ours = [n for n in nodes if n.kwargs["package"] == "bevo_ros"]
-    assert [n.kwargs["executable"] for n in ours] == ["bevo_node", "bevo_localizer"]
+    assert [n.kwargs["executable"] for n in ours] == ["bevo_node", "bevo_node", "bevo_localizer"]
     assert all(n.kwargs["executable"] in executables for n in ours)
     others = {(n.kwargs["package"], n.kwargs["executable"]) for n in nodes if n not in ours}
     assert others <= {("rviz2", "rviz2")}, others
 
+    # bevo_node: live (the params file alone) unless a bag is given; with a bag, replay.yaml on top
+    live, replay = ours[0], ours[1]
+    assert [type(n.kwargs["condition"]).__name__ for n in (live, replay)] == ["UnlessCondition", "IfCondition"]
+    assert live.kwargs["condition"].args == replay.kwargs["condition"].args  # the same has_bag expression
+    assert Path(replay.kwargs["parameters"][1]) == REPO / "params" / "replay.yaml"
+    overlay = yaml.safe_load((REPO / "params" / "replay.yaml").read_text())["/**"]["ros__parameters"]
+    assert overlay["input_qos"] == "reliable" and overlay["image_qos_depth"] >= 10
+
     # every parameter given to bevo_node is one it declares (or rclpy's use_sim_time)
     known = {f.name for f in __import__("dataclasses").fields(NodeSettings)} | set(BevoConfig().to_flat()) | {
         "use_sim_time"}
-    for entry in ours[0].kwargs["parameters"]:
-        if isinstance(entry, dict):
-            assert set(entry) <= known, set(entry) - known
-        else:
-            assert isinstance(entry, Recorded) and entry.args == ("params_file",)
+    assert set(overlay) <= known, set(overlay) - known
+    for node in (live, replay):
+        for entry in node.kwargs["parameters"]:
+            if isinstance(entry, dict):
+                assert set(entry) <= known, set(entry) - known
+            elif isinstance(entry, str):
+                assert entry == str(REPO / "params" / "replay.yaml")
+            else:
+                assert isinstance(entry, Recorded) and entry.args == ("params_file",)
 
     # bevo_localizer (launch option localizer:=true): its parameters file and overrides are its own
     from bevo_ros.localizer_node import LocalizerSettings
 
-    loc = ours[1]
+    loc = ours[2]
     assert type(loc.kwargs["condition"]).__name__ == "IfCondition"
     assert Path(loc.kwargs["parameters"][0]) == REPO / "params" / "bevo_localizer.yaml"
     assert set(loc.kwargs["parameters"][1]) <= {f.name for f in __import__("dataclasses").fields(LocalizerSettings)} | {

@@ -4,8 +4,9 @@
 Synthetic drives rendered at both KITTI image sizes (sequences 00-02: 1241x376, fx 718.856;
 03-10: 1226x370, fx 707.0912) are written as bags the way ``kitti_to_bag.py`` writes them
 (CameraInfo per frame, the rig on latched ``/tf_static``) and replayed with ``play_bag.py`` into
-``bevo_node --ros-args --params-file params/kitti.yaml -p use_sim_time:=true`` - the same
-params file both times. The node must calibrate from CameraInfo, take the synthetic rig's camera
+``bevo_node --ros-args --params-file params/kitti.yaml --params-file params/replay.yaml`` - the
+same params files both times. replay.yaml makes the inputs reliable, so every frame arrives and
+every published pose equals the offline one. The node must calibrate from CameraInfo, take the synthetic rig's camera
 extrinsics from /tf_static (they differ from kitti.yaml's), and give what the offline engine
 (tools/run_bag.py) gives with that calibration.
 """
@@ -28,6 +29,7 @@ from conftest import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(17)
 REPO = Path(__file__).resolve().parents[1]
+REPLAY_PARAMS = REPO / "params" / "replay.yaml"
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(300)]
 
 # (width, height, fx = fy, cx, cy) of KITTI odometry's rectified left grey camera
@@ -66,7 +68,7 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
     assert tool("run_bag").main([str(bag_path), "--out", str(tmp_path / "offline"), "--params", str(rig), "-q"]) == 0
     expected = np.loadtxt(tmp_path / "offline" / "trajectory_tum.txt")
 
-    node = NodeProcess(KITTI_PARAMS, str(DOMAIN_ID), extra_args=["-p", "use_sim_time:=true"]).start()
+    node = NodeProcess(KITTI_PARAMS, str(DOMAIN_ID), extra_args=["--params-file", str(REPLAY_PARAMS)]).start()
     listener = OdometryListener(DOMAIN_ID, "replay_sizes_tester")
     odom = listener.odom
     try:
@@ -78,30 +80,25 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
                                  "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info", "/tf_static"],
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         n = drive.num_frames
-        assert listener.spin_until(lambda: play.poll() is not None and len(odom) >= n - 1, 120), \
-            f"{len(odom)} of {n} odometry messages; play_bag rc {play.poll()}\n{node.output}"
-        listener.spin_until(lambda: len(odom) >= n, 3)
+        done = listener.spin_until(lambda: play.poll() is not None and len(odom) >= n, 120)
+        node.interrupt()  # its last line: what it received, published and dropped
         print("\n" + play.stdout.read().strip())
         out = node.output
         print(out)
+        assert done, f"{len(odom)} of {n} odometry messages; play_bag rc {play.poll()}\n{out}"
         assert play.returncode == 0
-        assert "bad_image_size" not in out, out
+        assert "dropped (" not in out, out  # no drop of any kind was logged
+        assert f"images {n}, camera_info {n} received; odometry {n} published; dropped: none" in out, out
         w, h = KITTI_CAMERAS[size][:2]
         assert f"camera calibration from CameraInfo on /camera/camera_info: {w}x{h}" in out, out
         assert "camera extrinsics from /tf_static base_link -> camera_optical_frame" in out, out
         got = listener.positions()
-        # The README command replays with sensor_data (best-effort) QoS: on a loaded machine one image
-        # can be lost on the way. Every frame the node published up to such a loss equals run_bag.
-        assert len(expected) == n and len(got) >= n - 1, out
-        k = next((i for i in range(len(got)) if abs(got[i, 0] - expected[i, 0]) > 1e-9), len(got))
-        assert k >= n - 1 or len(got) == n - 1, "odometry stamps differ from run_bag's"
-        if k < len(got):  # the frame at k was lost: the rest must be run_bag's stamps without it
-            np.testing.assert_allclose(got[k:, 0], expected[k + 1:, 0], atol=1e-9)
-        diff = np.abs(got[:k, 1:] - expected[:k, 1:3]).max()
+        # reliable inputs: every frame, each equal to run_bag's
+        np.testing.assert_allclose(got[:, 0], expected[:, 0], atol=1e-9)
+        diff = np.abs(got[:, 1:] - expected[:, 1:3]).max()
         path = float(np.linalg.norm(np.diff(got[:, 1:], axis=0), axis=1).sum())
-        print(f"{size}: {len(odom)} of {n} frames, {path:.2f} m, max difference to run_bag {diff:.2e} m "
-              f"over the first {k} frames")
-        assert path > 3.0 and diff < 1e-6 and k >= n // 2
+        print(f"{size}: {len(odom)} of {n} frames, {path:.2f} m, max difference to run_bag {diff:.2e} m")
+        assert path > 3.0 and diff < 1e-6
     finally:
         node.interrupt()
         listener.close()

@@ -71,8 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--clock-rate", type=float, default=100.0, metavar="HZ",
                    help="/clock rate while waiting between messages (default 100; it is also published "
                         "with every message's bag time)")
-    p.add_argument("--linger", type=float, default=0.5, metavar="SEC",
-                   help="at the end, wait up to SEC seconds for reliable deliveries to be acknowledged (default 0.5)")
+    p.add_argument("--linger", type=float, default=10.0, metavar="SEC",
+                   help="at the end, wait up to SEC seconds for reliable deliveries to be acknowledged (default 10: "
+                        "a sample that missed the shared memory is resent only at the next heartbeat, and a "
+                        "player that exits first loses it; returns as soon as everything is acknowledged)")
     p.add_argument("--quiet", "-q", action="store_true", help="only print the final counts")
     return p
 
@@ -106,7 +108,7 @@ class Player:
         self.qos = {t: qos(t) for t in topics}
         self.publishers = {t: node.create_publisher(message_class(mt), namespaced(t, args.namespace), self.qos[t])
                            for t, mt in topics.items()}
-        self.clock_pub = None
+        self.clock_pub, self.clock_topic = None, args.clock_topic
         if not args.no_clock:
             from rosgraph_msgs.msg import Clock
 
@@ -134,8 +136,9 @@ class Player:
                 return missing
             time.sleep(0.02)
 
-    def wait_for_acks(self, timeout: float) -> None:
-        """Let reliable samples reach the subscribers before the publishers go away.
+    def wait_for_acks(self, timeout: float) -> list[str]:
+        """Let reliable samples reach the subscribers before the publishers go away; returns the
+        topics still not acknowledged by every subscriber after ``timeout`` seconds.
 
         Bounded: DDS acknowledges on its heartbeat period (seconds), usually long after the
         samples themselves arrived.
@@ -143,9 +146,12 @@ class Player:
         from rclpy.duration import Duration
 
         deadline = time.monotonic() + timeout
-        for p in [*self.publishers.values(), *([self.clock_pub] if self.clock_pub else [])]:
+        pending = []
+        for topic, p in [*self.publishers.items(), *([(self.clock_topic, self.clock_pub)] if self.clock_pub else [])]:
             left = max(0.0, deadline - time.monotonic())
-            p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+            if not p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                pending.append(topic)
+        return pending
 
 
 def play(player: Player, args, start_ns: int | None) -> None:
@@ -222,7 +228,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"playing {args.bag} ({len(topics)} topics, rate {args.rate:g}, domain "
                   f"{os.environ.get('ROS_DOMAIN_ID', '0')})", file=sys.stderr)
         play(player, args, start_ns)
-        player.wait_for_acks(args.linger)
+        unacked = player.wait_for_acks(args.linger)
+        if unacked:  # a subscriber that lags (or died): what it may not have received
+            print(f"play_bag: not acknowledged by every subscriber after --linger {args.linger:g} s: "
+                  f"{', '.join(unacked)}", file=sys.stderr)
     except KeyboardInterrupt:
         print("play_bag: interrupted", file=sys.stderr)
         rc = 130
