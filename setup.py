@@ -3,10 +3,9 @@ from glob import glob
 from setuptools import find_packages, setup
 
 package_name = "bevo_ros"
-# tools/<name>.py installed as executables (bevo_ros.cli.TOOLS; kept literal: setup.py must not import the package)
-TOOLS = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting", "map_from_bag")
-# tools only `bevo` runs (bevo ablation, bevo demo): installed beside the others, no executable of their own
-BEVO_ONLY_TOOLS = ("ablation", "demo")
+# per-command executables in lib/bevo_ros, each running its bevo_ros.commands module (the launch file runs
+# play_bag); bevo_ros.cli.EXECUTABLES, kept literal: setup.py must not import the package
+EXECUTABLES = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting", "map_from_bag")
 
 setup(
     name=package_name,
@@ -18,8 +17,6 @@ setup(
         ("share/" + package_name + "/params", glob("params/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
         ("share/" + package_name + "/rviz", glob("rviz/*.rviz")),
-        # the tools' scripts; bevo_ros.cli runs them as lib/bevo_ros/<tool> (ros2 run, launch)
-        ("share/" + package_name + "/tools", [f"tools/{name}.py" for name in TOOLS + BEVO_ONLY_TOOLS]),
         ("share/" + package_name, ["LICENSE"]),
     ],
     install_requires=["setuptools"],
@@ -34,7 +31,7 @@ setup(
             "bevo = bevo_ros.cli:main",  # the one command: bevo convert|play|run|train|evaluate|... (bevo_ros.cli)
             "bevo_node = bevo_ros.node:main",
             "bevo_localizer = bevo_ros.localizer_node:main",
-            *(f"{name} = bevo_ros.cli:{name}" for name in TOOLS),
+            *(f"{name} = bevo_ros.cli:{name}" for name in EXECUTABLES),
         ],
     },
 )

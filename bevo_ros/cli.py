@@ -1,86 +1,73 @@
-"""The ``bevo`` command and the console entry points of the tools in ``tools/``.
+"""The ``bevo`` command and the per-command executables.
 
-``bevo COMMAND [ARGS]`` runs one job; each command delegates to its tool's ``main(argv)``::
+``bevo COMMAND [ARGS]`` runs one job; each command is a module of :mod:`bevo_ros.commands` with
+``build_parser()`` and ``main(argv) -> int`` (the library logic they call lives in the package)::
 
-    bevo convert  KITTI (odometry or raw layout) -> rosbag2           tools/kitti_to_bag.py
-    bevo play     replay a rosbag2 into ROS topics (with /clock)        tools/play_bag.py
-    bevo run      offline odometry over a rosbag2 (bevo_node's engine)  tools/run_bag.py
-    bevo train    learn O/Q (and the vehicle filter's noise) from bags  tools/train_from_bag.py
-    bevo evaluate metrics and plots against ground truth                tools/evaluate.py
-    bevo ablation the paper's ablation study (Table 3)                  tools/ablation.py
-    bevo calibrate the rig's static attitude on the road                tools/calibrate_mounting.py
-    bevo map      a BEVO+ map from a bag with ground truth              tools/map_from_bag.py
-    bevo demo     the whole pipeline on a synthetic drive               tools/demo.py
+    bevo convert  KITTI (odometry or raw layout) -> rosbag2           bevo_ros.commands.convert
+    bevo play     replay a rosbag2 into ROS topics (with /clock)        bevo_ros.commands.play
+    bevo run      offline odometry over a rosbag2 (bevo_node's engine)  bevo_ros.commands.run
+    bevo train    learn O/Q (and the vehicle filter's noise) from bags  bevo_ros.commands.train
+    bevo evaluate metrics and plots against ground truth                bevo_ros.commands.evaluate
+    bevo ablation the paper's ablation study (Table 3)                  bevo_ros.commands.ablation
+    bevo calibrate the rig's static attitude on the road                bevo_ros.commands.calibrate
+    bevo map      a BEVO+ map from a bag with ground truth              bevo_ros.commands.map
+    bevo demo     the whole pipeline on a synthetic drive               bevo_ros.commands.demo
     bevo dump-config  every setting with its default, as a parameters YAML
 
 Installed into the venv and into ``lib/bevo_ros`` (``ros2 run bevo_ros bevo run BAG --out OUT``).
 One error convention: bad input prints ``bevo COMMAND: error: MESSAGE`` on stderr and exits 2
 (``bevo train`` exits 3 when training diverged, any command 130 when interrupted).
 
-The tools stay scripts (``tools/<name>.py``, runnable from a checkout); an installed package
-carries them in ``share/bevo_ros/tools`` and :func:`run_tool` loads them from there. The per-tool
-executables (``play_bag``, ...) stay for the launch file (``ExecutableInPackage``) and scripts.
+The per-command executables (``play_bag``, ``run_bag``, ...; :data:`EXECUTABLES`) stay for the
+launch file (``ExecutableInPackage``) and scripts. A command's module is imported when it runs, not
+before: ``bevo --help`` should not pay for torch.
 """
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib
 import sys
-from pathlib import Path
 
-# per-tool executables in lib/bevo_ros (setup.py keeps a literal copy: it must not import the package)
-TOOLS = ("play_bag", "kitti_to_bag", "run_bag", "evaluate", "train_from_bag", "calibrate_mounting", "map_from_bag")
-
-# bevo COMMAND -> (tool, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "convert": ("kitti_to_bag", "KITTI (odometry or raw layout) -> rosbag2"),
-    "play": ("play_bag", "replay a rosbag2 into ROS topics, with /clock and the recorded QoS"),
-    "run": ("run_bag", "offline odometry over a rosbag2 with bevo_node's engine; trajectories to a folder"),
-    "train": ("train_from_bag", "learn the DUKF's O and Q (and the vehicle filter's noise) from bags"),
-    "evaluate": ("evaluate", "KITTI t_rel/r_rel, RPE, ATE, drift and plots against ground truth"),
-    "ablation": ("ablation", "the paper's ablation study (Table 3) on bags"),
-    "calibrate": ("calibrate_mounting", "the rig's static pitch/roll on the road from a calibration drive"),
-    "map": ("map_from_bag", "a BEVO+ map (nav2 map_server YAML + PNG) from a bag with ground truth"),
-    "demo": ("demo", "the whole pipeline on a synthetic drive (and the KITTI sample when present)"),
+# bevo COMMAND (= module bevo_ros.commands.<COMMAND>) -> one-line help
+COMMANDS: dict[str, str] = {
+    "convert": "KITTI (odometry or raw layout) -> rosbag2",
+    "play": "replay a rosbag2 into ROS topics, with /clock and the recorded QoS",
+    "run": "offline odometry over a rosbag2 with bevo_node's engine; trajectories to a folder",
+    "train": "learn the DUKF's O and Q (and the vehicle filter's noise) from bags",
+    "evaluate": "KITTI t_rel/r_rel, RPE, ATE, drift and plots against ground truth",
+    "ablation": "the paper's ablation study (Table 3) on bags",
+    "calibrate": "the rig's static pitch/roll on the road from a calibration drive",
+    "map": "a BEVO+ map (nav2 map_server YAML + PNG) from a bag with ground truth",
+    "demo": "the whole pipeline on a synthetic drive (and the KITTI sample when present)",
 }
+# executables in lib/bevo_ros -> the command they run (setup.py keeps a literal copy: it must not import the package)
+EXECUTABLES = {"play_bag": "play", "kitti_to_bag": "convert", "run_bag": "run", "evaluate": "evaluate",
+               "train_from_bag": "train", "calibrate_mounting": "calibrate", "map_from_bag": "map"}
 DUMP_CONFIG = "dump-config"
 EXIT_USAGE = 2  # bad input: message on stderr, like argparse
 
 
-def _tools_dir() -> Path:
-    here = Path(__file__).resolve().parents[1] / "tools"  # source checkout / editable install
-    if (here / "play_bag.py").is_file():
-        return here
-    from ament_index_python.packages import get_package_share_directory
-
-    return Path(get_package_share_directory("bevo_ros")) / "tools"
+def command_module(command: str):
+    """The module of ``bevo COMMAND``: ``bevo_ros.commands.<COMMAND>``."""
+    if command not in COMMANDS:
+        raise KeyError(f"no bevo command {command!r}")
+    return importlib.import_module(f"bevo_ros.commands.{command}")
 
 
-def load_tool(name: str):
-    """Import ``tools/<name>.py`` (the checkout's, else the installed share's) as a module: the one
-    loader of the tools (tools/ holds scripts, not a package), for bevo, the tools and the tests."""
-    path = _tools_dir() / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses in the tool need their module registered
-    spec.loader.exec_module(module)
-    return module
+def run_command(command: str, argv: list[str]) -> int:
+    """``bevo COMMAND ARGV`` in this process: the command module's ``main(argv)``."""
+    return int(command_module(command).main(argv) or 0)
 
 
-def run_tool(name: str, argv: list[str] | None = None) -> int:
-    """Import ``tools/<name>.py`` and return its ``main(argv)``."""
-    return int(load_tool(name).main(sys.argv[1:] if argv is None else argv) or 0)
-
-
-def _entry(name: str):
+def _entry(executable: str):
     def main() -> int:
         try:
-            return run_tool(name)
+            return run_command(EXECUTABLES[executable], sys.argv[1:])
         except KeyboardInterrupt:
-            print(f"{name}: interrupted", file=sys.stderr)
+            print(f"{executable}: interrupted", file=sys.stderr)
             return 130
 
-    main.__name__ = name
+    main.__name__ = executable
     return main
 
 
@@ -95,7 +82,7 @@ map_from_bag = _entry("map_from_bag")
 
 def build_parser() -> argparse.ArgumentParser:
     width = max(map(len, [*COMMANDS, DUMP_CONFIG]))
-    lines = [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
+    lines = [f"  {name:<{width}}  {text}" for name, text in COMMANDS.items()]
     lines.append(f"  {DUMP_CONFIG:<{width}}  every setting with its default, as a parameters YAML")
     p = argparse.ArgumentParser(
         prog="bevo", formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -146,18 +133,18 @@ def main(argv: list[str] | None = None) -> int:
     from bevo_ros.config import ConfigError
 
     prog = sys.argv[0]
-    sys.argv[0] = f"bevo {command}"  # the tools' usage lines read `bevo COMMAND`
+    sys.argv[0] = f"bevo {command}"  # the commands' usage lines read `bevo COMMAND`
     try:
         if command == DUMP_CONFIG:
             return dump_config_main(rest)
-        return run_tool(COMMANDS[command][0], rest)
-    except (ConfigError, FileNotFoundError, ValueError, OSError) as exc:  # bad input the tool did not catch
+        return run_command(command, rest)
+    except (ConfigError, FileNotFoundError, ValueError, OSError) as exc:  # bad input the command did not catch
         print(f"bevo {command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(f"bevo {command}: interrupted", file=sys.stderr)
         return 130
-    except SystemExit as exc:  # argparse in the tool: --help (0) or a usage error (2)
+    except SystemExit as exc:  # argparse in the command: --help (0) or a usage error (2)
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else EXIT_USAGE)
     finally:
         sys.argv[0] = prog

@@ -1,6 +1,6 @@
 """Recordings as the engine sees them: synthetic drives to rosbag2, bags to tensors, splits.
 
-Shared by ``tools/run_bag.py``, ``tools/train_from_bag.py``, ``tools/ablation.py`` and the demo,
+Shared by ``bevo run`` (bevo_ros.pipeline), ``bevo train``, ``bevo ablation`` and the demo,
 so every tool reads a recording the same way.
 """
 from __future__ import annotations
@@ -122,7 +122,7 @@ def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np
 
 
 def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = True) -> Sequence:
-    """Read a bag written by ``kitti_to_bag.py`` or :func:`write_drive_bag` into a :class:`Sequence`.
+    """Read a bag written by ``bevo convert`` or :func:`write_drive_bag` into a :class:`Sequence`.
 
     Frames before the first IMU sample are dropped (the filter has nothing to say about them).
     """

@@ -11,7 +11,7 @@
   are the "cheap path" of long drives: no image rendering, no DUKF, so a 2 km drive takes
   seconds, while the localisation sees what it would see behind the real odometry engine.
 * :func:`run_localization`: drive a :class:`~bevo_ros.core.map_localization.MapLocalizer` over
-  such a drive; :func:`localization_demo`: the BEVO+ row and plot of ``tools/demo.py``.
+  such a drive; :func:`localization_demo`: the BEVO+ row and plot of ``bevo demo``.
 """
 from __future__ import annotations
 
@@ -333,7 +333,7 @@ def run_localization(ld: LocalizationDrive, aerial: AerialMap, initial_pose, ini
 
 
 def localization_demo(out_dir: str | Path, length: float = 600.0, seed: int = 1) -> dict[str, float | str]:
-    """The BEVO+ row of ``tools/demo.py``: a synthetic drive of ``length`` metres with drifting
+    """The BEVO+ row of ``bevo demo``: a synthetic drive of ``length`` metres with drifting
     odometry, localised in a heterogeneous aerial map from a 3 m / 5 deg initial error.
     Writes ``bevo_plus_trajectory.png`` (both trajectories on the map) and returns the figures."""
     import matplotlib

@@ -7,7 +7,7 @@ supervised only by the frame-rate ground-truth poses through BEV projection and 
 the loss is the KL divergence between the correlation distributions and Gaussian-blurred one-hot
 targets at the ground-truth rotation and shift (:func:`bevo_ros.core.loss.registration_kl_loss`).
 
-Things worth knowing (each measured, see ``tools/train_from_bag.py --help`` and the tests):
+Things worth knowing (each measured, see ``bevo train --help`` and the tests):
 
 * **Loss temperature.** The phase correlation turns correlations into distributions with a
   softmax temperature (``DpcConfig.*_temperature``). At the engine's 0.02 the distributions are
@@ -438,7 +438,7 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     state = _plain(state)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    header = ("# BEVO training checkpoint (tools/train_from_bag.py --resume THIS). Plain numbers only.\n"
+    header = ("# BEVO training checkpoint (bevo train --resume THIS). Plain numbers only.\n"
               "# O = process noise density (rad^2/s), Q = measurement noise variance (rad^2), [pitch, roll].\n")
     atomic_write_text(path, header + yaml.safe_dump(state, sort_keys=False, default_flow_style=None))
 
@@ -661,7 +661,7 @@ def train(
             probe = make_dukf(best_params[0], best_params[1], config.filter.motion_model, device)
             after = evaluate_parts(probe, vals, config, options, device)
     info = {
-        "trainer": "tools/train_from_bag.py (bevo_ros.training)",
+        "trainer": "bevo train (bevo_ros.training)",
         "training_bags": [s.name for s in seqs],
         "split": options.split,
         "status": status,

@@ -10,6 +10,7 @@ log-variances; the measurements themselves (BEV, correlation, gyro) are held fix
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -22,7 +23,7 @@ Tensor = torch.Tensor
 # The learned fields and how each enters the filter (all positive: learned as logs).
 TRAINED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std")  # image_rotation_std: in the engine
 
-__all__ = ["TRAINED", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise"]
+__all__ = ["TRAINED", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise", "record_inputs", "fit_vehicle_on_sequences"]
 
 
 @dataclass
@@ -120,3 +121,40 @@ def record_inputs(sequence, config, learned) -> tuple[list[dict], np.ndarray]:
     if len(steps) != len(sequence):
         raise ValueError(f"{sequence.name}: {len(sequence) - len(steps)} frame(s) dropped while recording filter inputs")
     return [s.filter_inputs for s in steps[1:]], sequence.gt_motion().double().numpy()
+
+
+def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: int = 100) -> None:
+    """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
+    ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
+    validation frames' NLL is not worse."""
+    from .datasets import split_frames
+
+    t0 = time.perf_counter()
+    train_parts, val_parts = [], []
+    for s in seqs:
+        inputs, truth = record_inputs(s, config, learned)
+        (_, cut), _ = split_frames(len(s), split)
+        train_parts.append((inputs[: cut - 1], truth[: cut - 1]))
+        val_parts.append((inputs, truth, cut - 1))
+    base = VehicleNoise(**learned.vehicle)
+    fit = fit_vehicle_noise(train_parts, base, steps=steps)
+
+    def val_nll(noise) -> float:
+        total, n = 0.0, 0
+        for inputs, truth, cut in val_parts:
+            m, v = replay(noise, inputs)
+            t = torch.as_tensor(truth, dtype=torch.float64)
+            total += float(motion_nll(m[cut:], v[cut:], t[cut:])) * (len(inputs) - cut)
+            n += len(inputs) - cut
+        return total / max(n, 1)
+
+    before, after = val_nll(base), val_nll(fit.noise)
+    print(f"vehicle filter ({time.perf_counter() - t0:.1f} s): train NLL {fit.nll_before:.3f} -> {fit.nll_after:.3f}, "
+          f"validation NLL {before:.3f} -> {after:.3f}; per-frame RMSE (train) dx {fit.rmse_before[0]:.4f} -> "
+          f"{fit.rmse_after[0]:.4f} m, dy {fit.rmse_before[1]:.4f} -> {fit.rmse_after[1]:.4f} m")
+    if after <= before:
+        learned.vehicle = {k: float(getattr(fit.noise, k)) for k in TRAINED}
+        learned.info["vehicle_filter_fit"] = {"train_nll": [fit.nll_before, fit.nll_after],
+                                             "validation_nll": [before, after]}
+    else:
+        print("vehicle filter: the fit did not improve the validation frames; keeping the previous values")

@@ -9,7 +9,7 @@ Arguments:
                   a relative learned_params_file in it resolves beside it
     use_sim_time  follow /clock (default: true when bag is given, else false)
     namespace     push the node (and its relative topics) into this namespace
-    bag           a rosbag2 to replay with the project's player (play_bag, /clock, recorded QoS);
+    bag           a rosbag2 to replay with the project's player (play_bag = `bevo play`, /clock, recorded QoS);
                   the node then also loads params/replay.yaml (reliable inputs: no frame lost)
     rate          replay speed factor (default 1.0)
     rviz          start RViz with share/bevo_ros/rviz/bevo.rviz (default false)

@@ -34,10 +34,16 @@ def kitti_root() -> Path:
 
 
 def load_tool(name: str):
-    """Import ``tools/<name>.py`` as a module (bevo_ros.cli's loader)."""
-    from bevo_ros.cli import load_tool as load
+    """Import the script ``tools/<name>.py`` (a benchmark or build helper, not part of the package) as a
+    module; the commands are package modules (``bevo_ros.commands``) and are imported as such."""
+    import importlib.util
+    import sys
 
-    return load(name)
+    spec = importlib.util.spec_from_file_location(f"bevo_tool_{name}", REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses in the script need their module registered
+    spec.loader.exec_module(module)
+    return module
 
 
 def ros_context(domain_id: int):
@@ -54,12 +60,6 @@ def ros_context(domain_id: int):
     yield ctx
     rclpy.shutdown(context=ctx)
     torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="session")
-def tool():
-    """``tool("run_bag").main([...])``: the user-facing tools, called in-process."""
-    return load_tool
 
 
 def make_bumpy_bag(path: Path, seconds: float = 6.0, seed: int = 3) -> Path:

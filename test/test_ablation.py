@@ -1,4 +1,4 @@
-"""tools/ablation.py: the paper's ablation table (w/o O, w/o Q, w/o DUKF, BEVO, w/ GT, + fused) on a tiny
+"""bevo ablation: the paper's ablation table (w/o O, w/o Q, w/o DUKF, BEVO, w/ GT, + fused) on a tiny
 synthetic bumpy drive; the ground-truth attitude must beat the raw accelerometer there."""
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import math
 import pytest
 import torch
 
-from conftest import load_tool, make_bumpy_bag
+from conftest import make_bumpy_bag
 
+from bevo_ros.commands import ablation as ablation_command
 from bevo_ros.config import REPO_ROOT, LearnedParams, save_learned_params
 
 SYNTH_PARAMS = REPO_ROOT / "params" / "synthetic.yaml"
@@ -19,7 +20,7 @@ ROWS = ("w/o O", "w/o Q", "w/o DUKF", "BEVO", "w/ GT", "fused")
 @pytest.fixture(scope="module")
 def ablation():
     torch.set_num_threads(1)
-    return load_tool("ablation")
+    return ablation_command
 
 
 def _check_outputs(out, bag_name: str) -> dict:

@@ -23,7 +23,7 @@ def test_the_command_is_registered_as_a_console_script():
 def test_help_of_each_subcommand(command, capsys):
     assert cli.main([command, "--help"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith(f"usage: bevo {command}"), out[:200]  # the tool's own options, under its bevo name
+    assert out.startswith(f"usage: bevo {command}"), out[:200]  # the command's own options, under its bevo name
     assert "--help" in out
 
 
@@ -49,11 +49,11 @@ def test_errors_exit_2_with_a_message(argv, message, capsys):
 
 
 def test_an_uncaught_bad_input_is_reported_not_raised(tmp_path, capsys, monkeypatch):
-    """A ValueError escaping a tool is the same convention: `bevo CMD: error: ...`, exit 2."""
+    """A ValueError escaping a command is the same convention: `bevo CMD: error: ...`, exit 2."""
     def boom(name, argv):
         raise ValueError("bad value in the input")
 
-    monkeypatch.setattr(cli, "run_tool", boom)
+    monkeypatch.setattr(cli, "run_command", boom)
     assert cli.main(["run", "x"]) == 2
     assert "bevo run: error: bad value in the input" in capsys.readouterr().err
 

@@ -63,23 +63,26 @@ def test_colcon_build_and_ros2_run_style_start(tmp_path, monkeypatch):
     share = Path(get_package_share_directory("bevo_ros"))
     params = share / "params" / "kitti.yaml"
     assert params.is_file() and (params.parent / "learned_default.yaml").is_file()
-    # issue 11: launch, RViz, the license and every tool are installed; each executable is found
-    from bevo_ros.cli import COMMANDS, TOOLS
+    # issue 11: launch, RViz and the license are installed; every command is a package module (issue 10: no
+    # tools/ scripts in share), each executable is found
+    from bevo_ros.cli import COMMANDS, EXECUTABLES
 
-    for f in ("launch/bevo.launch.py", "rviz/bevo.rviz", "LICENSE", "package.xml",
-              *(f"tools/{t}.py" for t in TOOLS), *(f"tools/{t}.py" for t, _ in COMMANDS.values())):
+    for f in ("launch/bevo.launch.py", "rviz/bevo.rviz", "LICENSE", "package.xml"):
         assert (share / f).is_file(), f"{f} not installed in {share}"
-    tool_exes = {t: _find_executable(prefix, "bevo_ros", t) for t in TOOLS}
+    assert not (share / "tools").exists()
+    for command in COMMANDS:
+        assert (site / "bevo_ros" / "commands" / f"{command}.py").is_file(), command
+    tool_exes = {t: _find_executable(prefix, "bevo_ros", t) for t in EXECUTABLES}
     bevo = _find_executable(prefix, "bevo_ros", "bevo")  # `ros2 run bevo_ros bevo run BAG --out OUT`
 
     env = dict(os.environ, ROS_DOMAIN_ID=DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONPATH=os.pathsep.join([str(site)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]),
                PYTHONUNBUFFERED="1", RCUTILS_LOGGING_BUFFERED_STREAM="0")
-    for name, tool_exe in tool_exes.items():  # the installed wrappers run the installed tools
+    for name, tool_exe in tool_exes.items():  # the installed executables run the installed commands
         help_run = subprocess.run([str(tool_exe), "--help"], cwd=tmp_path, env=env, capture_output=True, text=True,
                                   timeout=120)
         assert help_run.returncode == 0 and "usage:" in help_run.stdout, f"{name}: {help_run.stderr[-2000:]}"
-    for command in ("demo", "ablation", "run"):  # the installed `bevo` runs the installed tools
+    for command in ("demo", "ablation", "run"):  # the installed `bevo` runs the installed commands
         help_run = subprocess.run([str(bevo), command, "--help"], cwd=tmp_path, env=env, capture_output=True,
                                   text=True, timeout=120)
         assert help_run.returncode == 0 and f"usage: bevo {command}" in help_run.stdout, help_run.stderr[-2000:]

@@ -10,11 +10,10 @@ import pytest
 
 from bevo_ros import evaluation as ev
 from bevo_ros import kitti
+from bevo_ros.commands import evaluate as evaluate_tool
 from conftest import in_ci
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
-import evaluate as evaluate_tool  # noqa: E402
 
 
 def se3(yaw: float = 0.0, t=(0.0, 0.0, 0.0)) -> np.ndarray:

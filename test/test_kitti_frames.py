@@ -28,7 +28,7 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import vehicle_motion_from_registration
 from bevo_ros.core.phase_correlation import DpcConfig, prepare, register_prepared
 from bevo_ros.kitti import base_relative_motion, camera_model_from_kitti, read_poses
-from conftest import load_tool
+from bevo_ros.mounting import find_roots
 
 SPEC = BevSpec()
 CALIBRATION_PAIRS = 10
@@ -63,7 +63,7 @@ def calibrate_pitch(imgs, cam, gt, config: DpcConfig, lo: float = -1.0, hi: floa
     travelled over the given frames: the mounting calibration's root finder (bevo calibrate), the
     sharpest correlation winning where several pitches match."""
     target = float(gt[:, 0].sum())
-    roots = load_tool("calibrate_mounting").find_roots(
+    roots = find_roots(
         lambda p: float(estimate(imgs, cam, p, config)[0][:, 0].sum()) - target, lo, hi)
     return max(roots, key=lambda p: float(estimate(imgs, cam, p, config)[1].mean()))
 

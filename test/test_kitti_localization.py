@@ -1,4 +1,4 @@
-"""BEVO+ on the KITTI sample: a map mosaicked by tools/map_from_bag.py from the even frames' BEVs
+"""BEVO+ on the KITTI sample: a map mosaicked by bevo map from the even frames' BEVs
 with the ground-truth poses (a "previous drive"), then the odometry of the drive localised in it
 with the odd frames' BEVs only, from a wrong initial pose."""
 from __future__ import annotations
@@ -9,31 +9,32 @@ import numpy as np
 import pytest
 import torch
 
+from bevo_ros.commands import convert, map as map_command, run
 from bevo_ros.config import load_config
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import LocalizerConfig, MapLocalizer, se2_compose, wrap
 from bevo_ros.datasets import gt_at
 from bevo_ros.maps import load_map
+from bevo_ros.pipeline import run_bag
 
 pytestmark = [pytest.mark.kitti, pytest.mark.timeout(300)]
 
 
-def test_kitti_localises_in_a_previous_drive_map_from_a_wrong_start(kitti_root, tmp_path, tool):
+def test_kitti_localises_in_a_previous_drive_map_from_a_wrong_start(kitti_root, tmp_path):
     torch.set_num_threads(1)
     bag_path = tmp_path / "kitti06"
-    assert tool("kitti_to_bag").main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
+    assert convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
                                       "-o", str(bag_path), "-q"]) == 0
     map_yaml = tmp_path / "map" / "kitti06.yaml"
-    assert tool("map_from_bag").main([str(bag_path), "--out", str(map_yaml), "--every", "2",
+    assert map_command.main([str(bag_path), "--out", str(map_yaml), "--every", "2",
                                       "--resolution", "0.2"]) == 0
     aerial = load_map(map_yaml)
     assert aerial.valid is not None and aerial.resolution == pytest.approx(0.2, rel=1e-3)
 
-    run_bag = tool("run_bag")
-    config, _ = load_config(run_bag.DEFAULT_PARAMS)
-    steps, rec, _ = run_bag.run(bag_path, config, config.learned_params_file)
+    config, _ = load_config(run.DEFAULT_PARAMS)
+    steps, rec, _ = run_bag(bag_path, config, config.learned_params_file)
     gt4 = gt_at(np.array([s.stamp for s in steps]), rec.gt_stamps, rec.gt_poses)
-    gt = tool("map_from_bag").xy_yaw_from_4x4(gt4)
+    gt = map_command.xy_yaw_from_4x4(gt4)
     spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
     cfg = LocalizerConfig(match=LocalizerConfig().match.__class__(resolution=0.2), mosaic_length=16.0,
                           min_mosaic_length=8.0, update_distance=2.0)

@@ -1,4 +1,4 @@
-"""tools/kitti_to_bag.py on the real KITTI sample: round trip through both storages, error cases."""
+"""bevo convert on the real KITTI sample: round trip through both storages, error cases."""
 from __future__ import annotations
 
 import os
@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 from bevo_ros import bag, kitti
+from bevo_ros.commands import convert as kitti_to_bag
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tools"))
-import kitti_to_bag  # noqa: E402
 
 pytestmark = pytest.mark.kitti
 DRIVE = "2011_09_30_drive_0020"
@@ -254,7 +253,7 @@ def test_a_killed_conversion_leaves_nothing_after_the_next_run(kitti_root, tmp_p
     import time
 
     out = tmp_path / "o"
-    cmd = [sys.executable, str(REPO / "tools" / "kitti_to_bag.py"), "--odometry", str(kitti_root / "odometry"),
+    cmd = [sys.executable, "-m", "bevo_ros.cli", "convert", "--odometry", str(kitti_root / "odometry"),
            "-o", str(out), "--quiet"]
     proc = subprocess.Popen(cmd, env=dict(os.environ, PYTHONPATH=str(REPO)), stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60

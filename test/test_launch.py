@@ -68,14 +68,14 @@ def _walk(obj):
 
 
 def _setup_py_executables() -> set[str]:
-    """console_scripts of setup.py: bevo_node plus the TOOLS tuple (read from its AST, not run)."""
+    """console_scripts of setup.py: bevo_node plus the EXECUTABLES tuple (read from its AST, not run)."""
     tree = ast.parse((REPO / "setup.py").read_text())
     tools = next(ast.literal_eval(n.value) for n in ast.walk(tree) if isinstance(n, ast.Assign)
-                 and any(isinstance(t, ast.Name) and t.id == "TOOLS" for t in n.targets))
+                 and any(isinstance(t, ast.Name) and t.id == "EXECUTABLES" for t in n.targets))
     text = (REPO / "setup.py").read_text()
     assert '"bevo_node = bevo_ros.node:main"' in text
     assert '"bevo_localizer = bevo_ros.localizer_node:main"' in text
-    assert 'f"{name} = bevo_ros.cli:{name}" for name in TOOLS' in text
+    assert 'f"{name} = bevo_ros.cli:{name}" for name in EXECUTABLES' in text
     return {"bevo_node", "bevo_localizer", *tools}
 
 
@@ -91,6 +91,7 @@ def description(monkeypatch):
 
 def test_launch_file_names_only_what_exists(description):
     from bevo_ros import cli
+    from bevo_ros.commands import play
     from bevo_ros.node import NodeSettings
     from bevo_ros.config import BevoConfig
 
@@ -105,7 +106,7 @@ def test_launch_file_names_only_what_exists(description):
     assert Path(declared["params_file"]["default_value"]) == REPO / "params" / "kitti.yaml"
 
     executables = _setup_py_executables()
-    assert set(cli.TOOLS) <= executables
+    assert set(cli.EXECUTABLES) <= executables
     nodes = kinds("Node")
     ours = [n for n in nodes if n.kwargs["package"] == "bevo_ros"]
     assert [n.kwargs["executable"] for n in ours] == ["bevo_node", "bevo_node", "bevo_localizer"]
@@ -148,13 +149,7 @@ def test_launch_file_names_only_what_exists(description):
     assert [(e.kwargs["package"], e.kwargs["executable"]) for e in exe] == [("bevo_ros", "play_bag")]
     cmd = kinds("ExecuteProcess")[0].kwargs["cmd"]
     flags = [c for c in cmd if isinstance(c, str)]
-    sys.path.insert(0, str(REPO / "tools"))
-    try:
-        from conftest import load_tool
-
-        parser = load_tool("play_bag").build_parser()
-    finally:
-        sys.path.remove(str(REPO / "tools"))
+    parser = play.build_parser()
     args = []
     for c in cmd[1:]:
         args.append(c if isinstance(c, str) else {"bag": "some_bag", "rate": "1.0", "namespace": "car1"}[c.args[0]])
@@ -180,13 +175,16 @@ def test_rviz_config_shows_the_node_outputs():
             "rviz_default_plugins/Image"} <= set(displays)
 
 
-def test_setup_installs_launch_rviz_params_tools_and_license():
+def test_setup_installs_launch_rviz_params_executables_and_license():
+    from bevo_ros.cli import COMMANDS, EXECUTABLES
+
     text = (REPO / "setup.py").read_text()
-    for pattern in ('glob("params/*.yaml")', 'glob("launch/*.launch.py")', 'glob("rviz/*.rviz")', '["LICENSE"]',
-                    'f"tools/{name}.py" for name in TOOLS'):
+    for pattern in ('glob("params/*.yaml")', 'glob("launch/*.launch.py")', 'glob("rviz/*.rviz")', '["LICENSE"]'):
         assert pattern in text, pattern
-    for name in _setup_py_executables() - {"bevo_node", "bevo_localizer"}:
-        assert (REPO / "tools" / f"{name}.py").is_file(), name
+    assert "tools/" not in text  # tools/ holds benchmarks and build helpers, nothing installed
+    assert _setup_py_executables() - {"bevo_node", "bevo_localizer"} == set(EXECUTABLES)
+    for name, command in EXECUTABLES.items():  # each runs a bevo command's module
+        assert command in COMMANDS and (REPO / "bevo_ros" / "commands" / f"{command}.py").is_file(), name
 
 
 # import name -> rosdep key (ROS packages are their own key); pip-only ones have none
@@ -199,13 +197,11 @@ PIP_ONLY = {"rosbags"}
 def test_license_and_every_runtime_import_is_declared():
     import xml.etree.ElementTree as ET
 
-    from bevo_ros.cli import TOOLS
-
     root = ET.parse(REPO / "package.xml").getroot()
     assert root.findtext("license") == "BSD-3-Clause"
     assert (REPO / "LICENSE").read_text().startswith("BSD 3-Clause License")
     deps = {e.text for e in root.findall("exec_depend")}
-    files = [*(REPO / "bevo_ros").rglob("*.py"), *(REPO / "tools" / f"{t}.py" for t in TOOLS), LAUNCH]
+    files = [*(REPO / "bevo_ros").rglob("*.py"), LAUNCH]
     imported: set[str] = set()
     for f in files:
         for node in ast.walk(ast.parse(f.read_text())):

@@ -8,7 +8,7 @@ Synthetic drives rendered at both KITTI image sizes (sequences 00-02: 1241x376, 
 same params files both times. replay.yaml makes the inputs reliable, so every frame arrives and
 every published pose equals the offline one. The node must calibrate from CameraInfo, take the synthetic rig's camera
 extrinsics from /tf_static (they differ from kitti.yaml's), and give what the offline engine
-(tools/run_bag.py) gives with that calibration.
+(bevo run) gives with that calibration.
 """
 from __future__ import annotations
 
@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from bevo_ros.commands import run
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_node_support import KITTI_PARAMS, VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
@@ -55,7 +57,7 @@ def _drive(size: str):
 
 @pytest.mark.skipif(not (VENV_BIN / "bevo_node").exists(), reason="bevo_node not installed (make setup)")
 @pytest.mark.parametrize("size", sorted(KITTI_CAMERAS))
-def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, tool):
+def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path):
     from bevo_ros import bag
     from bevo_ros.datasets import write_drive_bag
 
@@ -65,7 +67,7 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
     # the offline engine with the rig the bag describes: CameraInfo (run_bag reads it) + the /tf_static camera
     rig = write_params(tmp_path / "rig.yaml", {"camera.base_T_camera": [
         float(v) for v in drive.camera.T_base_cam.double().reshape(-1)]})
-    assert tool("run_bag").main([str(bag_path), "--out", str(tmp_path / "offline"), "--params", str(rig), "-q"]) == 0
+    assert run.main([str(bag_path), "--out", str(tmp_path / "offline"), "--params", str(rig), "-q"]) == 0
     expected = np.loadtxt(tmp_path / "offline" / "trajectory_tum.txt")
 
     node = NodeProcess(KITTI_PARAMS, str(DOMAIN_ID), extra_args=["--params-file", str(REPLAY_PARAMS)]).start()
@@ -75,7 +77,7 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path, 
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
         assert listener.wait_for_publisher(), "the odometry publisher was not discovered"
         env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        play = subprocess.Popen([str(VENV_BIN / "python"), str(REPO / "tools" / "play_bag.py"), str(bag_path),
+        play = subprocess.Popen([str(VENV_BIN / "python"), "-m", "bevo_ros.cli", "play", str(bag_path),
                                  "--rate", "1.0", "--wait-for-subscribers", "30",  # the README's command
                                  "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info", "/tf_static"],
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

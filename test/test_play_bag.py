@@ -1,4 +1,4 @@
-"""tools/play_bag.py: a small bag played into an rclpy subscriber (localhost DDS, domain 61)."""
+"""bevo play: a small bag played into an rclpy subscriber (localhost DDS, domain 61)."""
 from __future__ import annotations
 
 import os
@@ -16,7 +16,7 @@ from bevo_ros import bag
 pytestmark = pytest.mark.ros
 
 REPO = Path(__file__).resolve().parents[1]
-PLAY = REPO / "tools" / "play_bag.py"
+PLAY = ("-m", "bevo_ros.cli", "play")  # `bevo play`, from this checkout
 from conftest import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(1)
@@ -99,7 +99,7 @@ def listener():
 
 
 def _play(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(PLAY), *args], env=_env(), stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, *PLAY, *args], env=_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 
@@ -152,7 +152,7 @@ def test_ctrl_c_exits_130_without_traceback(small_bag, listener):
 
 
 def test_bad_input_exit_2(tmp_path):
-    proc = subprocess.run([sys.executable, str(PLAY), str(tmp_path / "missing")], env=_env(),
+    proc = subprocess.run([sys.executable, *PLAY, str(tmp_path / "missing")], env=_env(),
                           capture_output=True, text=True, timeout=60)
     print(proc.stderr.strip())
     assert proc.returncode == 2 and "missing: bag not found" in proc.stderr and "Traceback" not in proc.stderr

@@ -1,5 +1,5 @@
-"""Issue 4 end to end: the KITTI sample as a rosbag2, replayed by tools/play_bag.py (with /clock)
-into bevo_node running with use_sim_time, equals tools/run_bag.py on the same bag (one engine)."""
+"""Issue 4 end to end: the KITTI sample as a rosbag2, replayed by bevo play (with /clock)
+into bevo_node running with use_sim_time, equals bevo run on the same bag (one engine)."""
 from __future__ import annotations
 
 import os
@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from bevo_ros.commands import convert, run
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_node_support import VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
@@ -23,12 +25,12 @@ pytestmark = [pytest.mark.ros, pytest.mark.kitti, pytest.mark.timeout(300)]
 
 
 @pytest.mark.skipif(not (VENV_BIN / "bevo_node").exists(), reason="bevo_node not installed (make setup)")
-def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path, tool):
+def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path):
     bag_path = tmp_path / "kitti06"
-    assert tool("kitti_to_bag").main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
+    assert convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
                                       "-o", str(bag_path), "--storage", "mcap", "-q"]) == 0
     offline = tmp_path / "offline"
-    assert tool("run_bag").main([str(bag_path), "--out", str(offline), "-q"]) == 0
+    assert run.main([str(bag_path), "--out", str(offline), "-q"]) == 0
     expected = np.loadtxt(offline / "trajectory_tum.txt")
 
     params = write_params(tmp_path / "params.yaml", {
@@ -44,7 +46,7 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path, t
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
         assert listener.wait_for_publisher(), "the odometry publisher was not discovered"
         env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        play = subprocess.Popen([str(VENV_BIN / "python"), str(REPO / "tools" / "play_bag.py"), str(bag_path),
+        play = subprocess.Popen([str(VENV_BIN / "python"), "-m", "bevo_ros.cli", "play", str(bag_path),
                                  "--rate", "2.0", "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
                                  "--wait-for-subscribers", "30"],
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

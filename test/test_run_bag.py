@@ -9,9 +9,11 @@ import pytest
 import torch
 
 from bevo_ros import bag, kitti
+from bevo_ros.commands import convert, evaluate, run
 from bevo_ros.config import REPO_ROOT, BevoConfig, LearnedParams, build_odometry, load_config
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.datasets import feed_engine, load_sequence, split_frames, write_drive_bag
+from bevo_ros.mounting import calibrate
 from bevo_ros.synthetic import kitti_like_camera, make_drive
 
 SYNTH_PARAMS = str(REPO_ROOT / "params" / "synthetic.yaml")
@@ -40,10 +42,10 @@ def test_drive_bag_holds_sensors_and_ground_truth(synthetic_bag):
     assert (a, d) == (0, len(seq)) and b == c and b == round(0.75 * len(seq))
 
 
-def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path, tool):
+def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):
     drive, path = synthetic_bag
     out = tmp_path / "run"
-    assert tool("run_bag").main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "-q"]) == 0
+    assert run.main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "-q"]) == 0
     est = kitti.read_poses(out / "trajectory_kitti.txt")
     gt = kitti.read_poses(out / "gt_kitti.txt")
     assert est.shape == gt.shape == (len(drive.frame_stamps), 4, 4)
@@ -58,7 +60,7 @@ def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path, tool):
     tum = np.loadtxt(out / "trajectory_tum.txt")
     np.testing.assert_allclose(tum[:, 1:3], np.array([s.position[:2] for s in steps]), atol=1e-6)
     ev = tmp_path / "eval"
-    assert tool("evaluate").main(["--gt", str(out / "gt_kitti.txt"), "--est", str(out / "trajectory_kitti.txt"),
+    assert evaluate.main(["--gt", str(out / "gt_kitti.txt"), "--est", str(out / "trajectory_kitti.txt"),
                                   "--pitch-roll", str(out / "pitch_roll.csv"), "--out", str(ev)]) == 0
     metrics = json.loads((ev / "metrics.json").read_text())
     print(f"\nsynthetic 3 s: RPE {metrics['rpe_trans_rmse'] * 100:.1f} cm/frame, {metrics['rpe_yaw_rmse']:.3f} deg/frame, "
@@ -67,12 +69,12 @@ def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path, tool):
     assert (ev / "trajectory.png").stat().st_size > 1000
 
 
-def test_run_bag_reports_user_errors(tmp_path, capsys, tool):
-    assert tool("run_bag").main([str(tmp_path / "absent"), "--out", str(tmp_path / "o"), "-q"]) == 2
+def test_run_bag_reports_user_errors(tmp_path, capsys):
+    assert run.main([str(tmp_path / "absent"), "--out", str(tmp_path / "o"), "-q"]) == 2
     assert "error" in capsys.readouterr().err
 
 
-def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path, tool):
+def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path):
     """Render with the camera pitched 1 deg down on the base; calibrate against a level model."""
     tilt = math.radians(1.0)
     drive = make_drive(seed=4, duration=2.5, bumps=0.0, road_tilt=False, noise=False, render="lazy",
@@ -81,22 +83,21 @@ def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path, tool):
     write_drive_bag(drive, path)
     config, _ = load_config(SYNTH_PARAMS)  # level camera on the base
     seq = load_sequence(path, config)
-    calib = tool("calibrate_mounting")
-    pitch, roll = calib.calibrate(seq, BevSpec())
+    pitch, roll = calibrate(seq, BevSpec())
     print(f"\ncalibrated mounting pitch {math.degrees(pitch):+.3f} deg (true +1.000), roll {math.degrees(roll):+.3f} deg (true 0)")
     assert abs(math.degrees(pitch) - 1.0) < 0.15
     assert abs(math.degrees(roll)) < 0.5  # roll only shows through a small yaw bias: weakly observable
 
 
 @pytest.mark.kitti
-def test_kitti_sample_end_to_end(kitti_root, tmp_path, tool):
+def test_kitti_sample_end_to_end(kitti_root, tmp_path):
     """KITTI sample -> bag -> run_bag -> evaluate: trajectory, metrics and plots; prints RPE and drift."""
     bag_path = tmp_path / "kitti06"
-    assert tool("kitti_to_bag").main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
+    assert convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
                                       "-o", str(bag_path), "-q"]) == 0
     out, ev = tmp_path / "run", tmp_path / "eval"
-    assert tool("run_bag").main([str(bag_path), "--out", str(out), "-q"]) == 0
-    assert tool("evaluate").main(["--gt", str(out / "gt_kitti.txt"), "--est", str(out / "trajectory_kitti.txt"),
+    assert run.main([str(bag_path), "--out", str(out), "-q"]) == 0
+    assert evaluate.main(["--gt", str(out / "gt_kitti.txt"), "--est", str(out / "trajectory_kitti.txt"),
                                   "--pitch-roll", str(out / "pitch_roll.csv"), "--out", str(ev)]) == 0
     m = json.loads((ev / "metrics.json").read_text())
     print(f"\nKITTI 06 sample ({m['frames']} frames, {m['path_length']:.1f} m): RPE {m['rpe_trans_rmse'] * 100:.1f} cm/frame, "

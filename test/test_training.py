@@ -1,4 +1,4 @@
-"""Training O and Q end to end (bevo_ros.training, tools/train_from_bag.py).
+"""Training O and Q end to end (bevo_ros.training, bevo train).
 
 Evidence that learning works, on a synthetic bumpy drive with known noise (strong suspension
 bumps and accelerometer vibration, half-resolution KITTI-like camera to keep rendering cheap):
@@ -17,8 +17,9 @@ import pytest
 import torch
 import yaml
 
-from conftest import load_tool, make_bumpy_bag
+from conftest import make_bumpy_bag
 
+from bevo_ros.commands import train as train_command
 from bevo_ros.config import REPO_ROOT, load_config, load_learned_params
 from bevo_ros.core.loss import registration_kl_loss
 from bevo_ros.core.sequence import registration_targets, run_sequence
@@ -111,7 +112,7 @@ def test_training_lowers_validation_loss_and_pose_error(synth):
 
 def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path):
     bag_path, _, _ = synth
-    tool = load_tool("train_from_bag")
+    tool = train_command
     out = tmp_path / "learned.yaml"
     common = [str(bag_path), "--out", str(out), "--params", str(SYNTH_PARAMS), "--lr", "0.5", "--steps-per-bag",
               "3", "-q"]
@@ -139,7 +140,7 @@ def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path):
 
 def test_divergence_stops_cleanly_keeping_the_last_good_values(synth, tmp_path, capsys):
     bag_path, config, seq = synth
-    tool = load_tool("train_from_bag")
+    tool = train_command
     out = tmp_path / "learned.yaml"
     rc = tool.main([str(bag_path), "--out", str(out), "--params", str(SYNTH_PARAMS), "--epochs", "3", "--lr", "1e6",
                     "--init", *map(str, BAD_INIT), "-q"])

@@ -37,16 +37,12 @@ SYNTH_SECONDS = 3.0  # the short synthetic drive (30 frames at 10 Hz)
 TRAIN_ARGS = ("--epochs", "1", "--steps-per-bag", "2", "--seed", "0", "--vehicle-steps", "0", "--threads", "1")
 
 
-def _tool(name: str):
-    from bevo_ros.cli import load_tool
-
-    return load_tool(name)
-
-
 def kitti_bag(kitti_root: Path, out: Path) -> Path:
-    """The KITTI sample (odometry sequence 06) converted by kitti_to_bag."""
-    rc = _tool("kitti_to_bag").main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
-                                     "-o", str(out), "--overwrite", "-q"])
+    """The KITTI sample (odometry sequence 06) converted by bevo convert."""
+    from bevo_ros.commands import convert
+
+    rc = convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
+                       "-o", str(out), "--overwrite", "-q"])
     if rc != 0:
         raise RuntimeError(f"kitti_to_bag failed ({rc})")
     return out
@@ -60,15 +56,16 @@ def synthetic_bag(out: Path) -> Path:
 
 
 def trajectory(bag_path: Path, params: Path, mode: str) -> list[list[float]]:
-    """``[[stamp, x, y, z], ...]`` of run_bag's ``run`` (the node's engine) over ``bag_path``."""
+    """``[[stamp, x, y, z], ...]`` of ``pipeline.run_bag`` (the node's engine) over ``bag_path``."""
     import torch
 
     from bevo_ros.config import load_config
+    from bevo_ros.pipeline import run_bag
 
     torch.set_num_threads(1)
     config, _ = load_config(params)
     config.odometry.mode = mode
-    steps, _, _ = _tool("run_bag").run(bag_path, config, config.learned_params_file)
+    steps, _, _ = run_bag(bag_path, config, config.learned_params_file)
     return [[float(s.stamp), *map(float, s.position)] for s in steps]
 
 
@@ -78,8 +75,10 @@ def training_result(bag_path: Path, workdir: Path) -> dict[str, list[float]]:
     from bevo_ros.config import load_learned_params
 
     out = workdir / "learned.yaml"
-    rc = _tool("train_from_bag").main([str(bag_path), "--out", str(out), "--params",
-                                       str(REPO / "params" / "synthetic.yaml"), *TRAIN_ARGS, "-q"])
+    from bevo_ros.commands import train
+
+    rc = train.main([str(bag_path), "--out", str(out), "--params",
+                     str(REPO / "params" / "synthetic.yaml"), *TRAIN_ARGS, "-q"])
     if rc != 0:
         raise RuntimeError(f"train_from_bag failed ({rc})")
     from bevo_ros.training import load_checkpoint

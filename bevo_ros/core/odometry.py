@@ -1,4 +1,4 @@
-"""The stateful BEVO engine that ``bevo_node`` and ``tools/run_bag.py`` share.
+"""The stateful BEVO engine that ``bevo_node`` and ``bevo run`` (bevo_ros.pipeline) share.
 
 Feed it IMU and image messages in any interleaving; it keeps the one ordering rule that makes
 online and offline results identical: an image is processed once every IMU sample with a stamp

@@ -1,60 +1,35 @@
-#!/usr/bin/env python3
-"""Run BEVO offline over a rosbag2, with the very engine bevo_node runs, and no DDS.
+"""The offline pipeline: a rosbag2 through bevo_node's very engine (no DDS) -> trajectory files ->
+evaluation against ground truth -> a results folder. ``bevo run``, ``bevo evaluate``, ``bevo map``,
+``bevo demo`` and the pinned-behaviour record use it.
 
-Messages are fed to bevo_ros.core.odometry.BevoOdometry in bag order, exactly as the node feeds
-them, so the trajectory equals the node's. Writes into --out:
+Messages are fed to :class:`bevo_ros.core.odometry.BevoOdometry` in bag order, exactly as the node
+feeds them, so the trajectory equals the node's. :func:`write_outputs` writes into a folder:
 
   trajectory_kitti.txt  camera-0 poses, 3x4 row-major per line, one per frame, first = identity
                         (directly comparable with KITTI poses/NN.txt)
   trajectory_tum.txt    base_link in odom: stamp tx ty tz qx qy qz qw
   gt_kitti.txt          ground truth in the same convention, when the bag has /ground_truth/odometry
   pitch_roll.csv        stamp, filtered pitch and roll, and the reference (OXTS) attitude
+
+:func:`evaluate_files` scores such a folder (or any KITTI pose files) and writes the report.
 """
 from __future__ import annotations
 
-import argparse
 import sys
-import time
 from pathlib import Path
-
-try:
-    import bevo_ros  # noqa: F401
-except ImportError:  # running from a source checkout without installing
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
 import torch
 
-from bevo_ros import bag, kitti
-from bevo_ros.config import BevoConfig, ConfigError, REPO_ROOT, atomic_write_text, build_odometry, load_config, \
-    load_learned_params
+from bevo_ros import bag, evaluation, kitti
+from bevo_ros.config import BevoConfig, atomic_write_text, build_odometry, load_learned_params
 from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
 from bevo_ros.datasets import camera_for_recording, gt_at
 from bevo_ros.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_to_sec
 
-DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("bag", help="rosbag2 directory (sqlite3 or mcap)")
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--params", default=str(DEFAULT_PARAMS), help="ROS parameters file (default params/kitti.yaml)")
-    p.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
-    p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
-    p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
-    p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
-    p.add_argument("--mode", choices=("fused", "paper"), help="override odometry.mode of --params (fused: the default "
-                   "acceleration-aware, gyro-yaw, motion-filtered odometry; paper: the paper's pipeline)")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1, as bevo_node's torch_threads: same arithmetic, same result)")
-    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
-    return p
-
-
-def run(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
+def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
         image_topic: str = bag.IMAGE_TOPIC, first_frame: int = 0, progress: bool = False) -> tuple[list[OdometryStep], bag.Recording, BevoOdometry]:
     """Feed a bag through the engine; returns the per-frame results, the recording (no images) and the engine."""
     rec = bag.read_recording(bag_path, imu_topic=imu_topic, image_topic=image_topic, load_images=False)
@@ -137,37 +112,21 @@ def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.Recording, T_ba
     return paths
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
-    try:
-        config, _ = load_config(args.params)
-        if args.mode:
-            config.odometry.mode = args.mode
-        learned = args.learned or config.learned_params_file
-        t0 = time.perf_counter()
-        steps, rec, odo = run(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
-                              progress=not args.quiet)
-        elapsed = time.perf_counter() - t0
-        if len(steps) < 2:
-            raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
-        T_base_cam = np.array(config.camera.base_T_camera, dtype=float).reshape(4, 4)
-        paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
-    except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
-        print(f"run_bag: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("run_bag: interrupted", file=sys.stderr)
-        return 130
-    c = odo.counters
-    print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
-          f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
-          f"dropped (no imu) {c.dropped_no_imu}; rejected: textureless {c.rejected_textureless}, "
-          f"translation {c.rejected_translation}, rotation {c.rejected_rotation}")
-    print("wrote " + ", ".join(str(p) for p in paths))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def evaluate_files(gt_path: str | Path, est_path: str | Path, out: str | Path, pitch_roll: str | Path | None = None,
+                   first: int = 0, convention: str = "camera", title: str = ""):
+    """Score KITTI-format estimated poses against ground truth (frames ``first ..`` of it) and write
+    the report into ``out``; returns ``(metrics, written paths)``. Bad input raises ValueError."""
+    gt = kitti.read_poses(gt_path)
+    est = kitti.read_poses(est_path)
+    if first < 0 or first + len(est) > len(gt):
+        raise ValueError(f"{est_path}: {len(est)} poses from GT frame {first} need "
+                         f"{first + len(est)} GT poses, {gt_path} has {len(gt)}")
+    if len(gt) != len(est) or first:
+        print(f"note: using GT frames {first}..{first + len(est) - 1} of {len(gt)}", file=sys.stderr)
+    gt = gt[first: first + len(est)]
+    pr = evaluation.read_pitch_roll_csv(pitch_roll) if pitch_roll else None
+    metrics = evaluation.evaluate_trajectories(gt, est, convention)
+    if pr is not None:
+        metrics.pitch_roll = evaluation.pitch_roll_errors(pr)
+    title = title or f"{Path(est_path).name} vs {Path(gt_path).name}"
+    return metrics, evaluation.write_report(out, gt, est, metrics, pr, title)

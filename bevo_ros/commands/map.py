@@ -1,12 +1,11 @@
-#!/usr/bin/env python3
-"""Build a BEVO+ map from any bag with ground truth: the BEVs of a drive mosaicked with the
+"""``bevo map``: a BEVO+ map from any bag with ground truth: the BEVs of a drive mosaicked with the
 ground-truth poses ("a previous drive" map), written as a nav2 map_server YAML + PNG (atomically).
 
-The BEVs come from the very engine bevo_node runs (tools/run_bag.py); the poses from the bag's
+The BEVs come from the very engine bevo_node runs (bevo_ros.pipeline, as bevo run); the poses from the bag's
 /ground_truth/odometry at the image stamps (base_link in its odom frame, which becomes the map
 frame). The PNG's alpha channel marks the ground some BEV covered.
 
-  .venv/bin/python tools/map_from_bag.py bags/kitti06 --out maps/kitti06.yaml --every 2
+  bevo map bags/kitti06 --out maps/kitti06.yaml --every 2
   .venv/bin/bevo_localizer --ros-args -p map_file:=maps/kitti06.yaml
 """
 from __future__ import annotations
@@ -14,28 +13,16 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
-try:
-    import bevo_ros  # noqa: F401
-except ImportError:  # running from a source checkout without installing
-    sys.path.insert(0, str(REPO))
 
 import numpy as np
 import torch
 
 from bevo_ros import bag
-from bevo_ros.config import ConfigError, bev_spec, load_config
+from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
 from bevo_ros.core.mosaic import mosaic_to_map
 from bevo_ros.datasets import gt_at
 from bevo_ros.maps import save_map
-
-
-def _run_bag():
-    from bevo_ros.cli import load_tool
-
-    return load_tool("run_bag")
+from bevo_ros.pipeline import run_bag
 
 
 def xy_yaw_from_4x4(T: np.ndarray) -> np.ndarray:
@@ -48,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bag", help="rosbag2 directory with /ground_truth/odometry")
     p.add_argument("--out", required=True, help="map YAML to write (the PNG goes beside it)")
-    p.add_argument("--params", default=str(REPO / "params" / "kitti.yaml"), help="ROS parameters file")
+    p.add_argument("--params", default=str(REPO_ROOT / "params" / "kitti.yaml"), help="ROS parameters file")
     p.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
     p.add_argument("--resolution", type=float, default=0.1, help="metres per pixel (default 0.1, the BEV's)")
     p.add_argument("--margin", type=float, default=2.0, help="metres around the BEVs (default 2)")
@@ -64,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (args.resolution > 0 and math.isfinite(args.resolution)) or args.every < 1:
             raise ValueError("--resolution must be > 0 and --every >= 1")
         config, _ = load_config(args.params)
-        steps, rec, _ = _run_bag().run(args.bag, config, args.learned or config.learned_params_file)
+        steps, rec, _ = run_bag(args.bag, config, args.learned or config.learned_params_file)
         if rec.gt_poses is None:
             raise ValueError(f"{args.bag}: no /ground_truth/odometry messages: a map needs ground-truth poses")
         first, _, stop = args.frames.partition(":")
@@ -85,7 +72,3 @@ def main(argv: list[str] | None = None) -> int:
     print(f"map_from_bag: {len(sel)} BEVs -> {aerial.width}x{aerial.height} px at {aerial.resolution:.3f} m/px "
           f"({w:.0f} x {h:.0f} m, origin {aerial.origin[0]:.2f}, {aerial.origin[1]:.2f}); wrote {path}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,5 +1,4 @@
-#!/usr/bin/env python3
-"""Evaluate an estimated trajectory against KITTI ground truth.
+"""``bevo evaluate``: an estimated trajectory against KITTI ground truth.
 
 Both files are in the KITTI odometry format: one pose per line, the 3x4 matrix [R | t] row-major
 (12 numbers), camera-0 poses T_world_cam. Reports the official KITTI metric (t_rel in %, r_rel in
@@ -14,14 +13,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-try:
-    import bevo_ros  # noqa: F401
-except ImportError:  # running from a source checkout without installing
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bevo_ros import evaluation, kitti
+from bevo_ros import evaluation
+from bevo_ros.pipeline import evaluate_files
 
 EPILOG = """\
 The ground truth may be longer than the estimate (e.g. the full poses/06.txt for a run over its
@@ -29,7 +23,7 @@ first frames): frames --first .. --first + len(est) - 1 of it are used.
 --pitch-roll takes a CSV with a header naming stamp, pitch, roll, oxts_pitch, oxts_roll (radians).
 
 example:
-  evaluate.py --gt ../shared/data/kitti/odometry/poses/06.txt --est out/06.txt --out out/eval06
+  bevo evaluate --gt ../shared/data/kitti/odometry/poses/06.txt --est out/06.txt --out out/eval06
 """
 
 
@@ -50,20 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        gt = kitti.read_poses(args.gt)
-        est = kitti.read_poses(args.est)
-        if args.first < 0 or args.first + len(est) > len(gt):
-            raise ValueError(f"{args.est}: {len(est)} poses from GT frame {args.first} need "
-                             f"{args.first + len(est)} GT poses, {args.gt} has {len(gt)}")
-        if len(gt) != len(est) or args.first:
-            print(f"note: using GT frames {args.first}..{args.first + len(est) - 1} of {len(gt)}", file=sys.stderr)
-        gt = gt[args.first: args.first + len(est)]
-        pr = evaluation.read_pitch_roll_csv(args.pitch_roll) if args.pitch_roll else None
-        metrics = evaluation.evaluate_trajectories(gt, est, args.convention)
-        if pr is not None:
-            metrics.pitch_roll = evaluation.pitch_roll_errors(pr)
-        title = args.title or f"{Path(args.est).name} vs {Path(args.gt).name}"
-        paths = evaluation.write_report(args.out, gt, est, metrics, pr, title)
+        metrics, paths = evaluate_files(args.gt, args.est, args.out, args.pitch_roll, args.first, args.convention,
+                                        args.title)
     except (FileNotFoundError, ValueError) as exc:
         print(f"evaluate: error: {exc}", file=sys.stderr)
         return 2
@@ -74,7 +56,3 @@ def main(argv: list[str] | None = None) -> int:
         print(line)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,4 +1,3 @@
-#!/usr/bin/env python3
 """Replay a rosbag2 (sqlite3 or mcap) into ROS 2 topics through rclpy.
 
 Messages are read with rosbags and published as their stored CDR bytes (no re-serialisation,
@@ -15,21 +14,16 @@ import importlib
 import os
 import sys
 import time
-from pathlib import Path
 
-try:
-    import bevo_ros  # noqa: F401
-except ImportError:  # running from a source checkout without installing
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bevo_ros import bag
 
 EPILOG = """\
 examples:
-  play_bag.py seq06_bag                          # real time, with /clock
-  play_bag.py seq06_bag --rate 2 --start 1.5     # twice as fast, from 1.5 s into the bag
-  play_bag.py seq06_bag --topics /imu/data /camera/image_rect --wait-for-subscribers 10
-  play_bag.py seq06_bag --wait-for-subscribers 10 --wait-topics /imu/data /camera/image_rect
+  bevo play seq06_bag                          # real time, with /clock
+  bevo play seq06_bag --rate 2 --start 1.5     # twice as fast, from 1.5 s into the bag
+  bevo play seq06_bag --topics /imu/data /camera/image_rect --wait-for-subscribers 10
+  bevo play seq06_bag --wait-for-subscribers 10 --wait-topics /imu/data /camera/image_rect
 DDS discovery follows ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE (use LOCALHOST on shared
 networks). Ctrl-C stops cleanly (exit code 130).
 """
@@ -247,11 +241,3 @@ def main(argv: list[str] | None = None) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     return rc
-
-
-if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except KeyboardInterrupt:  # a Ctrl-C during start-up or shutdown
-        print("play_bag: interrupted", file=sys.stderr)
-        sys.exit(130)

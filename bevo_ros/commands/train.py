@@ -1,5 +1,4 @@
-#!/usr/bin/env python3
-"""Train the DUKF's O and Q end to end through BEV + DPC from rosbag2 recordings (paper Sec. 2.4).
+"""``bevo train``: the DUKF's O and Q end to end through BEV + DPC from rosbag2 recordings (paper Sec. 2.4).
 
 Supervision is only the frame-rate ground-truth poses in the bags (/ground_truth/odometry); the
 loss is the KL divergence between the phase-correlation distributions and Gaussian-blurred
@@ -20,10 +19,6 @@ import sys
 import time
 from pathlib import Path
 
-try:
-    import bevo_ros  # noqa: F401
-except ImportError:  # running from a source checkout without installing
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bevo_ros.config import REPO_ROOT, ConfigError, load_config
 
@@ -51,10 +46,10 @@ variances out of range: the output holds the best validated values, the checkpoi
 ones), 2 bad input, 130 interrupted (the checkpoint of the last finished epoch stays).
 
 examples:
-  train_from_bag.py seq06_bag --out params/learned.yaml
-  train_from_bag.py synth_bag --params params/synthetic.yaml --out out/learned.yaml --epochs 10 --seed 3
-  train_from_bag.py a_bag b_bag --out l.yaml --split 20% --init 1e-4 1e-4 1e-2 1e-2 --lr 0.2
-  train_from_bag.py a_bag --out l.yaml --resume l.yaml.ckpt.yaml --epochs 30
+  bevo train seq06_bag --out params/learned.yaml
+  bevo train synth_bag --params params/synthetic.yaml --out out/learned.yaml --epochs 10 --seed 3
+  bevo train a_bag b_bag --out l.yaml --split 20% --init 1e-4 1e-4 1e-2 1e-2 --lr 0.2
+  bevo train a_bag --out l.yaml --resume l.yaml.ckpt.yaml --epochs 30
 """
 
 
@@ -92,47 +87,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _fit_vehicle(learned, seqs, config, args) -> None:
-    """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
-    ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
-    validation frames' NLL is not worse."""
-    from bevo_ros.core.vehicle_filter import VehicleNoise
-    from bevo_ros.datasets import split_frames
-    from bevo_ros.vehicle_training import TRAINED, fit_vehicle_noise, motion_nll, record_inputs, replay
-
-    import torch
-
-    t0 = time.perf_counter()
-    train_parts, val_parts = [], []
-    for s in seqs:
-        inputs, truth = record_inputs(s, config, learned)
-        (_, cut), _ = split_frames(len(s), args.split)
-        train_parts.append((inputs[: cut - 1], truth[: cut - 1]))
-        val_parts.append((inputs, truth, cut - 1))
-    base = VehicleNoise(**learned.vehicle)
-    fit = fit_vehicle_noise(train_parts, base, steps=args.vehicle_steps)
-
-    def val_nll(noise) -> float:
-        total, n = 0.0, 0
-        for inputs, truth, cut in val_parts:
-            m, v = replay(noise, inputs)
-            t = torch.as_tensor(truth, dtype=torch.float64)
-            total += float(motion_nll(m[cut:], v[cut:], t[cut:])) * (len(inputs) - cut)
-            n += len(inputs) - cut
-        return total / max(n, 1)
-
-    before, after = val_nll(base), val_nll(fit.noise)
-    print(f"vehicle filter ({time.perf_counter() - t0:.1f} s): train NLL {fit.nll_before:.3f} -> {fit.nll_after:.3f}, "
-          f"validation NLL {before:.3f} -> {after:.3f}; per-frame RMSE (train) dx {fit.rmse_before[0]:.4f} -> "
-          f"{fit.rmse_after[0]:.4f} m, dy {fit.rmse_before[1]:.4f} -> {fit.rmse_after[1]:.4f} m")
-    if after <= before:
-        learned.vehicle = {k: float(getattr(fit.noise, k)) for k in TRAINED}
-        learned.info["vehicle_filter_fit"] = {"train_nll": [fit.nll_before, fit.nll_after],
-                                             "validation_nll": [before, after]}
-    else:
-        print("vehicle filter: the fit did not improve the validation frames; keeping the previous values")
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
@@ -141,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     from bevo_ros.config import save_learned_params
     from bevo_ros.datasets import load_sequence
     from bevo_ros.training import LOSS_TEMPERATURE, TrainingDiverged, TrainOptions, train
+    from bevo_ros.vehicle_training import fit_vehicle_on_sequences
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -169,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
                        extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
                                    "params_file": str(Path(args.params).resolve())})
         if config.odometry.mode == "fused" and args.vehicle_steps > 0:
-            _fit_vehicle(result.learned, seqs, config, args)
+            fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps)
         save_learned_params(result.learned, out)
     except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
         print(f"train_from_bag: error: {exc}", file=sys.stderr)
@@ -194,7 +149,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"train_from_bag: {result.message}", file=sys.stderr)
         return 3
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

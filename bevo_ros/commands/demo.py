@@ -1,36 +1,23 @@
-#!/usr/bin/env python3
-"""`make demo`: the whole BEVO pipeline on a built-in default, no data needed.
+"""``bevo demo`` (`make demo`): the whole BEVO pipeline on a built-in default, no data needed.
 
 1. generate a synthetic bumpy drive with exact ground truth and write it as a rosbag2;
-2. train the DUKF's O and Q end to end on its first three quarters (tools/train_from_bag.py);
-3. run the odometry over the held-out last quarter (tools/run_bag.py, the node's engine),
+2. train the DUKF's O and Q end to end on its first three quarters (bevo train);
+3. run the odometry over the held-out last quarter (bevo run, the node's engine),
    with the learned and with the hand-set default parameters;
-4. evaluate (tools/evaluate.py) and print the metrics table; plots land in out/demo/.
+4. evaluate (bevo evaluate) and print the metrics table; plots land in out/demo/.
 When ../shared/data/kitti exists it also converts the KITTI sample, runs and evaluates it.
-Every step is a user-facing tool called exactly as the README shows.
+Every step is a `bevo` command called exactly as the README shows.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-try:
-    import bevo_ros  # noqa: F401
-except ImportError:
-    sys.path.insert(0, str(REPO))
+from bevo_ros.config import REPO_ROOT as REPO
 
 KITTI = REPO.parent / "shared" / "data" / "kitti"
-
-
-def tool(name: str):
-    """Import tools/<name>.py as a module (bevo_ros.cli's loader)."""
-    from bevo_ros.cli import load_tool
-
-    return load_tool(name)
 
 
 def step(title: str) -> float:
@@ -38,11 +25,14 @@ def step(title: str) -> float:
     return time.perf_counter()
 
 
-def call(name: str, argv: list[str]) -> None:
-    print("$ tools/" + name + ".py " + " ".join(argv), flush=True)
-    rc = tool(name).main(argv)
+def call(command: str, argv: list[str]) -> None:
+    """Run ``bevo COMMAND ARGV`` in this process (its module's ``main``); stop the demo if it fails."""
+    from bevo_ros import cli
+
+    print(f"$ bevo {command} " + " ".join(argv), flush=True)
+    rc = cli.command_module(command).main(argv)
     if rc != 0:
-        raise SystemExit(f"demo: tools/{name}.py failed with exit code {rc}")
+        raise SystemExit(f"demo: bevo {command} failed with exit code {rc}")
 
 
 def metrics_row(label: str, eval_dir: Path) -> str:
@@ -91,8 +81,8 @@ def main(argv: list[str] | None = None) -> int:
 
     t = step("2/4 train O and Q end to end on the first three quarters")
     learned = out / "learned.yaml"
-    call("train_from_bag", [str(bag_path), "--out", str(learned), "--params", synth_params, "--split", "3/4",
-                            "--epochs", str(args.epochs), "--seed", str(args.seed)])
+    call("train", [str(bag_path), "--out", str(learned), "--params", synth_params, "--split", "3/4",
+                   "--epochs", str(args.epochs), "--seed", str(args.seed)])
     print(f"training took {time.perf_counter() - t:.1f} s")
 
     t = step(f"3/4 odometry over the held-out last quarter (frames {cut}..{n - 1})")
@@ -103,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
             ("default", "paper", str(REPO / "params" / "learned_paper.yaml"), "paper, default O/Q"))
     for label, mode, params_file, title in runs:
         run_dir, eval_dir = out / f"run_{label}", out / f"eval_{label}"
-        call("run_bag", [str(bag_path), "--out", str(run_dir), "--params", synth_params, "--learned", params_file,
-                         "--first-frame", str(cut), "--mode", mode, "-q"])
+        call("run", [str(bag_path), "--out", str(run_dir), "--params", synth_params, "--learned", params_file,
+                     "--first-frame", str(cut), "--mode", mode, "-q"])
         call("evaluate", ["--gt", str(run_dir / "gt_kitti.txt"), "--est", str(run_dir / "trajectory_kitti.txt"),
                           "--pitch-roll", str(run_dir / "pitch_roll.csv"), "--out", str(eval_dir),
                           "--title", f"synthetic held-out, {title}"])
@@ -114,12 +104,12 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_kitti and (KITTI / "odometry" / "sequences" / "06").is_dir():
         t = step("4/4 KITTI sample (sequence 06, 51 frames) -> rosbag2 -> odometry -> evaluation")
         kbag = out / "kitti06_bag"
-        call("kitti_to_bag", ["--odometry", str(KITTI / "odometry"), "--sequence", "06", "-o", str(kbag),
-                              "--overwrite", "-q"])
+        call("convert", ["--odometry", str(KITTI / "odometry"), "--sequence", "06", "-o", str(kbag),
+                         "--overwrite", "-q"])
         for mode, learned_file in (("fused", "learned_default.yaml"), ("paper", "learned_paper.yaml")):
             run_dir, eval_dir = out / f"run_kitti06_{mode}", out / f"eval_kitti06_{mode}"
-            call("run_bag", [str(kbag), "--out", str(run_dir), "--mode", mode, "--learned",
-                             str(REPO / "params" / learned_file), "-q"])
+            call("run", [str(kbag), "--out", str(run_dir), "--mode", mode, "--learned",
+                         str(REPO / "params" / learned_file), "-q"])
             call("evaluate", ["--gt", str(run_dir / "gt_kitti.txt"), "--est", str(run_dir / "trajectory_kitti.txt"),
                               "--pitch-roll", str(run_dir / "pitch_roll.csv"), "--out", str(eval_dir),
                               "--title", f"KITTI 06, frames 0-50, {mode}"])
@@ -141,7 +131,3 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write_text(out / "summary.md", "# BEVO demo\n\n" + table + "\n" + plus["table"])
     print(f"demo finished in {time.perf_counter() - t_start:.0f} s")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,0 +1,56 @@
+"""``bevo calibrate``: the rig's static attitude on the road (filter.mounting_pitch / mounting_roll).
+
+The BEV's metric scale hangs on the camera's pitch relative to the road (~25 % per degree at
+KITTI's geometry) and a roll error biases every yaw estimate. The road-tilt low-pass removes
+every constant from the filtered attitude, so the static tilt of the IMU/camera rig on the road
+is a calibration, like the camera height. This command measures it on a short stretch of a bag with
+ground truth (a "calibration drive"):
+
+  pitch: bisection until the distance travelled in the BEV matches the ground truth;
+  roll:  bisection until the summed BEV yaw matches the ground truth's (a roll error shears the BEV).
+
+Both use a constant attitude (no filter), so the result is the rig's, not the road's.
+Prints the two YAML lines for params/*.yaml.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
+from bevo_ros.datasets import load_sequence
+from bevo_ros.mounting import calibrate
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry")
+    p.add_argument("--params", default=str(REPO_ROOT / "params" / "kitti.yaml"), help="parameters file")
+    p.add_argument("--frames", default="0:11", help="frame range START:STOP of the calibration drive (default 0:11)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config, _ = load_config(args.params)
+        seq = load_sequence(args.bag, config)
+        start, stop = (int(v) for v in args.frames.split(":"))
+        if not 0 <= start < stop - 1 < len(seq):
+            raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)}")
+        seq = seq.frames(start, stop)
+    except (ConfigError, ValueError, FileNotFoundError) as exc:
+        print(f"calibrate_mounting: error: {exc}", file=sys.stderr)
+        return 2
+    spec = bev_spec(config)
+    try:
+        pitch, roll = calibrate(seq, spec)
+    except ValueError as exc:
+        print(f"calibrate_mounting: error: {exc}", file=sys.stderr)
+        return 1
+    print(f"calibrated on frames {args.frames} ({float(seq.gt_motion()[:, 0].sum()):.1f} m):")
+    print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, nose down")
+    print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, left side up")
+    return 0

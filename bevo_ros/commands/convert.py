@@ -1,0 +1,108 @@
+"""``bevo convert``: a KITTI sequence (odometry or raw layout) -> a rosbag2 for bevo_ros (bevo_ros.kitti_bag).
+
+Topics (names are options):
+  /imu/data               sensor_msgs/Imu: the OXTS rates and accelerations only
+                          (orientation_covariance[0] = -1: no ground truth leaks in)
+  /camera/image_rect      sensor_msgs/Image, mono8 (cameras 0/1) or rgb8 (cameras 2/3): KITTI's
+                          images are rectified (image_pipeline naming)
+  /camera/camera_info     sensor_msgs/CameraInfo, rectified: D = 0 (plumb_bob), R = I, P from calib
+  /tf_static              tf2_msgs/TFMessage, latched (transient local offered QoS in the metadata):
+                          base_link -> imu_link (identity: KITTI's base is the OXTS IMU) and
+                          base_link -> camera_optical_frame (the raw calibration chain)
+  /ground_truth/odometry  nav_msgs/Odometry of base_link (the IMU) in odom (= base at the first
+                          written frame), from poses/NN.txt through the IMU->camera calibration
+  /ground_truth/imu       sensor_msgs/Imu carrying the OXTS unit's own roll/pitch/yaw
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from bevo_ros import bag
+from bevo_ros.kitti_bag import ConversionError, ConversionOptions, convert, load_source
+
+EPILOG = """\
+notes:
+  KITTI's synced OXTS stream is only 10 Hz, so /imu/data is 10 Hz here (one IMU message per
+  frame, stamped with the OXTS time); the unsynced 100 Hz OXTS data is not used.
+  Frame times: odometry times.txt when present (offset to the OXTS clock), otherwise the OXTS
+  timestamps; raw layout: image_0X/timestamps.txt.
+  Odometry sequence NN maps to its raw drive with the devkit table (00..10); the OXTS directory
+  is looked up in --raw-root, or given with --oxts.
+  The sample's 2011_09_30 drives have no raw calibration; the 2011_09_26 files describe the same
+  rig and are found by the default search (override with --raw-calib).
+
+examples:
+  bevo convert --odometry ../shared/data/kitti/odometry --sequence 06 -o seq06_bag
+  bevo convert --odometry DATASET --sequence 06 --first 0 --count 20 --storage mcap -o short
+  bevo convert --raw RAW/2011_09_30/2011_09_30_drive_0020_sync --camera 0 -o drive20_bag
+"""
+
+
+def _dir_size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--odometry", metavar="DIR", help="KITTI odometry root (holds sequences/ and poses/)")
+    src.add_argument("--raw", metavar="DIR", help="a raw drive directory <date>/<date>_drive_NNNN_sync")
+    p.add_argument("--sequence", default="06", help="odometry sequence number (default 06)")
+    p.add_argument("-o", "--output", required=True, help="output bag directory (must not exist, see --overwrite)")
+    p.add_argument("--storage", choices=bag.STORAGES, default="sqlite3", help="rosbag2 storage plugin (default sqlite3)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output bag")
+    p.add_argument("--camera", type=int, choices=(0, 1, 2, 3), default=0,
+                   help="camera: 0/1 grey left/right (mono8), 2/3 colour (rgb8); default 0")
+    p.add_argument("--first", type=int, default=0, help="first frame to convert (default 0)")
+    p.add_argument("--count", type=int, default=None, help="number of frames to convert (default: all)")
+    p.add_argument("--oxts", metavar="DIR", help="raw OXTS directory (overrides the lookup)")
+    p.add_argument("--oxts-offset", type=int, default=None, metavar="N",
+                   help="raw frame of odometry frame 0 (default: from the devkit mapping)")
+    p.add_argument("--raw-root", metavar="DIR", help="raw data root holding <date>/<drive>_sync (default: "
+                   "raw/ beside or above the odometry root)")
+    p.add_argument("--raw-calib", metavar="DIR", help="directory with calib_{imu_to_velo,velo_to_cam,cam_to_cam}.txt "
+                   "(default: searched from the drive upwards, preferring the drive's date)")
+    p.add_argument("--poses", metavar="FILE", help="ground-truth camera poses (default: <odometry>/poses/NN.txt)")
+    p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
+    p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
+    p.add_argument("--camera-info-topic", default=bag.CAMERA_INFO_TOPIC)
+    p.add_argument("--gt-odometry-topic", default=bag.GT_ODOMETRY_TOPIC)
+    p.add_argument("--gt-imu-topic", default=bag.GT_IMU_TOPIC)
+    p.add_argument("--imu-frame", default="imu_link", help="frame id of the IMU messages (default imu_link)")
+    p.add_argument("--camera-frame", default="camera_optical_frame", help="frame id of the images")
+    p.add_argument("--odom-frame", default="odom", help="frame id of the ground-truth odometry")
+    p.add_argument("--base-frame", default="base_link", help="child frame id of the ground-truth odometry")
+    p.add_argument("--no-tf-static", action="store_true",
+                   help="do not write /tf_static (base -> IMU identity, base -> camera optical frame)")
+    p.add_argument("--gyro-var", type=float, default=1e-4, help="angular_velocity variance, (rad/s)^2")
+    p.add_argument("--accel-var", type=float, default=1e-2, help="linear_acceleration variance, (m/s^2)^2")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or notes")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    out = Path(args.output)
+    try:
+        if out.exists() and not args.overwrite:
+            raise ConversionError(f"{out}: output bag exists (use --overwrite to replace it)")
+        opts = ConversionOptions(**vars(args))
+        src = load_source(opts)
+        counts = convert(src, opts)
+    except KeyboardInterrupt:
+        print("kitti_to_bag: interrupted; no bag written", file=sys.stderr)
+        return 130
+    except (ConversionError, FileNotFoundError, FileExistsError, ValueError) as exc:
+        print(f"kitti_to_bag: error: {exc}", file=sys.stderr)
+        return 2
+    first, last = src.frame_stamps_ns[args.first], src.frame_stamps_ns[args.first + counts.get(args.image_topic, 1) - 1]
+    print(f"wrote {out} ({args.storage}) from {src.description}, frames {args.first}.."
+          f"{args.first + counts.get(args.image_topic, 0) - 1}")
+    width = max(len(t) for t in counts)
+    for topic, c in sorted(counts.items()):
+        print(f"  {topic:<{width}}  {c:6d} msgs")
+    print(f"  duration {(last - first) * 1e-9:.3f} s, size {_dir_size(out) / 1e6:.2f} MB")
+    return 0

@@ -1,0 +1,78 @@
+"""``bevo run``: BEVO offline over a rosbag2, with the very engine bevo_node runs, and no DDS
+(bevo_ros.pipeline).
+
+Messages are fed to the engine in bag order, exactly as the node feeds them, so the trajectory
+equals the node's. Writes into --out:
+
+  trajectory_kitti.txt  camera-0 poses, 3x4 row-major per line, one per frame, first = identity
+                        (directly comparable with KITTI poses/NN.txt)
+  trajectory_tum.txt    base_link in odom: stamp tx ty tz qx qy qz qw
+  gt_kitti.txt          ground truth in the same convention, when the bag has /ground_truth/odometry
+  pitch_roll.csv        stamp, filtered pitch and roll, and the reference (OXTS) attitude
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bevo_ros import bag
+from bevo_ros.config import ConfigError, REPO_ROOT, load_config
+from bevo_ros.pipeline import run_bag, write_outputs
+
+DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bag", help="rosbag2 directory (sqlite3 or mcap)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--params", default=str(DEFAULT_PARAMS), help="ROS parameters file (default params/kitti.yaml)")
+    p.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
+    p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
+    p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
+    p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
+    p.add_argument("--mode", choices=("fused", "paper"), help="override odometry.mode of --params (fused: the default "
+                   "acceleration-aware, gyro-yaw, motion-filtered odometry; paper: the paper's pipeline)")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch CPU threads (default 1, as bevo_node's torch_threads: same arithmetic, same result)")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    try:
+        config, _ = load_config(args.params)
+        if args.mode:
+            config.odometry.mode = args.mode
+        learned = args.learned or config.learned_params_file
+        t0 = time.perf_counter()
+        steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
+                              progress=not args.quiet)
+        elapsed = time.perf_counter() - t0
+        if len(steps) < 2:
+            raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
+        T_base_cam = np.array(config.camera.base_T_camera, dtype=float).reshape(4, 4)
+        paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
+    except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
+        print(f"run_bag: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("run_bag: interrupted", file=sys.stderr)
+        return 130
+    c = odo.counters
+    print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
+          f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
+          f"dropped (no imu) {c.dropped_no_imu}; rejected: textureless {c.rejected_textureless}, "
+          f"translation {c.rejected_translation}, rotation {c.rejected_rotation}")
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+

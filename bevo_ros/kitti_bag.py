@@ -1,0 +1,300 @@
+"""KITTI (odometry or raw layout) -> rosbag2 (``bevo convert``): locate a sequence's images, OXTS,
+calibration and poses (:func:`load_source`), then write IMU, images, CameraInfo, /tf_static and the
+ground truth in stamp order (:func:`convert`)."""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bevo_ros import bag, kitti
+
+
+class ConversionError(ValueError):
+    """Expected bad input (missing or inconsistent KITTI files, bad options): ``bevo convert`` reports it
+    with exit code 2."""
+
+
+@dataclass
+class ConversionOptions:
+    """What to convert and how (``bevo convert``'s options, same names): ``odometry`` + ``sequence`` or
+    ``raw`` selects the input, ``output`` the bag."""
+
+    output: str | Path
+    odometry: str | Path | None = None
+    raw: str | Path | None = None
+    sequence: str = "06"
+    storage: str = "sqlite3"
+    overwrite: bool = False
+    camera: int = 0
+    first: int = 0
+    count: int | None = None
+    oxts: str | Path | None = None
+    oxts_offset: int | None = None
+    raw_root: str | Path | None = None
+    raw_calib: str | Path | None = None
+    poses: str | Path | None = None
+    imu_topic: str = bag.IMU_TOPIC
+    image_topic: str = bag.IMAGE_TOPIC
+    camera_info_topic: str = bag.CAMERA_INFO_TOPIC
+    gt_odometry_topic: str = bag.GT_ODOMETRY_TOPIC
+    gt_imu_topic: str = bag.GT_IMU_TOPIC
+    imu_frame: str = "imu_link"
+    camera_frame: str = "camera_optical_frame"
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    no_tf_static: bool = False
+    gyro_var: float = 1e-4
+    accel_var: float = 1e-2
+    quiet: bool = False
+
+
+@dataclass
+class Source:
+    """Everything of one sequence, indexed by frame (OXTS record i belongs to frame i)."""
+
+    images: list[Path]
+    frame_stamps_ns: np.ndarray  # (F,)
+    oxts: kitti.OxtsData  # len F
+    P: np.ndarray  # (3, 4) projection of the rectified camera
+    camera: int
+    poses: np.ndarray | None  # (F, 4, 4) T_world_cam; NaN rows where no ground truth
+    T_base_cam: np.ndarray | None  # (4, 4)
+    description: str
+
+
+# ----------------------------------------------------------------------------------------------
+# Locating the inputs
+# ----------------------------------------------------------------------------------------------
+def _check_image_names(images: list[Path]) -> None:
+    """Names must be consecutive frame numbers from 0, or frames and stamps cannot be paired."""
+    for i, p in enumerate(images):
+        if not p.stem.isdigit() or int(p.stem) != i:
+            raise ConversionError(f"{p}: expected frame {i} here; image numbers must be consecutive from 0 "
+                            f"(a missing or extra image would misalign the timestamps)")
+
+
+def _find_oxts(opts: ConversionOptions, date: str, drive: str, odometry_root: Path) -> Path:
+    if opts.oxts:
+        return Path(opts.oxts)
+    roots = [Path(opts.raw_root)] if opts.raw_root else [odometry_root / "raw", odometry_root.parent / "raw",
+                                                         odometry_root.parent.parent / "raw"]
+    tried = []
+    for root in roots:
+        cand = root / date / f"{drive}_sync" / "oxts"
+        tried.append(str(cand))
+        if cand.is_dir():
+            return cand
+    raise ConversionError(f"no OXTS directory for raw drive {drive}; looked in: {', '.join(tried)} "
+                    "(give --raw-root or --oxts)")
+
+
+def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str) -> Path:
+    if opts.raw_calib:
+        d = Path(opts.raw_calib)
+        if not d.is_dir():
+            raise ConversionError(f"{d}: --raw-calib directory not found")
+        return d
+    found = kitti.find_raw_calib_dir(near, date)
+    if found is None:
+        raise ConversionError(f"no raw calibration (calib_imu_to_velo.txt, calib_velo_to_cam.txt, calib_cam_to_cam.txt) "
+                        f"found near {near}; give --raw-calib DIR")
+    if found.name != date and not opts.quiet:
+        print(f"note: using the raw calibration in {found} for a {date} drive (same rig)", file=sys.stderr)
+    return found
+
+
+def odometry_source(opts: ConversionOptions) -> Source:
+    root = Path(opts.odometry)
+    seq = f"{int(opts.sequence):02d}" if str(opts.sequence).isdigit() else str(opts.sequence)
+    seq_dir = root / "sequences" / seq
+    if not seq_dir.is_dir():
+        raise ConversionError(f"{seq_dir}: sequence directory not found")
+    images = kitti.list_images(seq_dir / f"image_{opts.camera}")
+    _check_image_names(images)
+    calib = kitti.read_odometry_calib(seq_dir / "calib.txt")
+    key = f"P{opts.camera}"
+    if key not in calib:
+        raise ConversionError(f"{seq_dir / 'calib.txt'}: no '{key}:' line for camera {opts.camera}")
+
+    if seq in kitti.ODOMETRY_TO_RAW:
+        date, drive, start, end = kitti.raw_drive_for_sequence(seq)
+    elif opts.oxts:
+        date, drive, start, end = "", "", 0, None
+    else:
+        raise ConversionError(f"sequence {seq} has no raw drive (only 00..10 do): give --oxts DIR")
+    if opts.oxts_offset is not None:
+        start = opts.oxts_offset
+    oxts_dir = _find_oxts(opts, date, drive, root)
+    oxts = kitti.read_oxts(oxts_dir)
+    n = len(images)
+    last = start + n - 1
+    if end is not None and last > end:
+        raise ConversionError(f"{seq_dir / f'image_{opts.camera}'}: {n} images but sequence {seq} maps to raw frames "
+                        f"{start}..{end} ({end - start + 1} frames)")
+    if last >= len(oxts):
+        raise ConversionError(f"{oxts_dir}: {len(oxts)} OXTS records, but {n} images starting at raw frame {start} "
+                        f"need {last + 1}")
+    oxts = oxts.slice(start, start + n)
+
+    times_txt = seq_dir / "times.txt"
+    if times_txt.is_file():
+        times = kitti.read_times(times_txt)
+        if len(times) != n:
+            raise ConversionError(f"{times_txt}: {len(times)} times but {n} images in {seq_dir / f'image_{opts.camera}'}")
+        # times.txt counts from the sequence start: put it on the OXTS clock of frame 0.
+        stamps = oxts.stamps_ns[0] + np.round((times - times[0]) * 1e9).astype(np.int64)
+    else:
+        stamps = oxts.stamps_ns.copy()
+
+    poses, T_base_cam = None, None
+    poses_txt = Path(opts.poses) if opts.poses else root / "poses" / f"{seq}.txt"
+    if poses_txt.is_file():
+        all_poses = kitti.read_poses(poses_txt)
+        if len(all_poses) < n:
+            raise ConversionError(f"{poses_txt}: {len(all_poses)} poses but {n} images")
+        poses = all_poses[:n]
+    elif opts.poses:
+        raise ConversionError(f"{poses_txt}: --poses file not found")
+    calib_date = date or oxts_dir.parent.parent.name
+    if poses is not None or kitti.find_raw_calib_dir(oxts_dir.parent, calib_date) is not None or opts.raw_calib:
+        # the rig's extrinsics: ground truth in the base frame, and /tf_static
+        T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(
+            _raw_calib_dir(opts, oxts_dir.parent, calib_date), opts.camera))
+    return Source(images, stamps, oxts, calib[key], opts.camera, poses, T_base_cam,
+                  f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})")
+
+
+def raw_source(opts: ConversionOptions) -> Source:
+    drive_dir = Path(opts.raw)
+    if not drive_dir.is_dir():
+        raise ConversionError(f"{drive_dir}: raw drive directory not found")
+    cam_dir = drive_dir / f"image_{opts.camera:02d}"
+    images = kitti.list_images(cam_dir / "data")
+    _check_image_names(images)
+    stamps = kitti.read_timestamps_ns(cam_dir / "timestamps.txt")
+    if len(stamps) != len(images):
+        raise ConversionError(f"{cam_dir / 'timestamps.txt'}: {len(stamps)} timestamps but {len(images)} images in "
+                        f"{cam_dir / 'data'}")
+    oxts_dir = Path(opts.oxts) if opts.oxts else drive_dir / "oxts"
+    oxts = kitti.read_oxts(oxts_dir)
+    if len(oxts) != len(images):
+        raise ConversionError(f"{oxts_dir}: {len(oxts)} OXTS records but {len(images)} images in {cam_dir / 'data'} "
+                        "(synced data pairs them one to one)")
+    date = drive_dir.parent.name
+    calib_dir = _raw_calib_dir(opts, drive_dir, date)
+    cam_calib_path = calib_dir / "calib_cam_to_cam.txt"
+    cam_calib = kitti.read_raw_calib(cam_calib_path)
+    key = f"P_rect_{opts.camera:02d}"
+    if key not in cam_calib or cam_calib[key].size != 12:
+        raise ConversionError(f"{cam_calib_path}: no valid '{key}:' line")
+    T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(calib_dir, opts.camera))
+
+    poses = None
+    if opts.poses:
+        all_poses = kitti.read_poses(opts.poses)
+        drive = drive_dir.name.removesuffix("_sync")
+        offset = opts.oxts_offset
+        if offset is None:
+            offset = next((s for d, s, _ in kitti.ODOMETRY_TO_RAW.values() if d == drive), 0)
+        poses = np.full((len(images), 4, 4), np.nan)
+        lo, hi = offset, min(len(images), offset + len(all_poses))
+        poses[lo:hi] = all_poses[: hi - lo]
+    return Source(images, stamps, oxts, cam_calib[key].reshape(3, 4), opts.camera, poses,
+                  T_base_cam, f"raw drive {drive_dir.name}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Conversion
+# ----------------------------------------------------------------------------------------------
+def _load_image(path: Path, colour: bool) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ConversionError(f"{path}: cannot read image")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        if not colour:
+            img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    elif colour:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    return img
+
+
+def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
+    """Write frames ``[first, first + count)`` of ``src`` into ``opts.output``; returns message counts."""
+    from tqdm import tqdm
+
+    n = len(src.images)
+    first = opts.first
+    if not 0 <= first < n:
+        raise ConversionError(f"--first {first} is outside the {n} frames of {src.description}")
+    stop = n if opts.count is None else min(n, first + opts.count)
+    if opts.count is not None and opts.count < 1:
+        raise ConversionError("--count must be >= 1")
+    colour = src.camera >= 2
+    K = src.P[:, :3]
+
+    gt = None
+    if src.poses is not None and src.T_base_cam is not None:
+        sel = src.poses[first:stop]
+        valid = np.isfinite(sel).all(axis=(1, 2))
+        if valid.any():
+            # odom = the base frame at the first frame with ground truth: the GT starts at identity
+            # like the estimate does.
+            gt = np.full_like(sel, np.nan)
+            gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam)
+
+    # Every message as (stamp, rank, kind, index): same-stamp ties keep the IMU before the image,
+    # so a consumer has the IMU sample of a frame when the frame arrives.
+    events = []
+    for i in range(first, stop):
+        events.append((int(src.oxts.stamps_ns[i]), 0, "imu", i))
+        events.append((int(src.frame_stamps_ns[i]), 2, "image", i))
+    events.sort()
+
+    size = None
+    with bag.BagWriter(opts.output, storage=opts.storage, overwrite=opts.overwrite) as writer:
+        for partial in writer.removed_partials:  # left by a killed earlier run
+            print(f"kitti_to_bag: removed {partial}, the partial output of an interrupted run", file=sys.stderr)
+        if src.T_base_cam is not None and events and not opts.no_tf_static:
+            # the rig on /tf_static (latched): base = the OXTS IMU (KITTI's convention), and the camera
+            writer.write_tf_static(events[0][0], [(opts.base_frame, opts.imu_frame, np.eye(4)),
+                                                  (opts.base_frame, opts.camera_frame, src.T_base_cam)])
+        for stamp, _, kind, i in tqdm(events, desc="kitti_to_bag", unit="msg", disable=opts.quiet, file=sys.stderr):
+            if kind == "imu":
+                gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
+                writer.write_imu(stamp, gyro, accel, opts.imu_frame, topic=opts.imu_topic,
+                                 gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
+                writer.write_imu_attitude(stamp, src.oxts.roll[i], src.oxts.pitch[i], src.oxts.yaw[i], gyro=gyro,
+                                          accel=accel, frame_id=opts.imu_frame, topic=opts.gt_imu_topic,
+                                          orientation_covariance=np.radians(0.03) ** 2,
+                                          gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
+                continue
+            img = _load_image(src.images[i], colour)
+            if size is None:
+                size = img.shape[:2]
+            elif img.shape[:2] != size:
+                raise ConversionError(f"{src.images[i]}: image is {img.shape[1]}x{img.shape[0]}, "
+                                f"the first was {size[1]}x{size[0]}")
+            writer.write_camera_info(stamp, K, img.shape[1], img.shape[0], opts.camera_frame,
+                                     topic=opts.camera_info_topic, P=src.P)
+            writer.write_image(stamp, img, opts.camera_frame, topic=opts.image_topic)
+            if gt is not None and np.isfinite(gt[i - first]).all():
+                writer.write_odometry(stamp, gt[i - first], opts.odom_frame, opts.base_frame,
+                                      topic=opts.gt_odometry_topic,
+                                      pose_covariance=[0.01] * 3 + [np.radians(0.1) ** 2] * 3)
+        counts = dict(writer.counts)
+    return counts
+
+
+
+
+def load_source(opts: ConversionOptions) -> Source:
+    """The odometry sequence (``opts.odometry``) or raw drive (``opts.raw``) to convert."""
+    if (opts.odometry is None) == (opts.raw is None):
+        raise ConversionError("give exactly one of an odometry root (with a sequence) or a raw drive")
+    return odometry_source(opts) if opts.odometry is not None else raw_source(opts)
