@@ -101,7 +101,8 @@ def dump_config_main(argv: list[str]) -> int:
     p.add_argument("--engine-only", action="store_true", help="only the engine's settings (BevoConfig)")
     p.add_argument("--out", "-o", help="write to this file (atomically) instead of stdout")
     args = p.parse_args(argv)
-    from bevo_ros.config import atomic_write_text, dump_params_yaml
+    from bevo_ros.io.files import atomic_write_text
+    from bevo_ros.config import dump_params_yaml
 
     node = None
     if not args.engine_only:

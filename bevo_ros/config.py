@@ -1,25 +1,24 @@
-"""Settings and learned parameters: the one place that reads and writes them.
+"""Settings: the one place that reads and writes them (learned parameters: ``bevo_ros.io.learned_params``).
 
 * ``BevoConfig``: everything the engine needs (camera, extrinsics, BEV grid, filters), built
   from a ROS 2 parameters file (``params/*.yaml``) or from the node's declared parameters, so
   ``bevo_node`` and the offline tools read the very same file the same way.
-* Learned parameters (the DUKF's O and Q): a human-readable YAML, written atomically. No pickle.
 """
 from __future__ import annotations
 
 import dataclasses
-import datetime as _dt
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
-LEARNED_FORMAT = "bevo_learned_params/1"
+if TYPE_CHECKING:
+    from bevo_ros.io.learned_params import LearnedParams
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -302,141 +301,6 @@ def resolve_path(name: str, base_dir: Path | None = None) -> Path:
         if c.exists():
             return c.resolve()
     return candidates[0].resolve() if base_dir is not None else (REPO_ROOT / p)
-
-
-# --------------------------------------------------------------------------- learned parameters
-@dataclass
-class LearnedParams:
-    """The DUKF's 4 trainable numbers plus provenance.
-
-    process_noise_density: O per axis (pitch, roll), rad^2/s; multiplied by each IMU dt.
-    measurement_noise_variance: Q per axis (pitch, roll), rad^2.
-    """
-
-    process_noise_density: tuple[float, float] = (1e-6, 1e-6)
-    measurement_noise_variance: tuple[float, float] = (5e-2, 5e-2)
-    info: dict[str, Any] = field(default_factory=dict)
-    # Fused mode: the vehicle motion filter's noise (bevo_ros.core.vehicle_filter.VehicleNoise,
-    # learned fields only) and the suspension's (pitch, roll) lean per m/s^2, rad/(m/s^2).
-    vehicle: dict[str, float] = field(default_factory=dict)
-    suspension_gradients: tuple[float, float] = (0.0, 0.0)
-
-
-def learned_to_dict(params: LearnedParams) -> dict[str, Any]:
-    o, q = params.process_noise_density, params.measurement_noise_variance
-    return {
-        "format": LEARNED_FORMAT,
-        "process_noise_density": {"pitch": float(o[0]), "roll": float(o[1]), "units": "rad^2/s"},
-        "measurement_noise_variance": {"pitch": float(q[0]), "roll": float(q[1]), "units": "rad^2"},
-        "vehicle_filter": {k: float(v) for k, v in params.vehicle.items()},
-        "suspension_gradients": {"pitch": float(params.suspension_gradients[0]),
-                                 "roll": float(params.suspension_gradients[1]), "units": "rad/(m/s^2)"},
-        "info": dict(params.info),
-    }
-
-
-def save_learned_params(params: LearnedParams, path: str | os.PathLike) -> Path:
-    """Write the learned parameters YAML atomically (temp file in the same dir + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    header = (
-        "# BEVO learned DUKF noise parameters (human-readable; loaded by bevo_node and tools).\n"
-        "# O = process noise density of the [pitch, roll] random walk (rad^2/s, times each IMU dt);\n"
-        "# Q = accelerometer pitch/roll measurement noise variance (rad^2).\n"
-    )
-    text = header + yaml.safe_dump(learned_to_dict(params), sort_keys=False, default_flow_style=False)
-    atomic_write_text(path, text)
-    return path
-
-
-def load_learned_params(path: str | os.PathLike) -> LearnedParams:
-    """Load and validate; raises ConfigError naming the file and the problem."""
-    path = Path(path)
-    doc = read_yaml(path, "learned-parameters file")
-    if not isinstance(doc, dict):
-        raise ConfigError(f"learned-parameters file {path}: expected a mapping, got {type(doc).__name__}")
-    if doc.get("format") != LEARNED_FORMAT:
-        raise ConfigError(f"learned-parameters file {path}: 'format' must be '{LEARNED_FORMAT}', got {doc.get('format')!r}")
-
-    def pair(key: str, positive: bool = True, default: tuple[float, float] | None = None) -> tuple[float, float]:
-        section = doc.get(key)
-        if section is None and default is not None:
-            return default
-        if not isinstance(section, dict):
-            raise ConfigError(f"learned-parameters file {path}: missing section '{key}' with 'pitch' and 'roll'")
-        out = []
-        for axis in ("pitch", "roll"):
-            try:
-                v = float(section[axis])
-            except (KeyError, TypeError, ValueError):
-                raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' missing or not a number") from None
-            if not (math.isfinite(v) and (v > 0 or not positive)):
-                raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' = {v} must be finite"
-                                  + (" and > 0" if positive else ""))
-            out.append(v)
-        return out[0], out[1]
-
-    info = doc.get("info") or {}
-    if not isinstance(info, dict):
-        raise ConfigError(f"learned-parameters file {path}: 'info' must be a mapping")
-    from bevo_ros.core.vehicle_filter import VehicleNoise
-
-    vehicle = doc.get("vehicle_filter") or {}
-    if not isinstance(vehicle, dict):
-        raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter' must be a mapping")
-    for k, v in vehicle.items():
-        if k not in VehicleNoise.LEARNED:
-            raise ConfigError(f"learned-parameters file {path}: unknown 'vehicle_filter.{k}' "
-                              f"(known: {', '.join(VehicleNoise.LEARNED)})")
-        if not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-            raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number > 0")
-    return LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info,
-                         {k: float(v) for k, v in vehicle.items()},
-                         pair("suspension_gradients", positive=False, default=(0.0, 0.0)))
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (temp file in the same directory, fsync, rename):
-    readers see the old or the new file, never half of one. The project's one file writer."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp makes 0600; a saved file is as readable as any other
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    """:func:`atomic_write_bytes` for UTF-8 text."""
-    atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def provenance(extra: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Date and code version for the learned-parameters file."""
-    from bevo_ros import __version__
-
-    info: dict[str, Any] = {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                            "code_version": __version__}
-    try:
-        import subprocess
-
-        sha = subprocess.run(["git", "-C", str(REPO_ROOT), "rev-parse", "--short", "HEAD"],
-                             capture_output=True, text=True, timeout=5)
-        if sha.returncode == 0:
-            info["code_version"] += f"+g{sha.stdout.strip()}"
-    except Exception:  # noqa: BLE001 - not a git checkout
-        pass
-    if extra:
-        info.update(extra)
-    return info
 
 
 # --------------------------------------------------------------------------- engine factory

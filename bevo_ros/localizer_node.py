@@ -36,9 +36,9 @@ from bevo_ros.config import ConfigError, resolve_path
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import (APPEARANCES, LocalizerConfig, MapLocalizer, MapMatchConfig,
                                             se2_between)
-from bevo_ros.maps import load_map
-from bevo_ros.ros_conversions import (ImageConversionError, gray_to_image_msg, heatmap_to_mono8, image_to_gray,
-                                      quaternion_from_rpy, rpy_from_quaternion, stamp_to_ns, stamp_to_sec)
+from bevo_ros.io.maps import load_map
+from bevo_ros.io.ros_conversions import (ImageConversionError, gray_to_image_msg, heatmap_to_mono8, image_to_gray,
+                                         quaternion_from_rpy, rpy_from_quaternion, stamp_to_ns, stamp_to_sec)
 
 NODE_NAME = "bevo_localizer"
 EXIT_CONFIG_ERROR = 2

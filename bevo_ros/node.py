@@ -27,8 +27,8 @@ from typing import Any, Callable
 import numpy as np
 from rclpy.node import Node
 
-from bevo_ros.config import (BevoConfig, ConfigError, build_odometry, camera_model, coerce_setting, load_learned_params,
-                             resolve_path)
+from bevo_ros.config import BevoConfig, ConfigError, build_odometry, camera_model, coerce_setting, resolve_path
+from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
 from bevo_ros.core.validation import TimeJumpGuard, intrinsics_problem
 from bevo_ros.ros import parameters as ros_params
@@ -36,10 +36,9 @@ from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from
                                  calibration_from_parameters, same_camera_info)
 from bevo_ros.ros.diagnostics import SensorMonitor, status_message
 from bevo_ros.ros.tf import StaticTransforms
-from bevo_ros.ros_conversions import (ImageConversionError, bev_to_mono8,
-                                      gray_to_image_msg, heatmap_to_mono8, image_to_gray, imu_to_arrays,
-                                      odometry_msg, pose_stamped_from_odometry, sec_to_stamp, stamp_to_sec,
-                                      transform_from_odometry)
+from bevo_ros.io.ros_conversions import (ImageConversionError, bev_to_mono8, gray_to_image_msg, heatmap_to_mono8,
+                                         image_to_gray, imu_to_arrays, odometry_msg, pose_stamped_from_odometry,
+                                         sec_to_stamp, stamp_to_sec, transform_from_odometry)
 
 NODE_NAME = "bevo_node"
 EXIT_CONFIG_ERROR = 2

@@ -21,12 +21,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bevo_ros import bag, evaluation, kitti
-from bevo_ros.config import BevoConfig, atomic_write_text, build_odometry, load_learned_params
+from bevo_ros.config import BevoConfig, build_odometry
 from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
-from bevo_ros.datasets import camera_for_recording, gt_at
-from bevo_ros.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_to_sec
+from bevo_ros.datasets import kitti
+from bevo_ros.datasets.rosbag import camera_for_recording, gt_at
+from bevo_ros.evaluation.metrics import evaluate_trajectories, pitch_roll_errors, read_pitch_roll_csv
+from bevo_ros.evaluation.report import write_report
+from bevo_ros.io import bag
+from bevo_ros.io.files import atomic_write_text
+from bevo_ros.io.learned_params import load_learned_params
+from bevo_ros.io.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_to_sec
 
 
 def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
@@ -124,9 +129,9 @@ def evaluate_files(gt_path: str | Path, est_path: str | Path, out: str | Path, p
     if len(gt) != len(est) or first:
         print(f"note: using GT frames {first}..{first + len(est) - 1} of {len(gt)}", file=sys.stderr)
     gt = gt[first: first + len(est)]
-    pr = evaluation.read_pitch_roll_csv(pitch_roll) if pitch_roll else None
-    metrics = evaluation.evaluate_trajectories(gt, est, convention)
+    pr = read_pitch_roll_csv(pitch_roll) if pitch_roll else None
+    metrics = evaluate_trajectories(gt, est, convention)
     if pr is not None:
-        metrics.pitch_roll = evaluation.pitch_roll_errors(pr)
+        metrics.pitch_roll = pitch_roll_errors(pr)
     title = title or f"{Path(est_path).name} vs {Path(gt_path).name}"
-    return metrics, evaluation.write_report(out, gt, est, metrics, pr, title)
+    return metrics, write_report(out, gt, est, metrics, pr, title)

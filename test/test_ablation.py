@@ -11,7 +11,8 @@ import torch
 from conftest import make_bumpy_bag
 
 from bevo_ros.commands import ablation as ablation_command
-from bevo_ros.config import REPO_ROOT, LearnedParams, save_learned_params
+from bevo_ros.config import REPO_ROOT
+from bevo_ros.io.learned_params import LearnedParams, save_learned_params
 
 SYNTH_PARAMS = REPO_ROOT / "params" / "synthetic.yaml"
 ROWS = ("w/o O", "w/o Q", "w/o DUKF", "BEVO", "w/ GT", "fused")

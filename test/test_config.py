@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from bevo_ros.config import (BevoConfig, ConfigError, LearnedParams, REPO_ROOT, build_odometry, camera_model,
-                             load_config, load_learned_params, load_params_file, save_learned_params)
+from bevo_ros.config import (BevoConfig, ConfigError, REPO_ROOT, build_odometry, camera_model, load_config,
+                             load_params_file)
+from bevo_ros.io.learned_params import LearnedParams, load_learned_params, save_learned_params
 
 
 def test_flat_round_trip_and_every_setting_in_the_kitti_params():
@@ -101,10 +102,12 @@ def test_one_device_rule_and_one_bev_grid_from_the_settings():
     grid comes from config.bev_spec wherever settings are turned into an engine."""
     import torch
 
-    from bevo_ros import config as cfg, training
+    from bevo_ros import config as cfg
+    from bevo_ros.training import trainer as training
     from bevo_ros.core import map_localization
     from bevo_ros.core.device import resolve_device
     from bevo_ros.core.geometry import BevSpec
+    from bevo_ros.io.learned_params import LearnedParams
 
     assert training.resolve_device is map_localization.resolve_device is resolve_device
     assert training.bev_spec is cfg.bev_spec
@@ -114,17 +117,17 @@ def test_one_device_rule_and_one_bev_grid_from_the_settings():
     assert resolve_device("cpu") == torch.device("cpu")
     c.device = "tpu"
     with pytest.raises(cfg.ConfigError, match="device"):
-        cfg.build_odometry(c, cfg.LearnedParams())
+        cfg.build_odometry(c, LearnedParams())
     if not torch.cuda.is_available():
         c.device = "cuda"
         logged = []
         with pytest.warns(RuntimeWarning, match="CUDA is not available"):
             assert resolve_device("cuda:0", logged.append) == torch.device("cpu")
         assert logged and "on the CPU" in logged[0]
-        from bevo_ros.synthetic import kitti_like_camera
+        from bevo_ros.datasets.synthetic.drive import kitti_like_camera
 
         with pytest.warns(RuntimeWarning, match="CUDA is not available"):
-            assert cfg.build_odometry(c, cfg.LearnedParams(), camera=kitti_like_camera()).device == torch.device("cpu")
+            assert cfg.build_odometry(c, LearnedParams(), camera=kitti_like_camera()).device == torch.device("cpu")
 
 
 @pytest.mark.parametrize("value, default, expected", [

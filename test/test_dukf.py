@@ -392,7 +392,7 @@ def test_init_state_and_noise_properties():
 
 @pytest.mark.kitti
 def test_kitti_oxts_filtered_closer_than_raw(kitti_root):
-    from bevo_ros.kitti import read_oxts  # here: a reader problem must not hide the other DUKF tests
+    from bevo_ros.datasets.kitti import read_oxts  # here: a reader problem must not hide the other DUKF tests
 
     oxts = kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0020_sync" / "oxts"
     record = read_oxts(oxts)

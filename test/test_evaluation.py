@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bevo_ros import evaluation as ev
-from bevo_ros import kitti
+from bevo_ros.evaluation import metrics as ev
+from bevo_ros.datasets import kitti
 from bevo_ros.commands import evaluate as evaluate_tool
 from conftest import in_ci
 

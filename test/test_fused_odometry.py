@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 import torch
 
-from bevo_ros.config import REPO_ROOT, BevoConfig, CameraSettings, LearnedParams, build_odometry, load_learned_params
+from bevo_ros.config import REPO_ROOT, BevoConfig, CameraSettings, build_odometry
+from bevo_ros.io.learned_params import LearnedParams, load_learned_params
 from bevo_ros.core.geometry import CameraModel
-from bevo_ros.datasets import feed_engine
+from bevo_ros.datasets.rosbag import feed_engine
 from bevo_ros.core.pose import integrate_motions
 from bevo_ros.core.vehicle_dynamics import compensate_floats, compensate_specific_force
 from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
-from bevo_ros.synthetic import kitti_like_camera, preset_drive
+from bevo_ros.datasets.synthetic.drive import kitti_like_camera, preset_drive
 
 FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
 PAPER = load_learned_params(REPO_ROOT / "params" / "learned_paper.yaml")
@@ -160,7 +161,7 @@ def test_black_frame_does_not_move_a_still_vehicle(camera):
 def test_gravity_attitude_on_real_drives(kitti_root, drive):
     """The shared OXTS drives (real bends, stops): the engine's DUKF with the unit's forward speed
     standing in for wheel odometry stays within 0.5 deg RMS of the unit's own pitch and roll."""
-    from bevo_ros.kitti import read_oxts
+    from bevo_ros.datasets.kitti import read_oxts
 
     ox = read_oxts(kitti_root / "raw" / "2011_09_30" / f"2011_09_30_drive_{drive}_sync" / "oxts")
     config = BevoConfig()
@@ -202,7 +203,7 @@ def _measurement_drive(n: int, seed: int, noise=(0.05, 0.02, 0.003)):
 
 
 def test_vehicle_noise_gradients_are_exact():
-    from bevo_ros.vehicle_training import TRAINED, motion_nll, replay, _noise_with
+    from bevo_ros.training.vehicle import TRAINED, motion_nll, replay, _noise_with
 
     inputs, truth = _measurement_drive(12, 0)
     t = torch.as_tensor(truth, dtype=torch.float64)
@@ -217,7 +218,7 @@ def test_vehicle_noise_gradients_are_exact():
 
 
 def test_learning_beats_the_default_noise_on_held_out_frames():
-    from bevo_ros.vehicle_training import fit_vehicle_noise, motion_nll, replay
+    from bevo_ros.training.vehicle import fit_vehicle_noise, motion_nll, replay
 
     train, held_out = _measurement_drive(200, 1), _measurement_drive(200, 2)
     fit = fit_vehicle_noise([train], steps=60, lr=0.2, log=lambda _: None)
@@ -235,7 +236,7 @@ def test_learning_beats_the_default_noise_on_held_out_frames():
 
 def test_replay_reproduces_the_engine(camera):
     """Training replays exactly what the engine computed (same inputs, same filter)."""
-    from bevo_ros.vehicle_training import replay
+    from bevo_ros.training.vehicle import replay
 
     d = preset_drive("curve", seed=3, duration=2.0, render="lazy", camera=camera)
     images = [d.image(k) for k in range(len(d.frame_stamps))]

@@ -27,8 +27,8 @@ from bevo_ros.core.bev import project_to_bev
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import vehicle_motion_from_registration
 from bevo_ros.core.phase_correlation import DpcConfig, prepare, register_prepared
-from bevo_ros.kitti import base_relative_motion, camera_model_from_kitti, read_poses
-from bevo_ros.mounting import find_roots
+from bevo_ros.datasets.kitti import base_relative_motion, camera_model_from_kitti, read_poses
+from bevo_ros.training.mounting import find_roots
 
 SPEC = BevSpec()
 CALIBRATION_PAIRS = 10

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bevo_ros import kitti
+from bevo_ros.datasets import kitti
 
 DRIVE = "2011_09_30_drive_0020"
 

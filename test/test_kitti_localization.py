@@ -13,8 +13,8 @@ from bevo_ros.commands import convert, map as map_command, run
 from bevo_ros.config import load_config
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import LocalizerConfig, MapLocalizer, se2_compose, wrap
-from bevo_ros.datasets import gt_at
-from bevo_ros.maps import load_map
+from bevo_ros.datasets.rosbag import gt_at
+from bevo_ros.io.maps import load_map
 from bevo_ros.pipeline import run_bag
 
 pytestmark = [pytest.mark.kitti, pytest.mark.timeout(300)]

@@ -10,7 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from bevo_ros import bag, kitti
+from bevo_ros.io import bag
+from bevo_ros.datasets import kitti
 from bevo_ros.commands import convert as kitti_to_bag
 
 REPO = Path(__file__).resolve().parents[1]

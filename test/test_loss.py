@@ -67,7 +67,7 @@ def test_loss_prefers_the_right_answer_and_is_nonnegative():
 
 def test_gradient_reaches_the_attitude():
     """KL loss -> DPC -> BEV projection -> pitch: finite, non-zero, matches finite differences."""
-    from bevo_ros import synthetic as syn
+    from bevo_ros.datasets.synthetic import drive as syn
     from bevo_ros.core.bev import project_to_bev
     from bevo_ros.core.geometry import BevSpec
     from bevo_ros.core.motion import registration_from_vehicle_motion

@@ -14,9 +14,9 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import (LocalizerConfig, MapLocalizer, MapMatchConfig, MapPoseFilter, appearance,
                                             chi2_threshold, measure, se2_between, se2_compose, se2_inverse)
 from bevo_ros.core.mosaic import compose_mosaic, mosaic_anchor, mosaic_to_map
-from bevo_ros.maps import load_map, save_map
-from bevo_ros.synthetic_map import (SAME_APPEARANCE, MapAppearance, frame_bev, make_localization_drive,
-                                    render_aerial_map, run_localization)
+from bevo_ros.io.maps import load_map, save_map
+from bevo_ros.datasets.synthetic.aerial_map import (SAME_APPEARANCE, MapAppearance, frame_bev,
+                                                    make_localization_drive, render_aerial_map, run_localization)
 
 SPEC = BevSpec()
 

@@ -11,7 +11,7 @@ pytest.importorskip("rclpy")
 from builtin_interfaces.msg import Time  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image  # noqa: E402
 
-from bevo_ros import ros_conversions as rc  # noqa: E402
+from bevo_ros.io import ros_conversions as rc  # noqa: E402
 
 
 def _image(arr: np.ndarray, encoding: str, pad: int = 0, bigendian: bool = False) -> Image:
@@ -26,7 +26,8 @@ def _image(arr: np.ndarray, encoding: str, pad: int = 0, bigendian: bool = False
 
 
 def test_stamps_round_trip_and_match_bag_formula():
-    from bevo_ros import bag, kitti
+    from bevo_ros.io import bag
+    from bevo_ros.datasets import kitti
 
     t = Time(sec=1317388800, nanosec=123456789)
     assert rc.stamp_to_ns(t) == 1317388800123456789
@@ -255,7 +256,7 @@ def test_rgb8_bag_gives_the_node_s_grey_levels_for_every_colour(tmp_path):
     """One conversion: an rgb8 image read back from a rosbag2 by the offline tools (bag.decode_image,
     run_bag, training) has exactly the grey levels the node computes from the same message, for all
     2^24 colours (a float64 copy of the BT.601 formula rounds 2,743 of them differently)."""
-    from bevo_ros import bag
+    from bevo_ros.io import bag
 
     rgb = np.arange(1 << 24, dtype=np.uint32).view(np.uint8).reshape(4096, 4096, 4)[..., :3].copy()
     path = tmp_path / "rgb_bag"
@@ -276,7 +277,7 @@ def test_offline_decoder_takes_the_same_camera_encodings():
     """bag.decode_image (run_bag, training) decodes Bayer, YUV and compressed images as the node does."""
     import cv2
 
-    from bevo_ros import bag
+    from bevo_ros.io import bag
 
     types = bag.typestore().types
     grey = np.round(_bt601(_colour_scene())).astype(np.uint8)

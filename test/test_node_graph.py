@@ -285,7 +285,7 @@ def _tf_static(transforms):
     from geometry_msgs.msg import TransformStamped
     from tf2_msgs.msg import TFMessage
 
-    from bevo_ros.bag import quaternion_from_matrix
+    from bevo_ros.io.bag import quaternion_from_matrix
 
     msg = TFMessage()
     for parent, child, T in transforms:

@@ -28,7 +28,7 @@ from sensor_msgs.msg import CameraInfo, Image, Imu  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from bevo_ros.config import ConfigError  # noqa: E402
-from bevo_ros.ros_conversions import rpy_from_quaternion, stamp_to_sec  # noqa: E402
+from bevo_ros.io.ros_conversions import rpy_from_quaternion, stamp_to_sec  # noqa: E402
 
 from conftest import domain_id_for, ros_context  # noqa: E402
 

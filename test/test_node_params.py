@@ -75,7 +75,7 @@ def test_kitti_yaml_loads_through_rcl_into_the_node(namespace):
 
 @pytest.mark.kitti
 def test_kitti_extrinsics_are_the_calibration_chain(kitti_root):
-    from bevo_ros.kitti import imu_to_camera_extrinsics, invert_rigid
+    from bevo_ros.datasets.kitti import imu_to_camera_extrinsics, invert_rigid
 
     expected = invert_rigid(imu_to_camera_extrinsics(kitti_root / "raw" / "2011_09_26"))
     config, _ = load_config(KITTI_PARAMS)

@@ -45,7 +45,7 @@ def _drive(size: str):
     import torch
 
     from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.synthetic import RenderOptions, kitti_like_camera, make_drive
+    from bevo_ros.datasets.synthetic.drive import RenderOptions, kitti_like_camera, make_drive
 
     w, h, f, cx, cy = KITTI_CAMERAS[size]
     rig = kitti_like_camera()
@@ -58,8 +58,8 @@ def _drive(size: str):
 @pytest.mark.skipif(not (VENV_BIN / "bevo_node").exists(), reason="bevo_node not installed (make setup)")
 @pytest.mark.parametrize("size", sorted(KITTI_CAMERAS))
 def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path):
-    from bevo_ros import bag
-    from bevo_ros.datasets import write_drive_bag
+    from bevo_ros.io import bag
+    from bevo_ros.datasets.rosbag import write_drive_bag
 
     drive = _drive(size)
     bag_path = write_drive_bag(drive, tmp_path / "bag", storage="mcap")

@@ -30,7 +30,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 def small_camera():
     """The KITTI-like camera at a quarter of the resolution (fast to render and project)."""
     from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.synthetic import kitti_like_camera
+    from bevo_ros.datasets.synthetic.drive import kitti_like_camera
 
     cam = kitti_like_camera()
     K = cam.K.clone()
@@ -40,7 +40,7 @@ def small_camera():
 
 @functools.lru_cache(maxsize=8)
 def small_drive(seed: int = 3, duration: float = 2.0, frame_rate: float = 10.0, imu_rate: float = 100.0):
-    from bevo_ros.synthetic import make_drive
+    from bevo_ros.datasets.synthetic.drive import make_drive
 
     return make_drive(seed=seed, duration=duration, frame_rate=frame_rate, imu_rate=imu_rate,
                       camera=small_camera(), render=True)
@@ -60,7 +60,7 @@ def camera_overrides(camera) -> dict[str, Any]:
 def imu_msg(t: float, gyro, accel, frame_id: str = "imu_link"):
     from sensor_msgs.msg import Imu
 
-    from bevo_ros.ros_conversions import sec_to_stamp
+    from bevo_ros.io.ros_conversions import sec_to_stamp
 
     m = Imu()
     m.header.stamp = sec_to_stamp(t)
@@ -71,7 +71,7 @@ def imu_msg(t: float, gyro, accel, frame_id: str = "imu_link"):
 
 
 def image_msg(t: float, img: np.ndarray, encoding: str = "mono8", frame_id: str = "camera"):
-    from bevo_ros.ros_conversions import gray_to_image_msg, sec_to_stamp
+    from bevo_ros.io.ros_conversions import gray_to_image_msg, sec_to_stamp
 
     m = gray_to_image_msg(img, encoding=encoding)
     m.header.stamp = sec_to_stamp(t)
@@ -94,8 +94,9 @@ def drive_messages(drive, start: int = 0, stop: int | None = None, offset: float
 
 def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) -> list:
     """The offline core (``build_odometry``) fed the same messages in order, plus a final flush."""
-    from bevo_ros.config import BevoConfig, build_odometry, camera_model, load_learned_params, resolve_path
-    from bevo_ros.ros_conversions import image_to_gray, imu_to_arrays, stamp_to_sec
+    from bevo_ros.config import BevoConfig, build_odometry, camera_model, resolve_path
+    from bevo_ros.io.learned_params import load_learned_params
+    from bevo_ros.io.ros_conversions import image_to_gray, imu_to_arrays, stamp_to_sec
 
     config = BevoConfig.from_flat(overrides)
     learned = load_learned_params(resolve_path(config.learned_params_file))

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bevo_ros import bag
+from bevo_ros.io import bag
 
 pytestmark = pytest.mark.ros
 

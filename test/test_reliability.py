@@ -26,7 +26,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_node_support import (REPO, VENV_BIN, NodeProcess, camera_overrides, drive_messages,  # noqa: E402
                                image_msg, imu_msg, offline_steps, small_drive, spin_until, write_params)
 
-from bevo_ros.config import BevoConfig, build_odometry, camera_model, load_learned_params, resolve_path  # noqa: E402
+from bevo_ros.config import BevoConfig, build_odometry, camera_model, resolve_path  # noqa: E402
+from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.validation import STANDARD_GRAVITY as G  # noqa: E402
 
 from conftest import domain_id_for, ros_context  # noqa: E402
@@ -267,7 +268,7 @@ def adversarial_messages(rng: np.random.Generator, n: int, t: float, camera) -> 
     """``n`` messages of every bad kind the issue lists, stamps around ``t`` (and far from it)."""
     from sensor_msgs.msg import Image
 
-    from bevo_ros.ros_conversions import sec_to_stamp
+    from bevo_ros.io.ros_conversions import sec_to_stamp
 
     w, h = camera.width, camera.height_px
     K = camera.K.double().numpy()
@@ -493,7 +494,7 @@ def test_sigint_and_sigterm_while_data_streams_exit_0_without_a_traceback(proces
 # ------------------------------------------------------------------------------ killed conversions
 WRITER = """
 import sys, time
-from bevo_ros.bag import BagWriter
+from bevo_ros.io.bag import BagWriter
 with BagWriter(sys.argv[1]) as w:
     i = 0
     while True:
@@ -517,7 +518,7 @@ def partials(out: Path) -> list[Path]:
 
 
 def test_a_killed_writer_leaves_a_partial_that_the_next_run_removes(tmp_path):
-    from bevo_ros import bag
+    from bevo_ros.io import bag
 
     out = tmp_path / "drive_bag"
     proc = start_writer(out)

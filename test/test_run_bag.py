@@ -8,13 +8,15 @@ import numpy as np
 import pytest
 import torch
 
-from bevo_ros import bag, kitti
+from bevo_ros.io import bag
+from bevo_ros.datasets import kitti
 from bevo_ros.commands import convert, evaluate, run
-from bevo_ros.config import REPO_ROOT, BevoConfig, LearnedParams, build_odometry, load_config
+from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry, load_config
+from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core.geometry import BevSpec
-from bevo_ros.datasets import feed_engine, load_sequence, split_frames, write_drive_bag
-from bevo_ros.mounting import calibrate
-from bevo_ros.synthetic import kitti_like_camera, make_drive
+from bevo_ros.datasets.rosbag import feed_engine, load_sequence, split_frames, write_drive_bag
+from bevo_ros.training.mounting import calibrate
+from bevo_ros.datasets.synthetic.drive import kitti_like_camera, make_drive
 
 SYNTH_PARAMS = str(REPO_ROOT / "params" / "synthetic.yaml")
 
@@ -52,7 +54,7 @@ def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):
     np.testing.assert_allclose(est[0], np.eye(4), atol=1e-9)
     # The very engine the node runs, fed the drive directly, gives the same trajectory.
     config, _ = load_config(SYNTH_PARAMS)
-    from bevo_ros.config import load_learned_params
+    from bevo_ros.io.learned_params import load_learned_params
 
     odo = build_odometry(config, load_learned_params(config.learned_params_file), camera=drive.camera)
     steps = feed_engine(odo, drive.imu_stamps, drive.gyro, drive.accel, drive.frame_stamps,
@@ -114,7 +116,7 @@ def test_kitti_sample_end_to_end(kitti_root, tmp_path):
 def test_stamp_order_is_the_node_s_arrival_order():
     """One feeding order (datasets.stamp_order): IMU first on an equal stamp, images up to the
     latest IMU sample, optionally the image first and the frames after the last IMU sample."""
-    from bevo_ros.datasets import stamp_order
+    from bevo_ros.datasets.rosbag import stamp_order
 
     imu, frames = [0.0, 0.1, 0.2], [0.05, 0.1, 0.3]
     assert list(stamp_order(imu, frames)) == [("imu", 0), ("imu", 1), ("image", 0), ("image", 1), ("imu", 2),

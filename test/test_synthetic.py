@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from bevo_ros import synthetic as syn
+from bevo_ros.datasets.synthetic import drive as syn
 from bevo_ros.core.geometry import BevSpec, camera_pose_on_road
 
 SPEC = BevSpec(size=100, metres_per_pixel=0.1, forward_offset=7.5)

@@ -1,4 +1,4 @@
-"""Training O and Q end to end (bevo_ros.training, bevo train).
+"""Training O and Q end to end (bevo_ros.training.trainer, bevo train).
 
 Evidence that learning works, on a synthetic bumpy drive with known noise (strong suspension
 bumps and accelerometer vibration, half-resolution KITTI-like camera to keep rendering cheap):
@@ -20,12 +20,13 @@ import yaml
 from conftest import make_bumpy_bag
 
 from bevo_ros.commands import train as train_command
-from bevo_ros.config import REPO_ROOT, load_config, load_learned_params
+from bevo_ros.config import REPO_ROOT, load_config
+from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.loss import registration_kl_loss
 from bevo_ros.core.sequence import registration_targets, run_sequence
-from bevo_ros.datasets import load_sequence
-from bevo_ros import training
-from bevo_ros.training import TrainOptions, load_checkpoint, make_dukf, sequence_pass, train
+from bevo_ros.datasets.rosbag import load_sequence
+from bevo_ros.training import trainer as training
+from bevo_ros.training.trainer import TrainOptions, load_checkpoint, make_dukf, sequence_pass, train
 
 SYNTH_PARAMS = REPO_ROOT / "params" / "synthetic.yaml"
 BAD_INIT = (1.0, 1.0, 1e-2, 1e-2)  # O 1 rad^2/s at 100 Hz: per-step variance = Q -> follows the accelerometer

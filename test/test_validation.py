@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from bevo_ros.config import BevoConfig, CameraSettings, ConfigError, build_odometry, camera_model, imu_limits, \
-    load_learned_params, read_yaml, resolve_path
+from bevo_ros.config import (BevoConfig, CameraSettings, ConfigError, build_odometry, camera_model, imu_limits,
+                             read_yaml, resolve_path)
+from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.validation import (STANDARD_GRAVITY, ImplausibleImuError, ImuLimits, TimeJumpGuard,
                                       imu_problem, intrinsics_problem)
 

@@ -25,8 +25,8 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import LocalizerConfig, MapMatchConfig, measure, se2_between, se2_compose
 from bevo_ros.core.mosaic import compose_mosaic, mosaic_anchor
 from bevo_ros.core.phase_correlation import DpcConfig, register
-from bevo_ros.synthetic_map import (HARSH_APPEARANCE, SAME_APPEARANCE, MapAppearance, frame_bev,
-                                    make_localization_drive, render_aerial_map, run_localization)
+from bevo_ros.datasets.synthetic.aerial_map import (HARSH_APPEARANCE, SAME_APPEARANCE, MapAppearance, frame_bev,
+                                                    make_localization_drive, render_aerial_map, run_localization)
 
 SPEC = BevSpec()
 

@@ -41,8 +41,8 @@ TARGET_RSS_MB = 400.0
 def synthetic_messages(args) -> tuple[list, dict, str]:
     """``([(stamp, kind, msg)], camera parameter overrides, description)``; frames cached on disk."""
     from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.synthetic import kitti_like_camera, make_drive
-    from bevo_ros.ros_conversions import gray_to_image_msg, sec_to_stamp
+    from bevo_ros.datasets.synthetic.drive import kitti_like_camera, make_drive
+    from bevo_ros.io.ros_conversions import gray_to_image_msg, sec_to_stamp
     from sensor_msgs.msg import Imu
 
     camera = kitti_like_camera()
@@ -57,7 +57,7 @@ def synthetic_messages(args) -> tuple[list, dict, str]:
     if cache.is_file():
         images = np.load(cache)
     else:
-        from bevo_ros.synthetic import render_frame
+        from bevo_ros.datasets.synthetic.drive import render_frame
 
         t = time.monotonic()
         print(f"rendering {drive.num_frames} frames {camera.width}x{camera.height_px} (cached in {cache}) ...",
@@ -94,7 +94,7 @@ def synthetic_messages(args) -> tuple[list, dict, str]:
 
 def bag_messages(args) -> tuple[list, dict, str]:
     """IMU and image messages of a rosbag2, as rclpy messages in stamp order."""
-    from bevo_ros.bag import iter_messages
+    from bevo_ros.io.bag import iter_messages
     from builtin_interfaces.msg import Time
     from sensor_msgs.msg import Image, Imu
 

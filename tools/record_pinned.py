@@ -72,7 +72,7 @@ def trajectory(bag_path: Path, params: Path, mode: str) -> list[list[float]]:
 def training_result(bag_path: Path, workdir: Path) -> dict[str, list[float]]:
     """O (rad^2/s) and Q (rad^2), [pitch, roll], of a 1-epoch fixed-seed train_from_bag: the learned
     (best validated) ones and the checkpoint's current ones after the epoch's Adam steps."""
-    from bevo_ros.config import load_learned_params
+    from bevo_ros.io.learned_params import load_learned_params
 
     out = workdir / "learned.yaml"
     from bevo_ros.commands import train
@@ -81,7 +81,7 @@ def training_result(bag_path: Path, workdir: Path) -> dict[str, list[float]]:
                      str(REPO / "params" / "synthetic.yaml"), *TRAIN_ARGS, "-q"])
     if rc != 0:
         raise RuntimeError(f"train_from_bag failed ({rc})")
-    from bevo_ros.training import load_checkpoint
+    from bevo_ros.training.trainer import load_checkpoint
 
     learned = load_learned_params(out)
     current = load_checkpoint(out.with_name(out.name + ".ckpt.yaml"))["current"]  # after the epoch's Adam steps
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--kitti-root", type=Path, default=KITTI_ROOT, help="KITTI sample root (default ../shared/data/kitti)")
     p.add_argument("--out", type=Path, default=PINNED, help="JSON to update (default test/data/pinned_behaviour.json)")
     args = p.parse_args(argv)
-    from bevo_ros.config import atomic_write_text
+    from bevo_ros.io.files import atomic_write_text
 
     pinned = json.loads(args.out.read_text()) if args.out.is_file() else {}
     with tempfile.TemporaryDirectory(prefix="bevo-pinned-") as tmp:

@@ -29,9 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bevo_ros.ablation import EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, make_synthetic_bag, notes, plot_bag, reference_attitude, \
-    run_variants, table_markdown
-from bevo_ros.config import REPO_ROOT, ConfigError, atomic_write_text
+from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, make_synthetic_bag, notes, plot_bag,
+                                        reference_attitude, run_variants, table_markdown)
+from bevo_ros.config import REPO_ROOT, ConfigError
+from bevo_ros.io.files import atomic_write_text
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
@@ -64,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", default=str(DEFAULT_PARAMS), help="ROS parameters file (default params/kitti.yaml)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
-    src.add_argument("--train", action="store_true", help="train O/Q on the bags first (bevo_ros.training)")
+    src.add_argument("--train", action="store_true", help="train O/Q on the bags first (bevo_ros.training.trainer)")
     p.add_argument("--fused-learned", default=str(REPO_ROOT / "params" / "learned_default.yaml"),
                    help="learned-parameters YAML of the fused row (default params/learned_default.yaml)")
     p.add_argument("--epochs", type=int, default=10, help="with --train: epochs (default 10)")
@@ -94,10 +95,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
-    from bevo_ros import bag
-    from bevo_ros.config import load_config, load_learned_params, save_learned_params
-    from bevo_ros.datasets import load_sequence, split_frames
-    from bevo_ros.training import TrainingDiverged, TrainOptions, resolve_device, train
+    from bevo_ros.io import bag
+    from bevo_ros.config import load_config
+    from bevo_ros.io.learned_params import load_learned_params, save_learned_params
+    from bevo_ros.datasets.rosbag import load_sequence, split_frames
+    from bevo_ros.training.trainer import TrainingDiverged, TrainOptions, resolve_device, train
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)

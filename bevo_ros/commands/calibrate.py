@@ -19,8 +19,8 @@ import math
 import sys
 
 from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
-from bevo_ros.datasets import load_sequence
-from bevo_ros.mounting import calibrate
+from bevo_ros.datasets.rosbag import load_sequence
+from bevo_ros.training.mounting import calibrate
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,4 +1,4 @@
-"""``bevo convert``: a KITTI sequence (odometry or raw layout) -> a rosbag2 for bevo_ros (bevo_ros.kitti_bag).
+"""``bevo convert``: a KITTI sequence (odometry or raw layout) -> a rosbag2 for bevo_ros (bevo_ros.datasets.kitti_bag).
 
 Topics (names are options):
   /imu/data               sensor_msgs/Imu: the OXTS rates and accelerations only
@@ -19,8 +19,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from bevo_ros import bag
-from bevo_ros.kitti_bag import ConversionError, ConversionOptions, convert, load_source
+from bevo_ros.io import bag
+from bevo_ros.datasets.kitti_bag import ConversionError, ConversionOptions, convert, load_source
 
 EPILOG = """\
 notes:

@@ -63,8 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(min(2, torch.get_num_threads()))
-    from bevo_ros.datasets import split_frames, write_drive_bag
-    from bevo_ros.synthetic import make_drive
+    from bevo_ros.datasets.rosbag import split_frames, write_drive_bag
+    from bevo_ros.datasets.synthetic.drive import make_drive
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -119,12 +119,12 @@ def main(argv: list[str] | None = None) -> int:
         print("\n(4/4 skipped: no KITTI sample at ../shared/data/kitti)")
 
     table = HEADER + "\n" + "\n".join(rows) + "\n"
-    from bevo_ros.config import atomic_write_text
+    from bevo_ros.io.files import atomic_write_text
 
     atomic_write_text(out / "summary.md", "# BEVO demo\n\n" + table)
     print("\n" + table)
     print(f"plots: {out}/eval_fused/trajectory.png, frame_errors.png, pitch_roll.png")
-    from bevo_ros.synthetic_map import localization_demo  # BEVO+ (issue 13): odometry only vs map localisation
+    from bevo_ros.datasets.synthetic.aerial_map import localization_demo  # BEVO+ (issue 13): odometry only vs map localisation
 
     plus = localization_demo(out / "bevo_plus")
     print("\n" + plus["table"] + f"plot: {plus['plot']}")

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from bevo_ros import evaluation
+from bevo_ros.evaluation.metrics import CONVENTIONS
 from bevo_ros.pipeline import evaluate_files
 
 EPILOG = """\
@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory (created if needed)")
     p.add_argument("--pitch-roll", metavar="CSV", help="filtered vs OXTS pitch/roll CSV to plot and score")
     p.add_argument("--first", type=int, default=0, help="ground-truth frame of the first estimated pose (default 0)")
-    p.add_argument("--convention", choices=evaluation.CONVENTIONS, default="camera",
+    p.add_argument("--convention", choices=CONVENTIONS, default="camera",
                    help="pose frame: camera (KITTI camera-0, default) or base (z up)")
     p.add_argument("--title", default="", help="title of the summary and plots")
     return p

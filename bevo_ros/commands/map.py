@@ -17,11 +17,11 @@ import sys
 import numpy as np
 import torch
 
-from bevo_ros import bag
+from bevo_ros.io import bag
 from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
 from bevo_ros.core.mosaic import mosaic_to_map
-from bevo_ros.datasets import gt_at
-from bevo_ros.maps import save_map
+from bevo_ros.datasets.rosbag import gt_at
+from bevo_ros.io.maps import save_map
 from bevo_ros.pipeline import run_bag
 
 

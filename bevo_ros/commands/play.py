@@ -16,7 +16,7 @@ import sys
 import time
 
 
-from bevo_ros import bag
+from bevo_ros.io import bag
 
 EPILOG = """\
 examples:

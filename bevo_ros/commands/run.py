@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bevo_ros import bag
+from bevo_ros.io import bag
 from bevo_ros.config import ConfigError, REPO_ROOT, load_config
 from bevo_ros.pipeline import run_bag, write_outputs
 

@@ -91,11 +91,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
-    from bevo_ros import bag
-    from bevo_ros.config import save_learned_params
-    from bevo_ros.datasets import load_sequence
-    from bevo_ros.training import LOSS_TEMPERATURE, TrainingDiverged, TrainOptions, train
-    from bevo_ros.vehicle_training import fit_vehicle_on_sequences
+    from bevo_ros.io import bag
+    from bevo_ros.io.learned_params import save_learned_params
+    from bevo_ros.datasets.rosbag import load_sequence
+    from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainingDiverged, TrainOptions, train
+    from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)

@@ -11,7 +11,7 @@ Conventions (nav2 ``map_server``'s YAML, REP-105 ``map`` frame):
   phase-correlation angle/shift meaning of :mod:`bevo_ros.core.phase_correlation` carries over
   exactly (row = -x, column = -y in metres about the centre).
 
-Pure torch, no files (``bevo_ros.maps`` reads and writes the YAML + image).
+Pure torch, no files (``bevo_ros.io.maps`` reads and writes the YAML + image).
 """
 from __future__ import annotations
 

@@ -81,7 +81,7 @@ def calibration_from_camera_info(msg: Any, use_p: bool = True, undistort: str = 
         CalibrationError: no valid camera matrix or size, or a distortion model OpenCV's
             pinhole/fisheye undistortion does not cover.
     """
-    from bevo_ros.ros_conversions import camera_info_intrinsics
+    from bevo_ros.io.ros_conversions import camera_info_intrinsics
 
     if undistort not in UNDISTORT_MODES:
         raise CalibrationError(f"undistort must be one of {UNDISTORT_MODES}, got {undistort!r}")

@@ -16,7 +16,7 @@ TF_STATIC_DEPTH = 100
 
 def matrix_from_transform(t: Any) -> np.ndarray:
     """geometry_msgs/Transform -> ``(4, 4)`` (pose of the child in the parent)."""
-    from bevo_ros.bag import matrix_from_quaternion
+    from bevo_ros.io.bag import matrix_from_quaternion
 
     q, p = t.rotation, t.translation
     T = np.eye(4)

@@ -13,7 +13,7 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from bevo_ros import bag
+from bevo_ros.io import bag
 from bevo_ros.config import BevoConfig, camera_model
 from bevo_ros.core.geometry import CameraModel, rpy_from_rotation
 
@@ -23,7 +23,7 @@ PathLike = str | os.PathLike
 # --------------------------------------------------------------------------- synthetic -> bag
 def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: bool = False,
                     frame_range: tuple[int, int] | None = None) -> Path:
-    """Write a :class:`bevo_ros.synthetic.SyntheticDrive` as a rosbag2 with KITTI-like topics.
+    """Write a :class:`bevo_ros.datasets.synthetic.drive.SyntheticDrive` as a rosbag2 with KITTI-like topics.
 
     Sensor topics carry only what sensors give (raw IMU, images, CameraInfo) plus the rig on
     ``/tf_static`` (base_link -> imu_link, base_link -> camera_optical_frame); ground truth goes to
@@ -31,7 +31,7 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
     ``/ground_truth/imu`` (gravity-referenced attitude). ``frame_range`` = (first, stop) frames;
     the IMU is cut to the same time span.
     """
-    from bevo_ros.synthetic import base_poses_4x4
+    from bevo_ros.datasets.synthetic.drive import base_poses_4x4
 
     f0, f1 = frame_range or (0, len(drive.frame_stamps))
     t_lo, t_hi = drive.frame_stamps[f0], drive.frame_stamps[f1 - 1]
@@ -217,7 +217,7 @@ def run_engine(sequence: Sequence, config: BevoConfig, learned, mode: str | None
     equal stamps), then flushed. Returns every ``OdometryStep``; ``mode`` overrides ``odometry.mode``."""
     import dataclasses
 
-    from .config import build_odometry
+    from bevo_ros.config import build_odometry
 
     if mode is not None:
         config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))

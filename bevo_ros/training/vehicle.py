@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from .core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
+from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 
 Tensor = torch.Tensor
 
@@ -113,9 +113,9 @@ def fit_vehicle_noise(sequences: list[tuple[list[dict], np.ndarray]], init: Vehi
 
 
 def record_inputs(sequence, config, learned) -> tuple[list[dict], np.ndarray]:
-    """Run the fused engine (the node's, with ``learned``) over a :class:`~bevo_ros.datasets.Sequence`;
+    """Run the fused engine (the node's, with ``learned``) over a :class:`~bevo_ros.datasets.rosbag.Sequence`;
     returns the filter inputs of frames 1.. and their ground-truth motion."""
-    from .datasets import run_engine
+    from bevo_ros.datasets.rosbag import run_engine
 
     steps = run_engine(sequence, config, learned, mode="fused")
     if len(steps) != len(sequence):
@@ -127,7 +127,7 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
     """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
     ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
     validation frames' NLL is not worse."""
-    from .datasets import split_frames
+    from bevo_ros.datasets.rosbag import split_frames
 
     t0 = time.perf_counter()
     train_parts, val_parts = [], []

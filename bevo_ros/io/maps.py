@@ -11,7 +11,7 @@ A map is a YAML file next to (or naming) an image::
 The image may be grey (8 or 16 bit), RGB or RGBA (any format OpenCV reads: PNG, JPEG, TIFF; a
 GeoTIFF's geo-referencing is not read: give ``origin`` and ``resolution`` from its metadata). An
 alpha channel is the validity mask (0 = no data), which is how :func:`save_map` stores a mosaic.
-Files are written atomically (:func:`bevo_ros.config.atomic_write_bytes`).
+Files are written atomically (:func:`bevo_ros.io.files.atomic_write_bytes`).
 """
 from __future__ import annotations
 
@@ -24,7 +24,8 @@ import numpy as np
 import torch
 import yaml
 
-from bevo_ros.config import ConfigError, atomic_write_bytes, atomic_write_text, read_yaml
+from bevo_ros.config import ConfigError, read_yaml
+from bevo_ros.io.files import atomic_write_bytes, atomic_write_text
 from bevo_ros.core.aerial_map import AerialMap
 
 __all__ = ["load_map", "save_map"]

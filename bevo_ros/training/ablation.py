@@ -22,8 +22,8 @@ GT_MODES = ("imu-highpass", "imu", "road-poses", "zero")
 def make_synthetic_bag(path: Path, seconds: float, seed: int, bumps: float, noise: float, image_scale: float):
     """A bumpy synthetic drive (gentle curves, no road tilt) written as a rosbag2. -> (path, drive)"""
     from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.datasets import write_drive_bag
-    from bevo_ros.synthetic import RenderOptions, kitti_like_camera, make_drive
+    from bevo_ros.datasets.rosbag import write_drive_bag
+    from bevo_ros.datasets.synthetic.drive import RenderOptions, kitti_like_camera, make_drive
 
     cam = kitti_like_camera()
     if image_scale != 1.0:
@@ -46,7 +46,7 @@ def reference_attitude(seq, mode, config):
     import torch
 
     from bevo_ros.core.road_tilt import is_enabled, road_relative_attitude
-    from bevo_ros.datasets import road_relative_gt
+    from bevo_ros.datasets.rosbag import road_relative_gt
 
     if not isinstance(mode, str):  # the simulator's own road-relative attitude of these frames
         return torch.as_tensor(mode, dtype=torch.float64)
@@ -86,7 +86,7 @@ def _num(v, fmt: str) -> str:
 def _row(variant: str, o, q, motion, trans_err_mean: float, yaw_err_mean: float, road: np.ndarray,
          ref, gt: np.ndarray, failed: int, pairs: int, loss: float, t0: float) -> dict:
     """One table row: per-frame ``motion (F-1, 3)`` (array or tensor) and the road attitude ``(F, 2)`` fed to the BEV."""
-    from bevo_ros.evaluation import evaluate_trajectories
+    from bevo_ros.evaluation.metrics import evaluate_trajectories
 
     est = planar_poses(motion)
     m = evaluate_trajectories(gt, est, convention="base")
@@ -105,7 +105,7 @@ def _row(variant: str, o, q, motion, trans_err_mean: float, yaw_err_mean: float,
 
 def _fused_row(seq, config, learned, gt: np.ndarray, ref) -> dict:
     """The fused engine over ``seq``: the same metrics as the paper rows (no KL loss)."""
-    from bevo_ros.datasets import run_engine
+    from bevo_ros.datasets.rosbag import run_engine
 
     t0 = time.perf_counter()
     steps = run_engine(seq, config, learned, mode="fused")
@@ -124,7 +124,7 @@ def run_variants(seq, config, learned, gt_mode: str, empirical_o: float, empiric
     """Every variant over ``seq`` (frames as given; IMU from the recording start)."""
     import torch
 
-    from bevo_ros.training import make_dukf, sequence_pass
+    from bevo_ros.training.trainer import make_dukf, sequence_pass
 
     o_l, q_l = tuple(learned.process_noise_density), tuple(learned.measurement_noise_variance)
     ref = reference_attitude(seq, gt_mode, config)
@@ -180,7 +180,7 @@ def plot_bag(path: Path, name: str, gt: np.ndarray, rows: list[dict], ref: np.nd
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from bevo_ros.evaluation import atomic_write_bytes
+    from bevo_ros.io.files import atomic_write_bytes
 
     fig, axes = plt.subplots(1, 3, figsize=(16, 5.2), gridspec_kw={"width_ratios": [1.3, 1, 1]})
     ax = axes[0]

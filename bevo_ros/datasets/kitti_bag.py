@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bevo_ros import bag, kitti
+from bevo_ros.io import bag
+from bevo_ros.datasets import kitti
 
 
 class ConversionError(ValueError):

@@ -24,7 +24,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from bevo_ros.ros_conversions import ns_to_seconds, quaternion_from_rpy, stamp_to_ns  # noqa: F401 - one place
+from bevo_ros.io.ros_conversions import ns_to_seconds, quaternion_from_rpy, stamp_to_ns  # noqa: F401 - one place
 
 PathLike = str | Path
 
@@ -190,7 +190,7 @@ def image_message(stamp: float | int, image: np.ndarray, frame_id: str, encoding
     else:
         raise ValueError(f"unsupported image: shape {image.shape}, dtype {image.dtype} "
                          "(need (H, W) uint8/uint16 or (H, W, 3) uint8)")
-    from bevo_ros.ros_conversions import IMAGE_ENCODINGS
+    from bevo_ros.io.ros_conversions import IMAGE_ENCODINGS
 
     if IMAGE_ENCODINGS.get(enc) != (channels, depth):
         raise ValueError(f"encoding {enc!r} does not fit an image of shape {image.shape}, dtype {image.dtype}")
@@ -579,7 +579,7 @@ def decode_image(msg: Any) -> np.ndarray:
     """sensor_msgs/Image or CompressedImage (as read from a bag) -> uint8 grey ``(H, W)``: the node's conversion
     (:func:`bevo_ros.ros_conversions.image_to_gray`), so a bag gives the engine the very grey levels
     bevo_node gives it. Raises :class:`BagError` for an encoding or layout it cannot use."""
-    from bevo_ros.ros_conversions import ImageConversionError, image_to_gray
+    from bevo_ros.io.ros_conversions import ImageConversionError, image_to_gray
 
     try:
         return image_to_gray(msg)

@@ -22,7 +22,7 @@ from typing import Iterable
 
 import numpy as np
 
-from bevo_ros.ros_conversions import ns_to_seconds
+from bevo_ros.io.ros_conversions import ns_to_seconds
 
 PathLike = str | Path
 
@@ -394,7 +394,7 @@ def read_poses(poses_txt: PathLike) -> np.ndarray:
 
 def write_poses(path: PathLike, poses: np.ndarray) -> None:
     """``(F, 4, 4)`` or ``(F, 3, 4)`` -> KITTI pose file, atomically (temp file + os.replace)."""
-    from bevo_ros.config import atomic_write_text
+    from bevo_ros.io.files import atomic_write_text
 
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] not in ((4, 4), (3, 4)):

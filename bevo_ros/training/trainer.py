@@ -45,8 +45,9 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from bevo_ros.config import BevoConfig, LearnedParams, atomic_write_text, bev_spec, provenance, read_yaml, \
-    save_learned_params
+from bevo_ros.config import BevoConfig, bev_spec, read_yaml
+from bevo_ros.io.learned_params import LearnedParams, provenance, save_learned_params
+from bevo_ros.io.files import atomic_write_text
 from bevo_ros.core.device import resolve_device
 from bevo_ros.core.dukf import DUKF
 from bevo_ros.core.geometry import BevSpec, wrap_angle
@@ -55,7 +56,7 @@ from bevo_ros.core.motion import vehicle_motion_from_registration
 from bevo_ros.core.phase_correlation import DpcConfig, angle_bins, prepare, register_prepared, \
     shift_bins, soft_weight
 from bevo_ros.core.sequence import frame_attitudes, imu_speeds, project_frames, registration_targets
-from bevo_ros.datasets import Sequence, split_frames
+from bevo_ros.datasets.rosbag import Sequence, split_frames
 
 Tensor = torch.Tensor
 
@@ -661,7 +662,7 @@ def train(
             probe = make_dukf(best_params[0], best_params[1], config.filter.motion_model, device)
             after = evaluate_parts(probe, vals, config, options, device)
     info = {
-        "trainer": "bevo train (bevo_ros.training)",
+        "trainer": "bevo train (bevo_ros.training.trainer)",
         "training_bags": [s.name for s in seqs],
         "split": options.split,
         "status": status,

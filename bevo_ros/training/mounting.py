@@ -15,7 +15,7 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import vehicle_motion_from_registration
 from bevo_ros.core.phase_correlation import DpcConfig
 from bevo_ros.core.sequence import project_frames, register_consecutive
-from bevo_ros.datasets import Sequence
+from bevo_ros.datasets.rosbag import Sequence
 
 
 def constant_attitude_motion(seq: Sequence, spec: BevSpec, pitch: float, roll: float) -> tuple[torch.Tensor, float]:

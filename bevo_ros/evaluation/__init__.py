@@ -1,0 +1,1 @@
+"""Trajectory evaluation: the metrics (``metrics``) and the report files and plots (``report``)."""
