@@ -95,10 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
-    from bevo_ros.io import bag
     from bevo_ros.config import load_config
-    from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.datasets.rosbag import load_sequence, split_frames
+    from bevo_ros.io import bag
+    from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import TrainingDiverged, TrainOptions, resolve_device, train
 
     if args.threads > 0:

@@ -91,9 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
+    from bevo_ros.datasets.rosbag import load_sequence
     from bevo_ros.io import bag
     from bevo_ros.io.learned_params import save_learned_params
-    from bevo_ros.datasets.rosbag import load_sequence
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainingDiverged, TrainOptions, train
     from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
