@@ -2,7 +2,7 @@
 
 * ``BevoConfig``: everything the engine needs (camera, extrinsics, BEV grid, filters), built
   from a ROS 2 parameters file (``params/*.yaml``) or from the node's declared parameters, so
-  ``bevo_node`` and the offline tools read the very same file the same way.
+  ``bevo_node`` and the offline `bevo` commands read the very same file the same way.
 """
 from __future__ import annotations
 
@@ -340,7 +340,7 @@ def bev_spec(config: BevoConfig):
 
 
 def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
-    """The engine both the node and the offline tools run: one construction, one behaviour."""
+    """The engine both the node and the offline commands (bevo_ros.pipeline) run: one construction, one behaviour."""
     from bevo_ros.core.device import resolve_device
     from bevo_ros.core.dukf import DUKF
     from bevo_ros.core.odometry import BevoOdometry

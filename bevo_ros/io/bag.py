@@ -1,10 +1,10 @@
-"""rosbag2 read/write helpers shared by the tools (rosbags only, no rclpy).
+"""rosbag2 read/write helpers shared by the commands and datasets (rosbags only, no rclpy).
 
 * :class:`BagWriter` writes sensor_msgs/nav_msgs messages into a new rosbag2 (sqlite3 or mcap)
   atomically: everything goes to a hidden temp directory beside the target, which is renamed
   into place only when the ``with`` block ends without an exception (and removed otherwise).
 * :func:`read_recording` loads a whole recording into numpy arrays (IMU, images, camera info,
-  ground truth) for offline tools and training.
+  ground truth) for the offline commands and training.
 * :func:`iter_messages` / :func:`iter_raw_messages` stream messages in bag-time order.
 
 Stamps: writer methods take ``stamp`` as float seconds, or as an ``int`` / numpy integer meaning
@@ -28,7 +28,7 @@ from bevo_ros.io.ros_conversions import ns_to_seconds, quaternion_from_rpy, stam
 
 PathLike = str | Path
 
-# Default topic names (the node, the tools and the tests agree on them).
+# Default topic names (the node, the commands and the tests agree on them).
 IMU_TOPIC = "/imu/data"
 IMAGE_TOPIC = "/camera/image_rect"  # rectified images (image_pipeline naming); bevo_node's default
 LEGACY_IMAGE_TOPIC = "/camera/image_raw"  # bags written before issue 11: read_recording falls back to it
@@ -589,7 +589,7 @@ def decode_image(msg: Any) -> np.ndarray:
 
 @dataclass
 class CameraInfo:
-    """The parts of sensor_msgs/CameraInfo the tools use."""
+    """The parts of sensor_msgs/CameraInfo the commands use."""
 
     K: np.ndarray  # (3, 3)
     P: np.ndarray  # (3, 4)

@@ -52,7 +52,7 @@ def save_learned_params(params: LearnedParams, path: str | os.PathLike) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = (
-        "# BEVO learned DUKF noise parameters (human-readable; loaded by bevo_node and tools).\n"
+        "# BEVO learned DUKF noise parameters (human-readable; loaded by bevo_node and the bevo commands).\n"
         "# O = process noise density of the [pitch, roll] random walk (rad^2/s, times each IMU dt);\n"
         "# Q = accelerometer pitch/roll measurement noise variance (rad^2).\n"
     )

@@ -58,7 +58,7 @@ def stamp_to_sec(stamp: Any) -> float:
 
 
 def sec_to_stamp(t: float):
-    """Float seconds -> ``builtin_interfaces/Time`` (nanosecond rounding; for tests and tools)."""
+    """Float seconds -> ``builtin_interfaces/Time`` (nanosecond rounding; for tests and benchmarks)."""
     from builtin_interfaces.msg import Time
 
     whole = math.floor(t)

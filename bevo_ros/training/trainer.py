@@ -1,5 +1,5 @@
 """End-to-end training of the DUKF's O and Q (paper Sec. 2.4), and the sequence passes the
-training and ablation tools share.
+training and ablation (bevo train, bevo ablation) share.
 
 What is learned: the DUKF's four log-variances (``log_process_var`` = O per axis, a density in
 rad^2/s multiplied by each IMU dt; ``log_measurement_var`` = Q per axis, rad^2), with Adam,
