@@ -11,7 +11,8 @@ feeds them, so the trajectory equals the node's. :func:`write_outputs` writes in
   gt_kitti.txt          ground truth in the same convention, when the bag has /ground_truth/odometry
   pitch_roll.csv        stamp, filtered pitch and roll, and the reference (OXTS) attitude
 
-:func:`evaluate_files` scores such a folder (or any KITTI pose files) and writes the report.
+:func:`evaluate_files` scores such a folder (or any KITTI pose files) and writes the report;
+:func:`map_from_steps` mosaics a run's BEVs at the ground-truth poses into a BEVO+ map (``bevo map``).
 """
 from __future__ import annotations
 
@@ -22,6 +23,9 @@ import numpy as np
 import torch
 
 from bevo_ros.config import BevoConfig, build_odometry
+from bevo_ros.core.aerial_map import AerialMap
+from bevo_ros.core.geometry import BevSpec
+from bevo_ros.core.mosaic import mosaic_to_map
 from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
 from bevo_ros.datasets import kitti
@@ -135,3 +139,21 @@ def evaluate_files(gt_path: str | Path, est_path: str | Path, out: str | Path, p
         metrics.pitch_roll = pitch_roll_errors(pr)
     title = title or f"{Path(est_path).name} vs {Path(gt_path).name}"
     return metrics, write_report(out, gt, est, metrics, pr, title)
+
+
+def xy_yaw_from_4x4(T: np.ndarray) -> np.ndarray:
+    """``(F, 4, 4)`` poses -> ``(F, 3)`` planar ``(x, y, yaw)``."""
+    return np.stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])], axis=-1)
+
+
+def map_from_steps(steps: list[OdometryStep], rec: bag.Recording, spec: BevSpec, resolution: float,
+                   margin: float) -> AerialMap:
+    """A BEVO+ map ("a previous drive"): the engine's BEVs of ``steps`` mosaicked at the recording's
+    ground-truth poses at their stamps (base_link in the bag's odom frame, which becomes the map frame)."""
+    if rec.gt_poses is None:
+        raise ValueError("the recording has no ground-truth poses: a map needs them")
+    stamps = np.array([s.stamp for s in steps])
+    poses = xy_yaw_from_4x4(gt_at(stamps, rec.gt_stamps, rec.gt_poses))
+    bevs = torch.from_numpy(np.stack([s.bev for s in steps]).astype(np.float32))[:, None]
+    masks = torch.from_numpy(np.stack([s.bev_mask for s in steps]).astype(np.float32))[:, None]
+    return mosaic_to_map(bevs, masks, torch.from_numpy(poses).float(), spec, resolution, margin)

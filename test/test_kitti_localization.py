@@ -15,7 +15,7 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import LocalizerConfig, MapLocalizer, se2_compose, wrap
 from bevo_ros.datasets.rosbag import gt_at
 from bevo_ros.io.maps import load_map
-from bevo_ros.pipeline import run_bag
+from bevo_ros.pipeline import run_bag, xy_yaw_from_4x4
 
 pytestmark = [pytest.mark.kitti, pytest.mark.timeout(300)]
 
@@ -34,7 +34,7 @@ def test_kitti_localises_in_a_previous_drive_map_from_a_wrong_start(kitti_root, 
     config, _ = load_config(run.DEFAULT_PARAMS)
     steps, rec, _ = run_bag(bag_path, config, config.learned_params_file)
     gt4 = gt_at(np.array([s.stamp for s in steps]), rec.gt_stamps, rec.gt_poses)
-    gt = map_command.xy_yaw_from_4x4(gt4)
+    gt = xy_yaw_from_4x4(gt4)
     spec = BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
     cfg = LocalizerConfig(match=LocalizerConfig().match.__class__(resolution=0.2), mosaic_length=16.0,
                           min_mosaic_length=8.0, update_distance=2.0)

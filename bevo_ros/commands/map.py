@@ -14,20 +14,12 @@ import argparse
 import math
 import sys
 
-import numpy as np
 import torch
 
-from bevo_ros.io import bag
 from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
-from bevo_ros.core.mosaic import mosaic_to_map
-from bevo_ros.datasets.rosbag import gt_at
+from bevo_ros.io import bag
 from bevo_ros.io.maps import save_map
-from bevo_ros.pipeline import run_bag
-
-
-def xy_yaw_from_4x4(T: np.ndarray) -> np.ndarray:
-    """``(F, 4, 4)`` poses -> ``(F, 3)`` planar ``(x, y, yaw)``."""
-    return np.stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])], axis=-1)
+from bevo_ros.pipeline import map_from_steps, run_bag
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,12 +50,7 @@ def main(argv: list[str] | None = None) -> int:
         sel = steps[int(first) if first else 0:int(stop) if stop else None:args.every]
         if len(sel) < 1:
             raise ValueError(f"--frames {args.frames} --every {args.every} selects no frame")
-        stamps = np.array([s.stamp for s in sel])
-        poses = xy_yaw_from_4x4(gt_at(stamps, rec.gt_stamps, rec.gt_poses))
-        spec = bev_spec(config)
-        bevs = torch.from_numpy(np.stack([s.bev for s in sel]).astype(np.float32))[:, None]
-        masks = torch.from_numpy(np.stack([s.bev_mask for s in sel]).astype(np.float32))[:, None]
-        aerial = mosaic_to_map(bevs, masks, torch.from_numpy(poses).float(), spec, args.resolution, args.margin)
+        aerial = map_from_steps(sel, rec, bev_spec(config), args.resolution, args.margin)
         path = save_map(aerial, args.out)
     except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
         print(f"map_from_bag: error: {exc}", file=sys.stderr)
