@@ -53,7 +53,7 @@ from bevo_ros.core.geometry import BevSpec, wrap_angle
 from bevo_ros.core.loss import registration_kl_loss
 from bevo_ros.core.phase_correlation import DpcConfig, angle_bins, shift_bins
 from bevo_ros.core.sequence import registration_targets, run_sequence
-from bevo_ros.datasets import Sequence, split_frames
+from bevo_ros.datasets import Recording, split_frames
 
 Tensor = torch.Tensor
 
@@ -148,7 +148,7 @@ def _uniform_kl(target_angle: Tensor, target_shift: Tensor, dpc: DpcConfig, size
 
 def sequence_pass(
     dukf: DUKF | None,
-    seq: Sequence,
+    seq: Recording,
     config: BevoConfig,
     *,
     source: str = "dukf",
@@ -215,7 +215,7 @@ def sequence_pass(
 
 
 # --------------------------------------------------------------------------- initialisation
-def median_imu_dt(seqs: list[Sequence]) -> float:
+def median_imu_dt(seqs: list[Recording]) -> float:
     dts = torch.cat([torch.diff(s.imu_stamps.double()) for s in seqs if s.imu_stamps.numel() > 1])
     if dts.numel() == 0:
         raise ValueError("no IMU samples to infer the IMU rate from")
@@ -319,7 +319,7 @@ def _f(v: float) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
 
 
-def _split_parts(seqs: list[Sequence], split: str, steps_per_bag: int):
+def _split_parts(seqs: list[Recording], split: str, steps_per_bag: int):
     """Per bag: the training steps' frame ranges (consecutive chunks sharing their boundary frame,
     so every training pair is used once) and the validation part."""
     steps, vals = [], []
@@ -426,7 +426,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def train(
-    seqs: list[Sequence],
+    seqs: list[Recording],
     config: BevoConfig,
     options: TrainOptions,
     *,

@@ -72,7 +72,7 @@ def make_bumpy_bag(path: Path, seconds: float = 6.0, seed: int = 3) -> Path:
     cam = kitti_like_camera()
     K = cam.K.clone()
     K[:2] *= 0.5
-    cam = CameraModel(K, 620, 188, cam.T_base_cam, cam.height)
+    cam = CameraModel(K, 620, 188, cam.T_base_cam, cam.mount_height)
     drive = make_drive(seed=seed, duration=seconds, bumps=2.0, noise=2.0, render="lazy", camera=cam, curvature=0.3,
                        road_tilt=False, speed_variation=0.3, ground_seed=0,
                        render_options=RenderOptions(supersample=1))

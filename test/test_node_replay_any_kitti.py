@@ -48,7 +48,7 @@ def _drive(size: str):
     w, h, f, cx, cy = KITTI_CAMERAS[size]
     rig = kitti_like_camera()
     K = torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    cam = CameraModel(K, w, h, rig.T_base_cam.clone(), rig.height)
+    cam = CameraModel(K, w, h, rig.T_base_cam.clone(), rig.mount_height)
     return make_drive(seed=5, duration=1.2, camera=cam, render=True, road_tilt=False, noise=0.5,
                       render_options=RenderOptions(supersample=1))
 

@@ -444,7 +444,7 @@ def kitti_sized(drive, factor: int = 4):
     cam = drive.camera
     K = cam.K.clone()
     K[:2] *= factor
-    big = CameraModel(K, cam.width * factor, cam.height_px * factor, cam.T_base_cam, cam.height)
+    big = CameraModel(K, cam.width * factor, cam.height_px * factor, cam.T_base_cam, cam.mount_height)
     images = np.stack([cv2.resize(im, (big.width, big.height_px), interpolation=cv2.INTER_LINEAR)
                        for im in drive.images])
     return dataclasses.replace(drive, camera=big, images=images)
