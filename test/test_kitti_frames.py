@@ -28,7 +28,7 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import vehicle_motion_from_registration
 from bevo_ros.core.phase_correlation import DpcConfig, prepare, register_prepared
 from bevo_ros.kitti import base_relative_motion, camera_model_from_kitti, read_poses
-from conftest import load_tool
+from bevo_ros.cli import load_tool
 
 SPEC = BevSpec()
 CALIBRATION_PAIRS = 10

@@ -17,7 +17,7 @@ from bevo_ros.node import DESCRIPTIONS, NodeSettings  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI_PARAMS = REPO / "params" / "kitti.yaml"
-from conftest import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(14)
 pytestmark = pytest.mark.ros

@@ -17,7 +17,8 @@ import pytest
 import torch
 import yaml
 
-from conftest import load_tool, make_bumpy_bag
+from bevo_ros.cli import load_tool
+from helpers.drives import make_bumpy_bag
 
 from bevo_ros.config import REPO_ROOT, load_config, load_learned_params
 from bevo_ros.core.loss import registration_kl_loss

@@ -19,7 +19,8 @@ from typing import Any, Callable
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+from helpers.env import REPO
+
 KITTI_PARAMS = REPO / "params" / "kitti.yaml"
 VENV_BIN = Path(sys.executable).parent
 
