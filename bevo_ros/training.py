@@ -186,7 +186,8 @@ def sequence_pass(
     targets = registration_targets(gt.to(dev), spec) if gt is not None else None
 
     def pair_loss(reg, pairs: Tensor) -> Tensor:
-        return registration_kl_loss(reg, targets[0][pairs], targets[1][pairs], sigma_angle, sigma_shift) * len(pairs)
+        idx = pairs.to(dev)
+        return registration_kl_loss(reg, targets[0][idx], targets[1][idx], sigma_angle, sigma_shift) * len(pairs)
 
     with torch.set_grad_enabled(need_grad):
         res = run_sequence(
