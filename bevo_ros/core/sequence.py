@@ -138,7 +138,7 @@ class SequenceResult:
 
     registration: Registration | None  # over the registered pairs (not ``failed``); None when windowed
     motion: Tensor  # (F-1, 3) float64 cpu estimated (dx, dy, dyaw), zero where failed
-    failed: Tensor  # (F-1,) bool cpu: a BEV of the pair has no valid pixel (e.g. the attitude tilts the camera off the road)
+    failed: Tensor  # (F-1,) bool cpu: a BEV of the pair has no valid pixel (the camera tilted off the road)
     pitch_roll_gravity: Tensor  # (F, 2) at the frames
     pitch_roll_road: Tensor  # (F, 2) used for the BEVs
     loss: float = 0.0  # sum of ``pair_loss`` over the windows
