@@ -27,7 +27,8 @@ from typing import Any, Callable
 import numpy as np
 from rclpy.node import Node
 
-from bevo_ros.config import BevoConfig, ConfigError, build_odometry, camera_model, coerce_setting, resolve_path
+from bevo_ros.config import (BevoConfig, ConfigError, RENAMED, build_odometry, camera_model, coerce_setting,
+                             resolve_path)
 from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
 from bevo_ros.core.validation import TimeJumpGuard, intrinsics_problem
@@ -140,7 +141,7 @@ DESCRIPTIONS = {
     "camera.cy": "principal point y (px)",
     "camera.width": "image width (px); images of another size are dropped",
     "camera.height_px": "image height (px)",
-    "camera.height": "camera centre height above the road (m)",
+    "camera.mount_height": "camera centre height above the road (m)",
     "camera.base_T_camera": "camera optical frame pose in base_frame, 4x4 row-major (used when /tf_static has no "
                             "base_frame -> camera frame)",
     "bev.size": "BEV grid is size x size pixels",
@@ -216,6 +217,7 @@ class BevoNode(Node):
 
     def _setup(self, params_file: str | list[str] | None, engine_factory: Callable | None, node_name: str) -> None:
         from rclpy.clock import Clock, ClockType
+        from rcl_interfaces.msg import ParameterDescriptor
         from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
         self._engine_factory = engine_factory or build_odometry
@@ -233,10 +235,15 @@ class BevoNode(Node):
                 flat[name] = self.declare_parameter(name, default, desc).value
             except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
                 raise ConfigError(f"parameter '{name}': {exc}") from None
+        for old, new in RENAMED.items():  # old names still read (BevoConfig.from_flat warns)
+            value = self.declare_parameter(old, None, ParameterDescriptor(
+                description=f"deprecated: renamed {new}", dynamic_typing=True)).value
+            if value is not None:
+                flat[old] = value
         self.settings = NodeSettings(**{f.name: coerce_setting(flat[f.name], getattr(NodeSettings(), f.name), f.name)
                                         for f in dataclasses.fields(NodeSettings)})
         _validate(self.settings)
-        self.config = BevoConfig.from_flat(flat, source=f"{node_name} parameters")
+        self.config = BevoConfig.from_flat(flat, source=f"{node_name} parameters", warn=self.get_logger().warning)
         config_flat = self.config.to_flat()
         for name in flat_defaults:
             why = ros_params.check(name, getattr(self.settings, name) if hasattr(self.settings, name)

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bevo_ros.evaluation import metrics as ev
-from bevo_ros.datasets import kitti
 from bevo_ros.commands import evaluate as evaluate_tool
-from conftest import in_ci
+from bevo_ros.datasets import kitti
+from bevo_ros.evaluation import metrics as ev
+from helpers.env import in_ci
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -29,10 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, make_synthetic_bag, notes, plot_bag,
-                                        reference_attitude, run_variants, table_markdown)
+from bevo_ros.commands import add_threads_option, set_threads
 from bevo_ros.config import REPO_ROOT, ConfigError
 from bevo_ros.io.files import atomic_write_text
+from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, make_synthetic_bag, notes, plot_bag,
+                                        reference_attitude, run_variants, table_markdown)
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
@@ -85,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bumps", type=float, default=2.0, help="its road-relative pitch/roll scale (default 2)")
     p.add_argument("--noise", type=float, default=2.0, help="its IMU noise scale incl. vibration (default 2)")
     p.add_argument("--image-scale", type=float, default=1.0, help="its image size relative to KITTI (default 1)")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    add_threads_option(p)
     p.add_argument("--device", default="cpu", help="cpu or cuda (falls back to CPU)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress output from training")
     return p
@@ -93,16 +94,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    import torch
-
     from bevo_ros.config import load_config
     from bevo_ros.datasets.rosbag import load_sequence, split_frames
     from bevo_ros.io import bag
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import TrainingDiverged, TrainOptions, resolve_device, train
 
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     out = Path(args.out)
     t_start = time.perf_counter()
     try:

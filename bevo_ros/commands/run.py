@@ -18,10 +18,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from bevo_ros.io import bag
+from bevo_ros.commands import add_threads_option, set_threads
 from bevo_ros.config import ConfigError, REPO_ROOT, load_config
+from bevo_ros.io import bag
 from bevo_ros.pipeline import run_bag, write_outputs
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
@@ -39,16 +39,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
     p.add_argument("--mode", choices=("fused", "paper"), help="override odometry.mode of --params (fused: the default "
                    "acceleration-aware, gyro-yaw, motion-filtered odometry; paper: the paper's pipeline)")
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch CPU threads (default 1, as bevo_node's torch_threads: same arithmetic, same result)")
+    add_threads_option(p, ", as bevo_node's torch_threads: same arithmetic, same result")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     try:
         config, _ = load_config(args.params)
         if args.mode:

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 
+from bevo_ros.commands import add_threads_option, set_threads
 from bevo_ros.config import REPO_ROOT, ConfigError, load_config
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
@@ -80,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", metavar="CHECKPOINT",
                    help="continue from a checkpoint (its O/Q, Adam state and learning rate; --epochs is the total)")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda (falls back to CPU with a warning)")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: fastest for 100x100 BEVs)")
+    add_threads_option(p, ": fastest for 100x100 BEVs")
     p.add_argument("--vehicle-steps", type=int, default=100,
                    help="fused mode: Adam steps fitting the vehicle motion filter's noise after O/Q (0 = keep it)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
@@ -89,16 +90,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    import torch
-
     from bevo_ros.datasets.rosbag import load_sequence
     from bevo_ros.io import bag
     from bevo_ros.io.learned_params import save_learned_params
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainingDiverged, TrainOptions, train
     from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     out = Path(args.out)
     checkpoint = Path(args.checkpoint) if args.checkpoint else out.with_name(out.name + ".ckpt.yaml")
     try:
