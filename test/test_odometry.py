@@ -217,3 +217,31 @@ def test_a_frame_whose_bev_is_invalid_is_dropped_not_raised(drive):
     assert odo._last_imu == t0 + 0.10  # the IMU sample was fused, nothing raised
     odo.reset()
     assert len(feed(odo, d, images)) == len(images)  # and the engine works on afterwards
+
+
+@pytest.mark.parametrize("error", [ValueError, TypeError])
+def test_a_bug_while_processing_a_frame_is_raised_not_counted_as_a_drop(drive, monkeypatch, error):
+    """Only InvalidBevError is bad input (a drop); any other exception in the frame's processing is
+    a bug and must reach the caller."""
+    import bevo_ros.core.odometry as odometry
+
+    d, images = drive
+    odo = engine(d)
+
+    def broken(*args, **kwargs):
+        raise error("a bug in the registration")
+
+    monkeypatch.setattr(odometry, "register_prepared", broken)
+    with pytest.raises(error, match="a bug in the registration"):
+        feed(odo, d, images[:3])
+    assert odo.counters.dropped_invalid_bev == 0
+
+
+def test_the_invalid_bev_error_is_what_the_engine_counts(drive):
+    """The BEV check raises the dedicated error (a ValueError for older callers)."""
+    from bevo_ros.core.phase_correlation import InvalidBevError, prepare
+
+    empty = torch.zeros(1, 1, 32, 32)
+    with pytest.raises(InvalidBevError):
+        prepare(empty, empty, DpcConfig())
+    assert issubclass(InvalidBevError, ValueError)

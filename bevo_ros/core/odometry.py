@@ -20,7 +20,7 @@ from .dukf import DUKF, steady_state_variance
 from .geometry import BevSpec, CameraModel
 from .motion import (motion_covariance_from_registration, pitch_scale_sensitivity, roll_yaw_sensitivity,
                      vehicle_motion_from_registration)
-from .phase_correlation import DpcConfig, prepare, register_prepared
+from .phase_correlation import DpcConfig, InvalidBevError, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
@@ -372,10 +372,11 @@ class BevoOdometry:
 
     def _process_or_drop(self, stamp: float, img: np.ndarray) -> list[OdometryStep]:
         """One frame, or a counted drop when its BEV has no valid pixel (e.g. an absurd attitude):
-        ``_process`` changes no state before that check, so the next frame simply carries on."""
+        ``_process`` changes no state before that check, so the next frame simply carries on.
+        Any other exception is a bug and propagates."""
         try:
             return [self._process(stamp, img)]
-        except ValueError:
+        except InvalidBevError:
             self.counters.dropped_invalid_bev += 1
             return []
 
