@@ -38,7 +38,7 @@ from bevo_ros.ros.diagnostics import SensorMonitor, status_message
 from bevo_ros.ros.tf import StaticTransforms
 from bevo_ros.ros_conversions import (ImageConversionError, bev_to_mono8,
                                       gray_to_image_msg, heatmap_to_mono8, image_to_gray, imu_to_arrays,
-                                      odometry_msg, pose_stamped_from_odometry, sec_to_stamp, stamp_to_sec,
+                                      odometry_msg, pose_stamped_from_odometry, stamp_to_sec,
                                       transform_from_odometry)
 
 NODE_NAME = "bevo_node"
@@ -273,8 +273,6 @@ class BevoNode(Node):
         self.counts = collections.Counter()  # imu_in, images_in, odometry_out, camera_info_in
         self._latency: collections.deque[float] = collections.deque(maxlen=s.latency_window)
         self._quality: collections.deque[float] = collections.deque(maxlen=100)
-        self._pending: dict[float, tuple[Any, float]] = {}  # engine stamp -> (header Time, arrival)
-        self._engine_counters: tuple[int, ...] = ()
         self._last_imu_stamp: float | None = None
         self._last_gap = 0.0
         self._path = collections.deque(maxlen=max(1, s.path_max_length))
@@ -512,7 +510,6 @@ class BevoNode(Node):
             self.engine = self._engine_factory(self.config, self.learned, camera)
             if hasattr(self.engine, "max_pending_images"):
                 self.engine.max_pending_images = self.settings.max_pending_images
-            self._engine_counters = self._read_engine_counters()
             backlog, self._imu_backlog = list(self._imu_backlog), collections.deque(maxlen=self._imu_backlog.maxlen)
             for t, gyro, accel in backlog:  # IMU that arrived before the calibration, in order
                 steps = self._engine_call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
@@ -521,8 +518,6 @@ class BevoNode(Node):
         else:
             self.engine.set_camera(camera)
 
-    _WATCHED_COUNTERS = ("dropped_no_imu", "dropped_pending_overflow", "imu_gaps", "dropped_invalid_bev",
-                         "rejected_textureless", "rejected_translation", "rejected_rotation")
     # fused mode: frames whose measurement the motion filter rejected (the pose is carried by its
     # prediction, the odometry still published): events, not drops
     _ENGINE_REJECTIONS = (
@@ -539,17 +534,11 @@ class BevoNode(Node):
          "whose BEV had no valid pixel (pitch/roll put the ground patch out of the image)"),
     )
 
-    def _read_engine_counters(self) -> tuple[int, ...]:
-        c = getattr(self.engine, "counters", None)
-        return tuple(int(getattr(c, k, 0)) for k in self._WATCHED_COUNTERS)
-
-    def _check_engine_counters(self) -> None:
-        """Turn the engine's own drop/gap counters into counted, logged node events."""
-        now = self._read_engine_counters()
-        if now == self._engine_counters:
+    def _report_engine_events(self) -> None:
+        """Turn what the engine dropped or rejected (its events) into counted, logged node drops/events."""
+        d = collections.Counter(e.kind for e in self.engine.take_events()) if self.engine is not None else {}
+        if not d:
             return
-        old, self._engine_counters = self._engine_counters, now
-        d = {k: n - o for k, n, o in zip(self._WATCHED_COUNTERS, now, old)}
         for counter, reason, why in self._ENGINE_DROPS:
             if d.get(counter, 0) > 0:
                 self.drops[reason] += d[counter]
@@ -563,11 +552,6 @@ class BevoNode(Node):
             self._log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.config.filter.max_imu_gap} s "
                                  f"(last gap {self._last_gap:.3f} s): the DUKF re-initialised its pitch/roll "
                                  "from the accelerometer")
-        # the engine drops the oldest waiting images: forget their stamps too
-        n_dropped = d.get("dropped_no_imu", 0) + d.get("dropped_pending_overflow", 0)
-        excess = len(self._pending) - (self.settings.max_pending_images + 2)
-        for k in sorted(self._pending)[: max(n_dropped, excess, 0)]:
-            self._pending.pop(k, None)
 
     def _out_of_order(self, kind: str, exc, stamp: float, retry: Callable[[], list]) -> list | None:
         """A stamp not after the previous one: a big jump back resets and retries, else a drop (None)."""
@@ -589,8 +573,6 @@ class BevoNode(Node):
     def _reset(self) -> None:
         if self.engine is not None:
             self.engine.reset()
-            self._engine_counters = self._read_engine_counters()
-        self._pending.clear()
         self._path.clear()
         self._imu_backlog.clear()
         self._last_imu_stamp = None
@@ -794,20 +776,10 @@ class BevoNode(Node):
                                          f"is {calib.width}x{calib.height} (from {calib.source})")
             return
         img = calib.rectify(img)
-        inserted = t not in self._pending
-        entry = (msg.header.stamp, arrival)
-
-        def call() -> list:
-            if inserted:
-                self._pending.setdefault(t, entry)  # again after a time-jump reset cleared the map
-            return self.engine.add_image(t, img)
-
-        steps = self._engine_call("image", t, call)
-        if steps is None:
-            if inserted:
-                self._pending.pop(t, None)
-            return
-        self._publish_steps(steps)
+        tag = (msg.header.stamp, arrival)  # back on the image's step: the output stamp, the latency
+        steps = self._engine_call("image", t, lambda: self.engine.add_image(t, img, tag=tag))
+        if steps is not None:
+            self._publish_steps(steps)
 
     def _engine_call(self, kind: str, t: float, call: Callable[[], list]) -> list | None:
         """Run an engine call. Returns its steps, or None when the input was dropped (counted)."""
@@ -822,7 +794,7 @@ class BevoNode(Node):
                     self._drop(f"{kind}_invalid", f"{'IMU' if kind == 'imu' else kind} at {t:.6f}: {exc2}")
             else:  # ImplausibleImuError carries its own reason
                 self._drop(getattr(exc, "reason", f"{kind}_invalid"), f"{'IMU' if kind == 'imu' else kind} at {t:.6f}: {exc}")
-        self._check_engine_counters()
+        self._report_engine_events()
         return steps
 
     def _on_camera_info(self, msg) -> None:
@@ -847,19 +819,19 @@ class BevoNode(Node):
         self._apply_calibration(calib)
 
     def _on_flush_timer(self) -> None:
-        if self.engine is None or not self._pending or not getattr(self.engine, "pending_images", 0):
+        if self.engine is None or not self.engine.pending_images:
             return
-        oldest = min(arrival for _, arrival in self._pending.values())
+        oldest = min(arrival for _, arrival in self.engine.pending_tags)
         if time.time() - oldest < self.settings.image_wait:
             return
         if self.settings.ordered_intake:
             self._intake([], [])  # IMU that was only queued, not missing, releases them
-            if not getattr(self.engine, "pending_images", 0):
+            if not self.engine.pending_images:
                 return
         n = self.engine.pending_images
         steps = self.engine.flush()
         self.events["flushed_images"] += len(steps)
-        self._check_engine_counters()
+        self._report_engine_events()
         self._log("image_wait", f"{n} image(s) waited more than image_wait={self.settings.image_wait} s for IMU "
                                 f"past their stamp: processed with the IMU fused so far ({len(steps)} published)",
                   level="info")
@@ -882,7 +854,7 @@ class BevoNode(Node):
                                       min_backward=Duration(nanoseconds=-int(self.settings.max_time_jump_back * 1e9)))
 
             def on_jump(info) -> None:
-                if self._last_imu_stamp is None and not self._pending:
+                if self._last_imu_stamp is None and not (self.engine and self.engine.pending_images):
                     return
                 self.events["clock_jump_reset"] += 1
                 self._log("clock_jump_reset", "ROS time jumped backwards (bag restarted?): resetting the odometry")
@@ -902,8 +874,7 @@ class BevoNode(Node):
             return
         s = self.settings
         for step in steps:
-            entry = self._pending.pop(step.stamp, None)
-            stamp_msg, arrival = entry if entry is not None else (sec_to_stamp(step.stamp), None)
+            stamp_msg, arrival = step.tag
             odom = odometry_msg(step, stamp_msg, s.odom_frame, s.base_frame)
             self.odom_pub.publish(odom)
             if arrival is not None:
@@ -922,10 +893,6 @@ class BevoNode(Node):
                     self.path_pub.publish(PathMsg(header=odom.header, poses=list(self._path)))
             if self.bev_pub.get_subscription_count() > 0:
                 self._publish_bev(step, odom.header)
-        # images older than the last published one can no longer come out of the engine
-        last = steps[-1].stamp
-        for k in [k for k in self._pending if k <= last]:
-            self._pending.pop(k, None)
 
     def _publish_bev(self, step, header) -> None:
         from std_msgs.msg import Header
@@ -964,7 +931,7 @@ class BevoNode(Node):
             "latency_max_ms": f"{pmax * 1e3:.2f}",
             "peak_quality_last": f"{self._quality[-1]:.3f}" if self._quality else "nan",
             "peak_quality_mean": f"{float(np.mean(self._quality)):.3f}" if self._quality else "nan",
-            "pending_images": str(getattr(self.engine, "pending_images", 0) if self.engine else 0),
+            "pending_images": str(self.engine.pending_images if self.engine else 0),
             "tf": self.tf_backend,
         }
         for reason, n in sorted(self.drops.items()):
