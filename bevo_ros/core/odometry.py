@@ -243,13 +243,14 @@ class BevoOdometry:
     def add_imu(self, stamp: float, gyro, accel) -> list[OdometryStep]:
         """Fuse one IMU sample; returns the images it released (processed in stamp order).
 
-        Raises ValueError for non-finite data, ImplausibleImuError (a ValueError) for readings
-        outside ``self.imu_limits`` and OutOfOrderError for stamps not after the last.
+        Raises ImplausibleImuError (a ValueError; ``reason`` ``imu_nonfinite``, ``imu_accel_range``
+        or ``imu_gyro_range``) for NaN/inf or readings outside ``self.imu_limits``, ValueError for a
+        zero acceleration and OutOfOrderError for stamps not after the last.
         """
         g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
         a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
         if not (math.isfinite(stamp) and all(math.isfinite(v) for v in g + a)):
-            raise ValueError("IMU sample contains NaN or inf")
+            raise ImplausibleImuError("imu_nonfinite", f"IMU sample at {stamp} has NaN/inf (gyro {g}, accel {a})")
         if (problem := imu_problem(g, a, self.imu_limits)) is not None:
             raise ImplausibleImuError(*problem)
         if math.hypot(*a) < 1e-6:
