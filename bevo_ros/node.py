@@ -112,7 +112,7 @@ class BevoNode(Node):
             lambda msg, info: received["image"](msg, info), in_qos(s.image_qos_depth))
         if s.use_camera_info:
             self._info_sub = self.create_subscription(CameraInfo, s.camera_info_topic, self._guard(
-                "camera_info", self._on_camera_info), in_qos(s.image_qos_depth))
+                "camera_info", self.rig.camera_info), in_qos(s.image_qos_depth))
         self.add_on_set_parameters_callback(self._guard("parameters", node_settings.check_live))
         self.add_post_set_parameters_callback(self._guard("parameters", self._on_parameters_applied))
         self.create_service(Trigger, "~/reset", self._guard("reset", self._on_reset))
@@ -209,10 +209,6 @@ class BevoNode(Node):
         img = self.rig.image(msg, t)
         if img is not None:  # the tag comes back on the image's step: the output stamp, the latency
             self._publish(self.feed.image(t, img, (msg.header.stamp, arrival)))
-
-    def _on_camera_info(self, msg) -> None:
-        self.counts["camera_info_in"] += 1
-        self.rig.camera_info(msg)
 
     def _on_flush_timer(self) -> None:
         if not self.feed.flush_due():

@@ -76,7 +76,8 @@ class Rig:
         self.refresh(force=True)
 
     def camera_info(self, msg) -> None:
-        """A CameraInfo: a new calibration when it differs and is usable, else a counted drop."""
+        """A CameraInfo (counted): a new calibration when it differs and is usable, else a counted drop."""
+        self.report.counts["camera_info_in"] += 1
         if same_camera_info(self.calibration, msg):
             return
         s = self.settings
