@@ -12,9 +12,10 @@ import datetime as _dt
 import math
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import yaml
@@ -39,7 +40,7 @@ class CameraSettings:
     width: int = 0
     height_px: int = 0
     # Camera centre height above the road (m): the paper's constant-elevation assumption.
-    height: float = 1.65
+    mount_height: float = 1.65
     # Camera (optical frame) pose in the base/IMU frame, 4x4 row-major. Default: KITTI's rig
     # (2011_09_26 chain imu -> velo -> cam0 -> R_rect_00), see params/kitti.yaml.
     base_T_camera: list[float] = field(
@@ -116,9 +117,37 @@ class BevoConfig:
         return _flatten(dataclasses.asdict(self))
 
     @classmethod
-    def from_flat(cls, flat: dict[str, Any], source: str = "parameters") -> "BevoConfig":
-        """Build from ``{"camera.fx": ..., ...}``; unknown keys are ignored, bad types raise."""
-        return _from_flat(cls, flat, prefix="", source=source)
+    def from_flat(cls, flat: dict[str, Any], source: str = "parameters",
+                  warn: Callable[[str], None] | None = None) -> "BevoConfig":
+        """Build from ``{"camera.fx": ..., ...}``; unknown keys are ignored, bad types raise; a
+        renamed key (:data:`RENAMED`) still works, with a warning (``warn``; default a FutureWarning)."""
+        return _from_flat(cls, _renamed_keys(flat, source, warn), prefix="", source=source)
+
+
+# Parameters renamed: old key -> new key. The old one is still read, with a deprecation warning.
+RENAMED = {"camera.height": "camera.mount_height"}  # metres above the road, not the image's height_px
+
+
+def _renamed_keys(flat: dict[str, Any], source: str, warn: Callable[[str], None] | None) -> dict[str, Any]:
+    """``flat`` with each old key of :data:`RENAMED` moved to its new name. Both given with different
+    values (the new one not at its default: the node declares every key) is an error."""
+    if not any(old in flat for old in RENAMED):
+        return flat
+    flat, defaults = dict(flat), BevoConfig().to_flat()
+    for old, new in RENAMED.items():
+        if old not in flat:
+            continue
+        value = flat.pop(old)
+        if new in flat and flat[new] != defaults[new] and flat[new] != value:
+            raise ConfigError(f"{source}: '{old}' = {value!r} and '{new}' = {flat[new]!r}: '{old}' is the old name "
+                              f"of '{new}'; set only '{new}'")
+        msg = f"{source}: parameter '{old}' is deprecated, renamed '{new}'; using its value {value!r}"
+        if warn is None:
+            warnings.warn(msg, FutureWarning, stacklevel=4)
+        else:
+            warn(msg)
+        flat[new] = value
+    return flat
 
 
 def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -458,14 +487,14 @@ def camera_model(settings: CameraSettings, K=None, width: int | None = None, hei
     R = T[:3, :3]
     if not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-4):
         raise ConfigError("camera.base_T_camera: rotation part is not orthonormal")
-    if settings.height <= 0:
-        raise ConfigError(f"camera.height must be > 0 m, got {settings.height}")
+    if settings.mount_height <= 0:
+        raise ConfigError(f"camera.mount_height must be > 0 m, got {settings.mount_height}")
     from bevo_ros.core.validation import intrinsics_problem
 
     if (problem := intrinsics_problem(np.asarray(K, dtype=np.float64), width, height_px)) is not None:
         raise ConfigError(f"camera intrinsics are not plausible: {problem}")
     return CameraModel(torch.tensor(np.array(K, dtype=np.float64)).reshape(3, 3), int(width), int(height_px), T,
-                       float(settings.height))
+                       float(settings.mount_height))
 
 
 def bev_spec(config: BevoConfig):

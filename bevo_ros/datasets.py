@@ -62,8 +62,9 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
 
 # --------------------------------------------------------------------------- bag -> tensors
 @dataclass
-class Sequence:
-    """A recording ready for :func:`bevo_ros.core.sequence.run_sequence` (float64 stamps)."""
+class Recording:
+    """A recording as tensors, ready for :func:`bevo_ros.core.sequence.run_sequence` (float64 stamps)
+    (:class:`bevo_ros.bag.Recording` is the bag's content in numpy)."""
 
     imu_stamps: torch.Tensor  # (N,)
     gyro: torch.Tensor  # (N, 3)
@@ -86,15 +87,15 @@ class Sequence:
         yaw = torch.atan2(rel[:, 1, 0], rel[:, 0, 0])
         return torch.stack([rel[:, 0, 3], rel[:, 1, 3], yaw], dim=-1)
 
-    def frames(self, start: int, stop: int) -> "Sequence":
+    def frames(self, start: int, stop: int) -> "Recording":
         """Frames ``[start, stop)`` with the IMU from the start of the recording up to the last frame
         (the filter needs its history; the extra IMU only warms it up)."""
         t_hi = self.frame_stamps[stop - 1]
         n = int(torch.searchsorted(self.imu_stamps, t_hi, right=True))
-        return Sequence(self.imu_stamps[:n], self.gyro[:n], self.accel[:n], self.frame_stamps[start:stop],
-                        self.images[start:stop], self.camera,
-                        None if self.gt_poses is None else self.gt_poses[start:stop],
-                        None if self.gt_pitch_roll is None else self.gt_pitch_roll[start:stop], self.name)
+        return Recording(self.imu_stamps[:n], self.gyro[:n], self.accel[:n], self.frame_stamps[start:stop],
+                         self.images[start:stop], self.camera,
+                         None if self.gt_poses is None else self.gt_poses[start:stop],
+                         None if self.gt_pitch_roll is None else self.gt_pitch_roll[start:stop], self.name)
 
 
 def camera_for_recording(rec: bag.Recording, config: BevoConfig) -> CameraModel:
@@ -121,8 +122,8 @@ def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np
     return gt_poses[idx]
 
 
-def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = True) -> Sequence:
-    """Read a bag written by ``kitti_to_bag.py`` or :func:`write_drive_bag` into a :class:`Sequence`.
+def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = True) -> Recording:
+    """Read a bag written by ``kitti_to_bag.py`` or :func:`write_drive_bag` into a :class:`Recording`.
 
     Frames before the first IMU sample are dropped (the filter has nothing to say about them).
     """
@@ -140,7 +141,7 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
     if rec.gt_pitch is not None:
         gt_pr = torch.from_numpy(np.stack([np.interp(fs[keep], rec.gt_att_stamps, rec.gt_pitch),
                                            np.interp(fs[keep], rec.gt_att_stamps, rec.gt_roll)], axis=-1))
-    return Sequence(
+    return Recording(
         imu_stamps=torch.from_numpy(rec.imu_stamps),
         gyro=torch.from_numpy(rec.gyro),
         accel=torch.from_numpy(rec.accel),
@@ -212,8 +213,8 @@ def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: 
     return steps + odo.flush()
 
 
-def run_engine(sequence: Sequence, config: BevoConfig, learned, mode: str | None = None) -> list:
-    """The node's engine (``build_odometry``) fed a :class:`Sequence` in stamp order (IMU first on
+def run_engine(sequence: Recording, config: BevoConfig, learned, mode: str | None = None) -> list:
+    """The node's engine (``build_odometry``) fed a :class:`Recording` in stamp order (IMU first on
     equal stamps), then flushed. Returns every ``OdometryStep``; ``mode`` overrides ``odometry.mode``."""
     import dataclasses
 

@@ -350,14 +350,14 @@ def invert_rigid(T: np.ndarray) -> np.ndarray:
 
 
 def camera_model_from_kitti(odometry_calib_txt: PathLike, raw_calib_dir: PathLike, image_size: tuple[int, int],
-                            height: float = 1.65, cam: int = 0, dtype=None):
+                            mount_height: float = 1.65, cam: int = 0, dtype=None):
     """Build a :class:`bevo_ros.core.geometry.CameraModel` for camera ``cam`` of a sequence.
 
     Args:
         odometry_calib_txt: ``sequences/NN/calib.txt`` (``P{cam}`` gives K for the odometry images).
         raw_calib_dir: directory with the raw ``calib_*.txt`` of the same rig (extrinsics).
         image_size: ``(W, H)`` of the images in pixels.
-        height: camera centre height above the road, metres (KITTI: 1.65).
+        mount_height: camera centre height above the road, metres (KITTI: 1.65).
         dtype: torch dtype of the tensors (default float32).
     """
     import torch
@@ -373,7 +373,7 @@ def camera_model_from_kitti(odometry_calib_txt: PathLike, raw_calib_dir: PathLik
     T_base_cam = invert_rigid(imu_to_camera_extrinsics(raw_calib_dir, cam))
     width, height_px = (int(v) for v in image_size)
     return CameraModel(torch.as_tensor(K, dtype=dtype), width, height_px,
-                       torch.as_tensor(T_base_cam, dtype=dtype), float(height))
+                       torch.as_tensor(T_base_cam, dtype=dtype), float(mount_height))
 
 
 # ----------------------------------------------------------------------------------------------

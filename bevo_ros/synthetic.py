@@ -61,7 +61,7 @@ KITTI_SIZE = (1241, 376)  # width, height
 
 def kitti_like_camera(
     mount_pitch: float = 0.0,
-    height: float = 1.65,
+    mount_height: float = 1.65,
     offset: Sequence[float] = (1.08, 0.0, 0.73),
     dtype: torch.dtype = torch.float64,
 ) -> CameraModel:
@@ -69,7 +69,7 @@ def kitti_like_camera(
 
     Args:
         mount_pitch: camera pitch on the base, radians; positive looks down (the nose-down sign).
-        height: camera centre height above the road, metres.
+        mount_height: camera centre height above the road, metres.
         offset: camera centre in the base frame (x fwd, y left, z up), metres.
     """
     # Optical axes in base coordinates: x_cam = -y_base (right), y_cam = -z_base (down), z_cam = x_base.
@@ -80,7 +80,7 @@ def kitti_like_camera(
     T[:3, :3] = r_y @ r_opt
     T[:3, 3] = torch.tensor([float(v) for v in offset], dtype=torch.float64)
     K = torch.tensor(KITTI_K, dtype=torch.float64)
-    return CameraModel(K.to(dtype), KITTI_SIZE[0], KITTI_SIZE[1], T.to(dtype), float(height))
+    return CameraModel(K.to(dtype), KITTI_SIZE[0], KITTI_SIZE[1], T.to(dtype), float(mount_height))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -768,7 +768,7 @@ def _random_motion(rng: np.random.Generator, t_lo: float, t_hi: float, *, speed_
         pitch_sines=pitch_sines, roll_sines=roll_sines, pitch_bumps=pitch_bumps,
         roll_bumps=roll_bumps, load_pitch=0.3 * _DEG * bumps, load_roll=0.5 * _DEG * bumps,
         slope0=slope0, camber0=camber0, slope_sines=slope_s, camber_sines=camber_s,
-        t_base_cam=camera.T_base_cam[:3, 3].detach().cpu().double().numpy(), cam_height=float(camera.height),
+        t_base_cam=camera.T_base_cam[:3, 3].detach().cpu().double().numpy(), cam_height=float(camera.mount_height),
     )
 
 

@@ -51,18 +51,15 @@ from bevo_ros.core.device import resolve_device
 from bevo_ros.core.dukf import DUKF
 from bevo_ros.core.geometry import BevSpec, wrap_angle
 from bevo_ros.core.loss import registration_kl_loss
-from bevo_ros.core.motion import vehicle_motion_from_registration
-from bevo_ros.core.phase_correlation import DpcConfig, angle_bins, prepare, register_prepared, \
-    shift_bins, soft_weight
-from bevo_ros.core.sequence import frame_attitudes, imu_speeds, project_frames, registration_targets
-from bevo_ros.datasets import Sequence, split_frames
+from bevo_ros.core.phase_correlation import DpcConfig, angle_bins, shift_bins
+from bevo_ros.core.sequence import registration_targets, run_sequence
+from bevo_ros.datasets import Recording, split_frames
 
 Tensor = torch.Tensor
 
 LOSS_TEMPERATURE = 0.2
 SIGMA_ANGLE = math.radians(1.0)  # target blur, rad
 SIGMA_SHIFT = 1.0  # target blur, BEV pixels
-MIN_BEV_WEIGHT = 1e-6  # the engine's own test (phase_correlation.prepare) for "no valid pixel"
 CHECKPOINT_FORMAT = "bevo_training_checkpoint/1"
 LOG_VAR_LIMIT = 60.0  # |log variance| beyond this (var < 1e-26 or > 1e26) counts as divergence
 
@@ -151,7 +148,7 @@ def _uniform_kl(target_angle: Tensor, target_shift: Tensor, dpc: DpcConfig, size
 
 def sequence_pass(
     dukf: DUKF | None,
-    seq: Sequence,
+    seq: Recording,
     config: BevoConfig,
     *,
     source: str = "dukf",
@@ -165,13 +162,13 @@ def sequence_pass(
     dpc: DpcConfig | None = None,
     turn_compensation: bool | None = None,
 ) -> PassResult:
-    """BEVO over ``seq`` (its frames; its IMU from the recording start), windowed.
+    """BEVO over ``seq`` (its frames; its IMU from the recording start), windowed: the loss on
+    :func:`~bevo_ros.core.sequence.run_sequence` (the engine's point estimates, with the static
+    mounting attitude and the turn compensation of ``config.filter``; ``turn_compensation``
+    overrides the latter). Only the distributions the loss reads use ``temperature``.
 
     With ``backward=True`` the gradient of ``loss`` (mean over pairs) w.r.t. the DUKF's parameters
-    is accumulated into their ``.grad`` (call ``zero_grad`` first). Point estimates are those of
-    :func:`~bevo_ros.core.sequence.run_sequence` (the engine's), with the static mounting attitude
-    and the turn compensation of ``config.filter`` (``turn_compensation`` overrides the latter);
-    only the distributions the loss reads use ``temperature``.
+    is accumulated into their ``.grad`` (call ``zero_grad`` first).
     """
     if len(seq) < 2:
         raise ValueError(f"{seq.name or 'sequence'}: needs at least 2 frames, got {len(seq)}")
@@ -182,64 +179,33 @@ def sequence_pass(
     dpc = dpc if dpc is not None else loss_dpc(temperature)
     n_pairs = len(seq) - 1
     need_grad = backward and source == "dukf" and dukf is not None
-    imu_stamps, frame_stamps = seq.imu_stamps.to(dev), seq.frame_stamps.to(dev)
-    speed = None
     if turn_compensation is None:
         turn_compensation = bool(getattr(config.filter, "turn_compensation", False))
-    if turn_compensation and source != "given":
-        # As run_sequence: speeds from a first, gradient-free pass (online: the previous frame's estimate).
-        first = sequence_pass(dukf, seq, config, source=source, window=window, temperature=temperature,
-                              sigma_angle=sigma_angle, sigma_shift=sigma_shift, device=device, dpc=dpc,
-                              turn_compensation=False)
-        speed = imu_speeds(imu_stamps, frame_stamps, first.motion.to(dev))
     mounting = (float(getattr(config.filter, "mounting_pitch", 0.0)), float(getattr(config.filter, "mounting_roll", 0.0)))
-    with torch.set_grad_enabled(need_grad):
-        gravity, road = frame_attitudes(
-            dukf, imu_stamps, seq.gyro.to(dev), seq.accel.to(dev), frame_stamps,
-            config.filter.road_tilt_time_constant, source,
-            None if given_pitch_roll_road is None else given_pitch_roll_road.to(dev), mounting, speed,
-            config.filter.max_imu_gap)
-    road_leaf = road.detach().requires_grad_(need_grad)
     gt = seq.gt_motion() if seq.gt_poses is not None else None
     targets = registration_targets(gt.to(dev), spec) if gt is not None else None
 
-    motion = torch.zeros(n_pairs, 3, dtype=torch.float64)
-    failed = torch.zeros(n_pairs, dtype=torch.bool)
-    loss_sum = 0.0
-    for w0 in range(0, n_pairs, window):
-        w1 = min(w0 + window, n_pairs)  # pairs w0..w1-1 = frames w0..w1
-        images = seq.images[w0:w1 + 1].to(dev)
-        with torch.set_grad_enabled(need_grad):
-            bev, mask = project_frames(images, seq.camera, road_leaf[w0:w1 + 1].float(), spec)
-            valid = soft_weight(mask, dpc).sum(dim=(-1, -2)) > MIN_BEV_WEIGHT  # (frames,)
-            ok = valid[:-1] & valid[1:]
-            n_ok = int(ok.sum())
-            if n_ok:
-                pos = torch.cumsum(valid.long(), 0) - 1
-                prepared = prepare(bev[valid], mask[valid], dpc)
-                reg = register_prepared(prepared[pos[:-1][ok]], prepared[pos[1:][ok]], dpc)
-                m = vehicle_motion_from_registration(reg.angle, reg.shift, spec)
-                sel = torch.arange(w0, w1)[ok.cpu()]
-                motion[sel] = m.detach().double().cpu()
-                if targets is not None:
-                    ta, ts = targets[0][w0:w1][ok], targets[1][w0:w1][ok]
-                    loss = registration_kl_loss(reg, ta, ts, sigma_angle, sigma_shift) * n_ok
-                    if need_grad and loss.requires_grad:
-                        (loss / n_pairs).backward()
-                    loss_sum += float(loss.detach())
-            if n_ok < w1 - w0:
-                bad = ~ok
-                failed[torch.arange(w0, w1)[bad.cpu()]] = True
-                if targets is not None:
-                    loss_sum += float(_uniform_kl(targets[0][w0:w1][bad], targets[1][w0:w1][bad], dpc,
-                                                  spec.size, sigma_angle, sigma_shift))
-    if need_grad and road.requires_grad and road_leaf.grad is not None:
-        road.backward(road_leaf.grad)
+    def pair_loss(reg, pairs: Tensor) -> Tensor:
+        idx = pairs.to(dev)
+        return registration_kl_loss(reg, targets[0][idx], targets[1][idx], sigma_angle, sigma_shift) * len(pairs)
 
+    with torch.set_grad_enabled(need_grad):
+        res = run_sequence(
+            dukf, seq.camera, spec, dpc, seq.imu_stamps.to(dev), seq.gyro.to(dev), seq.accel.to(dev),
+            seq.frame_stamps.to(dev), seq.images, config.filter.road_tilt_time_constant, source,
+            None if given_pitch_roll_road is None else given_pitch_roll_road.to(dev), mounting, turn_compensation,
+            config.filter.max_imu_gap, window=window, pair_loss=None if targets is None else pair_loss)
+    loss_sum = res.loss
+    if targets is not None and bool(res.failed.any()):
+        bad = res.failed.to(dev)
+        loss_sum += float(_uniform_kl(targets[0][bad], targets[1][bad], dpc, spec.size, sigma_angle, sigma_shift))
+
+    motion = res.motion
     result = PassResult(
         loss=loss_sum / n_pairs if targets is not None else float("nan"),
-        motion=motion, failed=failed,
-        pitch_roll_gravity=gravity.detach().double().cpu(), pitch_roll_road=road.detach().double().cpu(),
+        motion=motion, failed=res.failed,
+        pitch_roll_gravity=res.pitch_roll_gravity.detach().double().cpu(),
+        pitch_roll_road=res.pitch_roll_road.detach().double().cpu(),
     )
     if gt is not None:
         gt = gt.double().cpu()
@@ -250,7 +216,7 @@ def sequence_pass(
 
 
 # --------------------------------------------------------------------------- initialisation
-def median_imu_dt(seqs: list[Sequence]) -> float:
+def median_imu_dt(seqs: list[Recording]) -> float:
     dts = torch.cat([torch.diff(s.imu_stamps.double()) for s in seqs if s.imu_stamps.numel() > 1])
     if dts.numel() == 0:
         raise ValueError("no IMU samples to infer the IMU rate from")
@@ -354,7 +320,7 @@ def _f(v: float) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
 
 
-def _split_parts(seqs: list[Sequence], split: str, steps_per_bag: int):
+def _split_parts(seqs: list[Recording], split: str, steps_per_bag: int):
     """Per bag: the training steps' frame ranges (consecutive chunks sharing their boundary frame,
     so every training pair is used once) and the validation part."""
     steps, vals = [], []
@@ -461,7 +427,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def train(
-    seqs: list[Sequence],
+    seqs: list[Recording],
     config: BevoConfig,
     options: TrainOptions,
     *,

@@ -112,7 +112,7 @@ def fit_vehicle_noise(sequences: list[tuple[list[dict], np.ndarray]], init: Vehi
 
 
 def record_inputs(sequence, config, learned) -> tuple[list[dict], np.ndarray]:
-    """Run the fused engine (the node's, with ``learned``) over a :class:`~bevo_ros.datasets.Sequence`;
+    """Run the fused engine (the node's, with ``learned``) over a :class:`~bevo_ros.datasets.Recording`;
     returns the filter inputs of frames 1.. and their ground-truth motion."""
     from .datasets import run_engine
 

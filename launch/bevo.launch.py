@@ -42,6 +42,11 @@ def generate_launch_description():
     map_file = LaunchConfiguration("map_file")
     has_bag = PythonExpression(["'", bag, "' != ''"])
 
+    def bevo_node(params: list, condition) -> Node:
+        return Node(package=PACKAGE, executable="bevo_node", name="bevo_node", namespace=namespace, output="screen",
+                    emulate_tty=True, condition=condition,
+                    parameters=[*params, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}])
+
     return LaunchDescription([
         DeclareLaunchArgument("params_file", default_value=os.path.join(share, "params", "kitti.yaml"),
                               description="bevo_node parameters file"),
@@ -54,29 +59,10 @@ def generate_launch_description():
         DeclareLaunchArgument("localizer", default_value="false",
                               description="start bevo_localizer (BEVO+: map -> odom from an aerial map)"),
         DeclareLaunchArgument("map_file", default_value="", description="bevo_localizer's map YAML"),
-        # live sensors: the params file as it is (best-effort sensor inputs)
-        Node(
-            package=PACKAGE,
-            executable="bevo_node",
-            name="bevo_node",
-            namespace=namespace,
-            output="screen",
-            emulate_tty=True,
-            parameters=[params_file, {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
-            condition=UnlessCondition(has_bag),
-        ),
-        # a bag replay: params/replay.yaml on top (reliable inputs: no frame lost, same result as `bevo run`)
-        Node(
-            package=PACKAGE,
-            executable="bevo_node",
-            name="bevo_node",
-            namespace=namespace,
-            output="screen",
-            emulate_tty=True,
-            parameters=[params_file, os.path.join(share, "params", "replay.yaml"),
-                        {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
-            condition=IfCondition(has_bag),
-        ),
+        # live sensors: the params file as it is (best-effort sensor inputs); a bag replay:
+        # params/replay.yaml on top (reliable inputs: no frame lost, the same result as `bevo run`)
+        bevo_node([params_file], UnlessCondition(has_bag)),
+        bevo_node([params_file, os.path.join(share, "params", "replay.yaml")], IfCondition(has_bag)),
         Node(
             package=PACKAGE,
             executable="bevo_localizer",

@@ -8,7 +8,8 @@ import math
 import pytest
 import torch
 
-from conftest import load_tool, make_bumpy_bag
+from bevo_ros.cli import load_tool
+from helpers.drives import make_bumpy_bag
 
 from bevo_ros.config import REPO_ROOT, LearnedParams, save_learned_params
 
@@ -59,6 +60,23 @@ def test_ablation_table_on_a_bumpy_synthetic_drive(ablation, tmp_path):
     assert all(b < 0.5 * r for b, r in zip(by["BEVO"]["attitude_rmse_deg"], by["w/o DUKF"]["attitude_rmse_deg"]))
     assert by["fused"]["rpe_yaw_mean_deg"] < by["BEVO"]["rpe_yaw_mean_deg"]  # the gyro's yaw
     assert by["BEVO"]["O"] == [1e-4, 1e-4] and by["w/o O"]["Q"] == [1e-2, 1e-2] and by["w/o Q"]["O"] == [1e-4, 1e-4]
+
+
+def test_gt_variant_reference_is_the_simulators_attitude(ablation, tmp_path):
+    """The attitude "w/ GT" feeds the BEV, read back from the bag (ground-truth IMU or poses, at the
+    frame stamps), against the simulator's own road-relative attitude of those frames (level road)."""
+    from bevo_ros.config import load_config
+    from bevo_ros.datasets import load_sequence
+
+    config, _ = load_config(SYNTH_PARAMS)
+    path, drive = ablation.make_synthetic_bag(tmp_path / "gt_bag", 2.0, 5, 2.0, 2.0, 0.25)
+    seq = load_sequence(path, config)
+    truth = torch.as_tensor(drive.pitch_roll_road)
+    err = {mode: float((ablation.reference_attitude(seq, mode, config) - truth).abs().max())
+           for mode in ("imu", "road-poses", "zero")}
+    print("\nmax |reference - simulator| (deg): " + ", ".join(f"{m} {math.degrees(e):.2g}" for m, e in err.items()))
+    assert err["imu"] < 1e-9 and err["road-poses"] < math.radians(0.1)
+    assert err["zero"] > math.radians(0.5)  # the drive's bumps: a reference that ignored them would show
 
 
 @pytest.mark.slow

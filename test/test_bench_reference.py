@@ -17,7 +17,7 @@ from bevo_ros.core.bev import project_to_bev
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import registration_from_vehicle_motion
 from bevo_ros.synthetic import RenderOptions, default_ground, ground_patch, kitti_like_camera, render_view
-from conftest import load_tool
+from bevo_ros.cli import load_tool
 
 SPEC = BevSpec()
 START = (10.0, 0.5, 0.2)  # world (x, y, yaw) of the first BEV

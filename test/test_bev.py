@@ -20,7 +20,7 @@ def half_res_camera(dtype=torch.float64) -> CameraModel:
     K = cam.K.clone()
     K[:2, :2] /= 2
     K[:2, 2] = (K[:2, 2] + 0.5) / 2 - 0.5  # pixel centres at integers before and after
-    return CameraModel(K.to(dtype), cam.width // 2, cam.height_px // 2, cam.T_base_cam.to(dtype), cam.height)
+    return CameraModel(K.to(dtype), cam.width // 2, cam.height_px // 2, cam.T_base_cam.to(dtype), cam.mount_height)
 
 
 def ncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:

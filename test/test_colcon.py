@@ -18,7 +18,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
-from conftest import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = str(domain_id_for(13))
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]

@@ -1,6 +1,7 @@
 """Parameters files and learned-parameters files: round trips and clear errors."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -41,6 +42,17 @@ def test_bad_parameter_types_name_the_parameter(tmp_path):
         load_config(p)
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "absent.yaml")
+
+
+def test_renamed_parameter_still_read_with_a_deprecation_warning(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"bevo_node": {"ros__parameters": {"camera": {"height": 1.4}}}}))
+    with pytest.warns(FutureWarning, match="'camera.height' is deprecated, renamed 'camera.mount_height'"):
+        config, _ = load_config(p)
+    assert config.camera.mount_height == 1.4 and "height" not in dataclasses.asdict(config.camera)
+    p.write_text(yaml.safe_dump({"bevo_node": {"ros__parameters": {"camera": {"height": 1.4, "mount_height": 1.5}}}}))
+    with pytest.raises(ConfigError, match="set only 'camera.mount_height'"):
+        load_config(p)
 
 
 def test_camera_extrinsics_are_validated():

@@ -10,7 +10,7 @@ import pytest
 
 from bevo_ros import evaluation as ev
 from bevo_ros import kitti
-from conftest import in_ci
+from helpers.env import in_ci
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))

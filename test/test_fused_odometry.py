@@ -27,7 +27,7 @@ def small_camera() -> CameraModel:
     cam = kitti_like_camera()
     K = cam.K.clone()
     K[:2] *= 0.5
-    return CameraModel(K, 620, 188, cam.T_base_cam, cam.height)
+    return CameraModel(K, 620, 188, cam.T_base_cam, cam.mount_height)
 
 
 def engine(camera, mode: str, learned: LearnedParams | None = None):

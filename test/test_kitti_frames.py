@@ -28,7 +28,7 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import vehicle_motion_from_registration
 from bevo_ros.core.phase_correlation import DpcConfig, prepare, register_prepared
 from bevo_ros.kitti import base_relative_motion, camera_model_from_kitti, read_poses
-from conftest import load_tool
+from bevo_ros.cli import load_tool
 
 SPEC = BevSpec()
 CALIBRATION_PAIRS = 10
@@ -40,7 +40,7 @@ def load(kitti_root: Path):
     assert len(files) >= 51, f"expected 51 images in {seq / 'image_0'}, found {len(files)}"
     imgs = np.stack([cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in files])
     H, W = imgs.shape[1:]
-    cam = camera_model_from_kitti(seq / "calib.txt", kitti_root / "raw" / "2011_09_26", (W, H), height=1.65)
+    cam = camera_model_from_kitti(seq / "calib.txt", kitti_root / "raw" / "2011_09_26", (W, H), mount_height=1.65)
     poses = read_poses(kitti_root / "odometry" / "poses" / "06.txt")[: len(files)]
     gt = base_relative_motion(poses, cam.T_base_cam.double().numpy())
     return torch.from_numpy(imgs).float()[:, None] / 255.0, cam, gt

@@ -122,7 +122,7 @@ def test_odometry_calib_and_camera_model(kitti_root):
     calib = kitti.read_odometry_calib(seq / "calib.txt")
     assert set(calib) == {"P0", "P1"} and calib["P0"].shape == (3, 4)
     model = kitti.camera_model_from_kitti(seq / "calib.txt", kitti_root / "raw" / "2011_09_26", (1226, 370))
-    print(f"K =\n{model.K}\nsize {model.width}x{model.height_px}, height {model.height} m")
+    print(f"K =\n{model.K}\nsize {model.width}x{model.height_px}, height {model.mount_height} m")
     assert model.K[0, 0].item() == pytest.approx(707.0912) and model.K[1, 2].item() == pytest.approx(183.1104)
     assert (model.width, model.height_px) == (1226, 370)
     assert model.T_base_cam[2, 3].item() == pytest.approx(0.7299, abs=1e-3)

@@ -150,7 +150,7 @@ def test_launch_file_names_only_what_exists(description):
     flags = [c for c in cmd if isinstance(c, str)]
     sys.path.insert(0, str(REPO / "tools"))
     try:
-        from conftest import load_tool
+        from bevo_ros.cli import load_tool
 
         parser = load_tool("play_bag").build_parser()
     finally:

@@ -4,14 +4,12 @@ diagnostics and the debug image out; bad inputs counted."""
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import spin_until  # noqa: E402
+from helpers.node_support import spin_until  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -30,7 +28,7 @@ from bevo_ros.ros_conversions import (bev_to_mono8, gray_to_image_msg, heatmap_t
                                       quaternion_from_rpy, rpy_from_quaternion, sec_to_stamp, stamp_to_sec)
 from bevo_ros.synthetic_map import frame_bev, make_localization_drive, render_aerial_map  # noqa: E402
 
-from conftest import domain_id_for, ros_context  # noqa: E402
+from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(18)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]

@@ -162,8 +162,8 @@ def test_attitude_sensitivities_match_reprojection():
     m0 = motion((0.0, 0.0))
     per_pitch = (motion((0.01, 0.0)) - motion((-0.01, 0.0))) / 0.02 / m0[:, :1]  # per rad, per metre of dx
     per_roll = (motion((0.0, 0.01)) - motion((0.0, -0.01))) / 0.02 / m0[:, :1]
-    k_p = pitch_scale_sensitivity(spec, float(d.camera.T_base_cam[0, 3]), d.camera.height)
-    k_r = roll_yaw_sensitivity(d.camera.height)
+    k_p = pitch_scale_sensitivity(spec, float(d.camera.T_base_cam[0, 3]), d.camera.mount_height)
+    k_r = roll_yaw_sensitivity(d.camera.mount_height)
     pitch_dx, roll_yaw, roll_dy = (float(v) for v in (per_pitch[:, 0].mean(), per_roll[:, 2].mean(),
                                                        per_roll[:, 1].mean()))
     print(f"\nper rad and metre: d(dx)/dpitch {pitch_dx:.2f} (model -{k_p:.2f}); d(dyaw)/droll {roll_yaw:.3f} "

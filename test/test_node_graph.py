@@ -11,15 +11,13 @@
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import (camera_overrides, drive_messages, image_msg, imu_msg, offline_steps,  # noqa: E402
-                               small_drive, spin_until)
+from helpers.node_support import (camera_overrides, drive_messages, image_msg, imu_msg, offline_steps,  # noqa: E402
+                                  small_drive, spin_until)
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
@@ -30,7 +28,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu  # noqa: E402
 
-from conftest import domain_id_for, ros_context  # noqa: E402
+from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(18)
 REPO = Path(__file__).resolve().parents[1]

@@ -14,9 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import (camera_overrides, drive_messages, image_msg, imu_msg, offline_steps,  # noqa: E402
-                               small_drive, spin_until)
+from helpers.node_support import (camera_overrides, drive_messages, image_msg, imu_msg, offline_steps,  # noqa: E402
+                                  small_drive, spin_until)
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -30,7 +29,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from bevo_ros.config import ConfigError  # noqa: E402
 from bevo_ros.ros_conversions import rpy_from_quaternion, stamp_to_sec  # noqa: E402
 
-from conftest import domain_id_for, ros_context  # noqa: E402
+from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(11)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]

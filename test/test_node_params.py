@@ -17,7 +17,7 @@ from bevo_ros.ros.settings import DESCRIPTIONS, NodeSettings  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI_PARAMS = REPO / "params" / "kitti.yaml"
-from conftest import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(14)
 pytestmark = pytest.mark.ros
@@ -66,6 +66,29 @@ def test_kitti_yaml_loads_through_rcl_into_the_node(namespace):
             # CameraInfo first: no camera until it arrives (the 1226x370 parameters are the fallback)
             assert node.rig.camera is None and node.rig.calibration is None
             assert (config.camera.width, config.camera.height_px) == (1226, 370)
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+        torch.set_num_threads(threads)
+
+
+def test_node_reads_the_renamed_camera_height_with_a_warning(tmp_path):
+    """A params file with the old name ``camera.height`` still sets the camera's mount height."""
+    from bevo_ros.node import BevoNode
+
+    import torch
+
+    old = tmp_path / "old.yaml"
+    old.write_text(KITTI_PARAMS.read_text().replace("camera.mount_height: 1.65", "camera.height: 1.4"))
+    threads = torch.get_num_threads()
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    ctx = rclpy.context.Context()
+    rclpy.init(args=["--ros-args", "--params-file", str(old)], context=ctx, domain_id=DOMAIN_ID)
+    try:
+        node = BevoNode(context=ctx, params_file=str(old))
+        try:
+            assert node.config.camera.mount_height == 1.4
         finally:
             node.destroy_node()
     finally:

@@ -6,15 +6,12 @@ no traceback) when the learned-parameters file is missing or malformed.
 from __future__ import annotations
 
 import os
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import (VENV_BIN, NodeProcess, camera_overrides, drive_messages, image_msg,  # noqa: E402
-                               small_drive, spin_until, write_params)
+from helpers.node_support import (VENV_BIN, NodeProcess, camera_overrides, drive_messages, image_msg,  # noqa: E402
+                                  small_drive, spin_until, write_params)
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -24,7 +21,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import Image, Imu  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from conftest import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(12)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]

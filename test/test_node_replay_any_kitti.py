@@ -14,18 +14,16 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import KITTI_PARAMS, VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
+from helpers.node_support import KITTI_PARAMS, VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 
-from conftest import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(17)
 REPO = Path(__file__).resolve().parents[1]
@@ -48,7 +46,7 @@ def _drive(size: str):
     w, h, f, cx, cy = KITTI_CAMERAS[size]
     rig = kitti_like_camera()
     K = torch.tensor([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    cam = CameraModel(K, w, h, rig.T_base_cam.clone(), rig.height)
+    cam = CameraModel(K, w, h, rig.T_base_cam.clone(), rig.mount_height)
     return make_drive(seed=5, duration=1.2, camera=cam, render=True, road_tilt=False, noise=0.5,
                       render_options=RenderOptions(supersample=1))
 

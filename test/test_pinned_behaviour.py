@@ -19,7 +19,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import load_tool
+from bevo_ros.cli import load_tool
 
 record = load_tool("record_pinned")
 PINNED = json.loads(record.PINNED.read_text())

@@ -17,7 +17,7 @@ pytestmark = pytest.mark.ros
 
 REPO = Path(__file__).resolve().parents[1]
 PLAY = REPO / "tools" / "play_bag.py"
-from conftest import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(1)
 N_IMU, N_FRAMES = 40, 8

@@ -22,14 +22,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import (REPO, VENV_BIN, NodeProcess, camera_overrides, drive_messages,  # noqa: E402
-                               image_msg, imu_msg, offline_steps, small_drive, spin_until, write_params)
+from helpers.node_support import (REPO, VENV_BIN, NodeProcess, camera_overrides, drive_messages,  # noqa: E402
+                                  image_msg, imu_msg, offline_steps, small_drive, spin_until, write_params)
 
 from bevo_ros.config import BevoConfig, build_odometry, camera_model, load_learned_params, resolve_path  # noqa: E402
 from bevo_ros.core.validation import STANDARD_GRAVITY as G  # noqa: E402
 
-from conftest import domain_id_for, ros_context  # noqa: E402
+from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 T0 = 1000.0
 MAX_STEP = 0.2  # m: the bound on a stationary vehicle's per-frame motion
@@ -444,7 +443,7 @@ def kitti_sized(drive, factor: int = 4):
     cam = drive.camera
     K = cam.K.clone()
     K[:2] *= factor
-    big = CameraModel(K, cam.width * factor, cam.height_px * factor, cam.T_base_cam, cam.height)
+    big = CameraModel(K, cam.width * factor, cam.height_px * factor, cam.T_base_cam, cam.mount_height)
     images = np.stack([cv2.resize(im, (big.width, big.height_px), interpolation=cv2.INTER_LINEAR)
                        for im in drive.images])
     return dataclasses.replace(drive, camera=big, images=images)

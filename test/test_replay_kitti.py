@@ -4,18 +4,16 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-from test_node_support import VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
+from helpers.node_support import VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 
-from conftest import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(16)
 REPO = Path(__file__).resolve().parents[1]

@@ -94,19 +94,14 @@ def test_gradients_flow():
     assert torch.autograd.gradcheck(lambda a, b: road_relative_attitude(a, dt[:, :20] * 10, b), (xs, tau))
 
 
-def test_disabled_and_static_offset():
+def test_disabled():
     x, _, dt, _ = cambered_drive(seconds=1.0)
     for off in (0.0, -1.0, math.inf, None):
         assert torch.equal(road_relative_attitude(x, dt, off), x)
         f = RoadTiltFilter(off)
         assert not f.enabled
         assert f.update(0.0, *x[0, 0].tolist()) == tuple(x[0, 0].tolist())
-    offset = (1.5 * DEG, 2.6 * DEG)
-    rel = road_relative_attitude(x, dt, 0.0, static_offset=offset)
-    torch.testing.assert_close(rel, x - torch.tensor(offset, dtype=torch.float64))
-    f = RoadTiltFilter(None, static_offset=offset)
-    torch.testing.assert_close(torch.tensor(f.update(0.0, *x[0, 3].tolist()), dtype=torch.float64), rel[0, 3])
-    assert f.tilt == pytest.approx(offset, abs=1e-15)
+        assert f.tilt == (0.0, 0.0)
     assert lowpass_gain(torch.tensor(1e-9), 10.0).item() == pytest.approx(1e-10, rel=1e-6)
 
 
@@ -114,10 +109,6 @@ def test_bad_input_raises():
     x, _, dt, _ = cambered_drive(seconds=1.0)
     with pytest.raises(ValueError, match="NaN"):
         RoadTiltFilter(float("nan"))
-    with pytest.raises(ValueError, match="static_offset has no effect"):
-        RoadTiltFilter(5.0, static_offset=(0.0, 0.1))
-    with pytest.raises(ValueError, match="static_offset must be 2"):
-        RoadTiltFilter(0.0, static_offset=(0.0, 0.1, 0.2))
     with pytest.raises(ValueError, match=r"pitch_roll must be a tensor of shape \(B, T, 2\)"):
         road_relative_attitude(x[0], dt, 5.0)
     with pytest.raises(ValueError, match="dt must be >= 0"):

@@ -187,7 +187,7 @@ def test_relative_motion_composes_to_poses(any_drive):
     # 4x4 poses agree with the planar poses and the camera height contract.
     T = syn.base_poses_4x4(drive)
     assert np.allclose(T[:, :2, 3], poses[:, :2]) and np.allclose(np.arctan2(T[:, 1, 0], T[:, 0, 0]), poses[:, 2])
-    assert np.allclose(syn.camera_poses_4x4(drive)[:, 2, 3], drive.camera.height, atol=1e-12)
+    assert np.allclose(syn.camera_poses_4x4(drive)[:, 2, 3], drive.camera.mount_height, atol=1e-12)
 
 
 def _pixel_ground_points(drive, i: int, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -343,7 +343,7 @@ def test_options_rates_camera_and_rigid_body():
     # A positive mounting pitch looks down: the optical axis has a negative base-z component.
     axis = d.camera.T_base_cam[:3, 2]
     assert axis[2].item() == pytest.approx(-math.sin(0.01)) and axis[0].item() > 0.99
-    assert np.allclose(syn.camera_poses_4x4(d)[:, 2, 3], d.camera.height, atol=1e-12)
+    assert np.allclose(syn.camera_poses_4x4(d)[:, 2, 3], d.camera.mount_height, atol=1e-12)
 
 
 # ---------------------------------------------------------------------------------------------

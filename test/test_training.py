@@ -2,8 +2,8 @@
 
 Evidence that learning works, on a synthetic bumpy drive with known noise (strong suspension
 bumps and accelerometer vibration, half-resolution KITTI-like camera to keep rendering cheap):
-the gradient reaches O and Q, the windowed gradient equals plain autograd through
-run_sequence, and a few epochs from a deliberately bad start (O large = the filter follows the
+the gradient reaches O and Q, the windowed, accumulated gradient equals plain autograd through
+one run_sequence graph, and a few epochs from a deliberately bad start (O large = the filter follows the
 vibrating accelerometer) lower both the validation loss and the relative pose error.
 """
 from __future__ import annotations
@@ -17,7 +17,8 @@ import pytest
 import torch
 import yaml
 
-from conftest import load_tool, make_bumpy_bag
+from bevo_ros.cli import load_tool
+from helpers.drives import make_bumpy_bag
 
 from bevo_ros.config import REPO_ROOT, load_config, load_learned_params
 from bevo_ros.core.loss import registration_kl_loss
@@ -53,7 +54,7 @@ def test_gradient_reaches_o_and_q_and_equals_plain_autograd(synth):
     for g in (g_o, g_q):
         assert bool(torch.isfinite(g).all()) and bool((g.abs() > 0).all())
 
-    # The same loss through run_sequence in one graph: same motion, loss and gradient.
+    # The same loss through run_sequence in one graph (no window, no accumulation): same motion, loss and gradient.
     ref = make_dukf(BAD_INIT[:2], BAD_INIT[2:], config.filter.motion_model)
     spec = training.bev_spec(config)
     mounting = (config.filter.mounting_pitch, config.filter.mounting_roll)
@@ -68,7 +69,8 @@ def test_gradient_reaches_o_and_q_and_equals_plain_autograd(synth):
     assert torch.allclose(ref.log_process_var.grad, g_o, rtol=1e-3, atol=1e-6)
     assert torch.allclose(ref.log_measurement_var.grad, g_q, rtol=1e-3, atol=1e-6)
 
-    # The engine's options: a mounting tilt and the turn compensation give run_sequence's motion too.
+    # The engine's options: a mounting tilt and the turn compensation (its first pass windowed too) give the
+    # unwindowed motion.
     config.filter.mounting_pitch, config.filter.turn_compensation = 0.01, True
     try:
         with torch.no_grad():
@@ -87,6 +89,25 @@ def test_gradient_reaches_o_and_q_and_equals_plain_autograd(synth):
     after = [dukf.log_process_var.detach(), dukf.log_measurement_var.detach()]
     for b, a in zip(before, after):
         assert bool((a != b).all()), "one optimiser step must change every log-variance"
+
+
+def test_a_frame_off_the_road_fails_its_two_pairs_across_windows(synth):
+    """A BEV without a valid pixel (the camera tilted to the sky) cannot be registered: its two pairs
+    get zero motion and the uniform distribution's loss, the other pairs are untouched."""
+    _, config, seq = synth
+    part = seq.frames(0, 8)
+    level = torch.zeros(len(part), 2, dtype=torch.float64)
+    tilted = level.clone()
+    tilted[3, 0] = 1.3  # frame 3 ends window 0 and starts window 1 (window=3)
+    base = sequence_pass(None, part, config, source="given", given_pitch_roll_road=level, window=3)
+    r = sequence_pass(None, part, config, source="given", given_pitch_roll_road=tilted, window=3)
+    assert base.n_failed == 0 and r.failed.tolist() == [False, False, True, True, False, False, False]
+    assert torch.all(r.motion[2:4] == 0) and torch.equal(r.motion[[0, 1, 4, 5, 6]], base.motion[[0, 1, 4, 5, 6]])
+    pairs_2_3 = sequence_pass(None, part.frames(2, 5), config, source="given", given_pitch_roll_road=level[2:5])
+    angle, shift = registration_targets(part.gt_motion()[2:4], training.bev_spec(config))
+    uniform = float(training._uniform_kl(angle, shift, training.loss_dpc(), training.bev_spec(config).size,
+                                         training.SIGMA_ANGLE, training.SIGMA_SHIFT))
+    assert r.loss * 7 == pytest.approx(base.loss * 7 - pairs_2_3.loss * 2 + uniform, rel=1e-6)
 
 
 def test_training_lowers_validation_loss_and_pose_error(synth):

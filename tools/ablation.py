@@ -114,7 +114,7 @@ def make_synthetic_bag(path: Path, seconds: float, seed: int, bumps: float, nois
         K = cam.K.clone()
         K[:2] *= image_scale
         cam = CameraModel(K, int(round(cam.width * image_scale)), int(round(cam.height_px * image_scale)),
-                          cam.T_base_cam, cam.height)
+                          cam.T_base_cam, cam.mount_height)
     drive = make_drive(seed=seed, duration=seconds, bumps=bumps, noise=noise, render="lazy", camera=cam,
                        curvature=0.3, road_tilt=False, speed_variation=0.3, ground_seed=0,
                        render_options=RenderOptions(supersample=1 if image_scale < 1 else 2))

@@ -49,7 +49,7 @@ def synthetic_messages(args) -> tuple[list, dict, str]:
     if args.quarter:
         K = camera.K.clone()
         K[:2] *= 0.25
-        camera = CameraModel(K, 320, 96, camera.T_base_cam.clone(), camera.height)
+        camera = CameraModel(K, 320, 96, camera.T_base_cam.clone(), camera.mount_height)
     drive = make_drive(seed=args.seed, duration=args.duration, frame_rate=args.frame_rate, imu_rate=args.imu_rate,
                        camera=camera, render=False)
     cache = Path(args.cache_dir) / (f"drive_s{args.seed}_d{args.duration:g}_f{args.frame_rate:g}_i{args.imu_rate:g}_"
@@ -84,7 +84,7 @@ def synthetic_messages(args) -> tuple[list, dict, str]:
     overrides = {
         "camera.fx": float(K[0, 0]), "camera.fy": float(K[1, 1]), "camera.cx": float(K[0, 2]),
         "camera.cy": float(K[1, 2]), "camera.width": int(camera.width), "camera.height_px": int(camera.height_px),
-        "camera.height": float(camera.height),
+        "camera.mount_height": float(camera.mount_height),
         "camera.base_T_camera": [float(v) for v in camera.T_base_cam.double().reshape(-1)],
     }
     desc = (f"synthetic drive seed {args.seed}, {args.duration:g} s, {camera.width}x{camera.height_px}, "

@@ -32,10 +32,10 @@ from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.phase_correlation import DpcConfig
 from bevo_ros.core.sequence import register_consecutive, project_frames
 from bevo_ros.core.motion import vehicle_motion_from_registration
-from bevo_ros.datasets import Sequence, load_sequence
+from bevo_ros.datasets import Recording, load_sequence
 
 
-def constant_attitude_motion(seq: Sequence, spec: BevSpec, pitch: float, roll: float) -> tuple[torch.Tensor, float]:
+def constant_attitude_motion(seq: Recording, spec: BevSpec, pitch: float, roll: float) -> tuple[torch.Tensor, float]:
     """``(F-1, 3)`` BEV motion with a constant road-relative attitude, and the mean peak quality."""
     pr = torch.tensor([[pitch, roll]], dtype=torch.float32).repeat(len(seq), 1)
     with torch.no_grad():
@@ -69,7 +69,7 @@ def find_roots(f, lo: float, hi: float, steps: int = 12, iters: int = 12) -> lis
     return roots
 
 
-def calibrate(seq: Sequence, spec: BevSpec, roll0: float = 0.0) -> tuple[float, float]:
+def calibrate(seq: Recording, spec: BevSpec, roll0: float = 0.0) -> tuple[float, float]:
     """``(pitch, roll)`` in radians: pitch first (at ``roll0``), then roll at that pitch. Where several
     attitudes match the ground truth, the one whose BEVs correlate best (the sharpest peaks) wins."""
     gt = seq.gt_motion()

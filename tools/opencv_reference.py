@@ -84,7 +84,7 @@ def bev_homography(camera: CameraModel, spec: BevSpec, pitch: float, roll: float
     T = camera.T_base_cam.double().numpy()
     R = R_road_base @ T[:3, :3]
     t = R_road_base @ T[:3, 3]
-    t[2] = camera.height
+    t[2] = camera.mount_height
     M = camera.K.double().numpy() @ R.T
     m = spec.metres_per_pixel / supersample
     N = supersample * spec.size

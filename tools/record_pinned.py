@@ -5,7 +5,7 @@ compares against: a refactor must leave these numbers identical.
 Recorded:
   kitti/<mode>      run_bag's trajectory (stamp, x, y, z of base_link in odom per frame) on the KITTI
                     sample (odometry sequence 06, converted by kitti_to_bag), modes fused and paper
-  synthetic/<mode>  the same on a short synthetic bumpy drive (test/conftest.py make_bumpy_bag)
+  synthetic/<mode>  the same on a short synthetic bumpy drive (test/helpers/drives.py make_bumpy_bag)
   training          a 1-epoch train_from_bag on that synthetic drive (fixed seed: random init and
                     its O search; the vehicle-filter fit off): the learned (best validated) O and
                     Q, and the O and Q after the epoch's Adam steps
@@ -54,7 +54,7 @@ def kitti_bag(kitti_root: Path, out: Path) -> Path:
 
 def synthetic_bag(out: Path) -> Path:
     sys.path.insert(0, str(REPO / "test"))
-    from conftest import make_bumpy_bag
+    from helpers.drives import make_bumpy_bag
 
     return make_bumpy_bag(out, seconds=SYNTH_SECONDS)
 

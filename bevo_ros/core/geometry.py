@@ -11,7 +11,7 @@ Conventions (REP-103 / REP-105), fixed here once:
   relative to it is ``R_road_base = Ry(pitch) @ Rx(roll)``.
 * Camera frames are optical frames: z along the optical axis, x right, y down.
   ``T_base_cam`` (4, 4) is the camera pose in the base frame (maps camera points to base).
-* The camera centre is held at a fixed height above the road (``CameraModel.height``): the
+* The camera centre is held at a fixed height above the road (``CameraModel.mount_height``): the
   paper's constant-elevation assumption, expressed for the camera because that is what a
   user measures.
 * BEV pixels: row 0 is the far edge, the last row the near edge; column 0 is the left edge.
@@ -75,14 +75,14 @@ class CameraModel:
         K: intrinsics ``(3, 3)`` of the (rectified) image.
         width, height_px: image size in pixels.
         T_base_cam: camera pose in the base (IMU) frame, ``(4, 4)``; optical camera axes.
-        height: camera centre height above the road plane in metres (held constant).
+        mount_height: camera centre height above the road plane in metres (held constant).
     """
 
     K: Tensor
     width: int
     height_px: int
     T_base_cam: Tensor
-    height: float = 1.65
+    mount_height: float = 1.65
 
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "CameraModel":
         return CameraModel(
@@ -90,7 +90,7 @@ class CameraModel:
             self.width,
             self.height_px,
             self.T_base_cam.to(device=device, dtype=dtype),
-            self.height,
+            self.mount_height,
         )
 
 
@@ -102,7 +102,7 @@ def camera_pose_on_road(camera: CameraModel, pitch: Tensor, roll: Tensor) -> tup
         pitch, roll: ``(B,)`` attitude of the base frame relative to the road plane, radians.
 
     Returns:
-        ``R_road_cam (B, 3, 3)`` and ``t_road_cam (B, 3)``; ``t_road_cam[:, 2] == camera.height``.
+        ``R_road_cam (B, 3, 3)`` and ``t_road_cam (B, 3)``; ``t_road_cam[:, 2] == camera.mount_height``.
     """
     dtype, device = pitch.dtype, pitch.device
     R_base_cam = camera.T_base_cam[:3, :3].to(device=device, dtype=dtype)
@@ -111,7 +111,7 @@ def camera_pose_on_road(camera: CameraModel, pitch: Tensor, roll: Tensor) -> tup
     R_road_cam = R_road_base @ R_base_cam
     t = R_road_base @ t_base_cam
     # The camera height is fixed: the base origin moves up/down with the attitude instead.
-    t_road_cam = torch.stack([t[..., 0], t[..., 1], torch.full_like(t[..., 2], camera.height)], dim=-1)
+    t_road_cam = torch.stack([t[..., 0], t[..., 1], torch.full_like(t[..., 2], camera.mount_height)], dim=-1)
     return R_road_cam, t_road_cam
 
 

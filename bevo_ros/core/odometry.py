@@ -212,8 +212,8 @@ class BevoOdometry:
     def set_camera(self, camera: CameraModel) -> None:
         """Replace the camera model (e.g. from the first CameraInfo); keeps the trajectory."""
         self.camera = camera.to(self.device, self.dtype)
-        self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.height)
-        self._yaw_per_roll = roll_yaw_sensitivity(camera.height)
+        self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
+        self._yaw_per_roll = roll_yaw_sensitivity(camera.mount_height)
 
     @property
     def pitch_roll(self) -> np.ndarray | None:

@@ -23,15 +23,14 @@ removes what the accelerometer gets wrong for seconds (braking, bends); bumps st
 the synthetic demo drive: 9 cm/frame at 2 s vs 31 cm/frame at 10 s).
 
 ``time_constant <= 0``, ``inf`` or ``None`` disables the low-pass: the attitude is returned
-unchanged, minus ``static_offset`` if one is given (a fixed, known mounting/road tilt). With the
-low-pass enabled a static offset would have no effect (the low-pass removes any constant), so
-the two are exclusive.
+unchanged. The rig's static attitude on the road (``filter.mounting_pitch/roll``, the engine's
+``mounting_attitude``) is added back by the callers (:class:`~bevo_ros.core.odometry.BevoOdometry`,
+:func:`~bevo_ros.core.sequence.frame_attitudes`), only with the low-pass on: it removes every
+constant, while without it the gravity-referenced attitude holds the mounting already.
 """
 from __future__ import annotations
 
 import math
-from typing import Sequence
-
 import torch
 
 Tensor = torch.Tensor
@@ -71,15 +70,6 @@ def _check_time_constant(time_constant: float | Tensor | None) -> float | Tensor
     return time_constant if is_enabled(value) else None
 
 
-def _offset_tensor(static_offset: Sequence[float] | Tensor | None, like: Tensor) -> Tensor | None:
-    if static_offset is None:
-        return None
-    off = torch.as_tensor(static_offset, dtype=like.dtype, device=like.device)
-    if off.shape != (2,) or not bool(torch.isfinite(off).all()):
-        raise ValueError(f"static_offset must be 2 finite values (pitch, roll) in rad, got {static_offset!r}")
-    return off
-
-
 def _check_attitude(x: Tensor, shape: tuple[int | str, ...], name: str) -> None:
     """ValueError unless ``x`` is a finite tensor of ``shape`` (a str entry = any size, named)."""
     ok = isinstance(x, Tensor) and x.dim() == len(shape)
@@ -95,7 +85,6 @@ def road_relative_attitude(
     pitch_roll: Tensor,
     dt: Tensor,
     time_constant: float | Tensor | None,
-    static_offset: Sequence[float] | Tensor | None = None,
 ) -> Tensor:
     """Road-relative attitude of whole sequences (batched, differentiable).
 
@@ -104,7 +93,6 @@ def road_relative_attitude(
         dt: ``(B, T)`` seconds since the previous sample, >= 0; ``dt[:, 0]`` is unused (sample 0
             initialises the low-pass, so the output starts at 0).
         time_constant: tau in seconds; <= 0, inf or None disables the low-pass.
-        static_offset: ``(2,)`` constant tilt to subtract, only with the low-pass disabled.
 
     Returns:
         ``(B, T, 2)`` attitude relative to the road plane; identical to feeding the samples one by
@@ -115,11 +103,8 @@ def road_relative_attitude(
     if not isinstance(dt, Tensor) or dt.shape != (b, t):
         raise ValueError(f"dt must be a tensor of shape ({b}, {t}), got {getattr(dt, 'shape', type(dt).__name__)}")
     tau = _check_time_constant(time_constant)
-    offset = _offset_tensor(static_offset, pitch_roll)
     if tau is None:
-        return pitch_roll if offset is None else pitch_roll - offset
-    if offset is not None:
-        raise ValueError("static_offset has no effect with the low-pass enabled; disable one of them")
+        return pitch_roll
     if t > 1:
         _check_attitude(dt[:, 1:], (b, t - 1), "dt[:, 1:]")
         if bool((dt[:, 1:] < 0).any()):
@@ -146,19 +131,12 @@ class RoadTiltFilter:
 
     Args:
         time_constant: tau in seconds; <= 0, inf or None disables the low-pass (see module doc).
-        static_offset: ``(2,)`` constant [pitch, roll] tilt (rad) to subtract, only with the
-            low-pass disabled.
     """
 
-    def __init__(self, time_constant: float | None,
-                 static_offset: Sequence[float] | Tensor | None = None) -> None:
+    def __init__(self, time_constant: float | None) -> None:
         tau = _check_time_constant(time_constant)
         # A tensor is read as its value: this streaming form is not differentiable.
         self.time_constant = None if tau is None else float(tau.detach() if isinstance(tau, Tensor) else tau)
-        if self.time_constant is not None and static_offset is not None:
-            raise ValueError("static_offset has no effect with the low-pass enabled; disable one of them")
-        offset = None if static_offset is None else _offset_tensor(static_offset, torch.zeros(2, dtype=torch.float64))
-        self.static_offset: tuple[float, float] | None = None if offset is None else tuple(offset.tolist())
         self.reset()
 
     @property
@@ -183,7 +161,7 @@ class RoadTiltFilter:
         if not (math.isfinite(stamp) and math.isfinite(pitch) and math.isfinite(roll)):
             raise ValueError(f"stamp, pitch and roll must be finite, got {stamp!r}, {pitch!r}, {roll!r}")
         if not self.enabled:
-            self._tilt = self.static_offset or (0.0, 0.0)
+            self._tilt = (0.0, 0.0)
         elif self._tilt is None:
             self._tilt = (pitch, roll)
         else:

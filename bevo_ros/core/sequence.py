@@ -8,6 +8,7 @@ So a model trained here behaves the same online.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 
@@ -15,12 +16,13 @@ from .bev import project_to_bev
 from .dukf import DUKF, accel_to_pitch_roll, remove_turn_acceleration
 from .geometry import BevSpec, CameraModel
 from .motion import registration_from_vehicle_motion, vehicle_motion_from_registration
-from .phase_correlation import DpcConfig, Registration, prepare, register_prepared
+from .phase_correlation import DpcConfig, Registration, prepare, register_prepared, soft_weight
 from .road_tilt import is_enabled, road_relative_attitude
 
 Tensor = torch.Tensor
 
 ATTITUDE_SOURCES = ("dukf", "accel", "given")
+MIN_BEV_WEIGHT = 1e-6  # the engine's own test (phase_correlation.prepare) for "no valid pixel"
 
 
 def frame_imu_indices(imu_stamps: Tensor, frame_stamps: Tensor) -> Tensor:
@@ -134,10 +136,12 @@ def register_consecutive(bev: Tensor, mask: Tensor, config: DpcConfig) -> Regist
 class SequenceResult:
     """Everything a training step or an ablation needs from one pass."""
 
-    registration: Registration  # over the F-1 consecutive pairs
-    motion: Tensor  # (F-1, 3) estimated (dx, dy, dyaw)
+    registration: Registration | None  # over the registered pairs (not ``failed``); None when windowed
+    motion: Tensor  # (F-1, 3) float64 cpu estimated (dx, dy, dyaw), zero where failed
+    failed: Tensor  # (F-1,) bool cpu: a BEV of the pair has no valid pixel (the camera tilted off the road)
     pitch_roll_gravity: Tensor  # (F, 2) at the frames
     pitch_roll_road: Tensor  # (F, 2) used for the BEVs
+    loss: float = 0.0  # sum of ``pair_loss`` over the windows
 
 
 def run_sequence(
@@ -156,13 +160,15 @@ def run_sequence(
     mounting_attitude: tuple[float, float] = (0.0, 0.0),
     turn_compensation: bool = False,
     max_imu_gap: float | None = None,
+    window: int | None = None,
+    pair_loss: Callable[[Registration, Tensor], Tensor] | None = None,
 ) -> SequenceResult:
     """BEVO over a recording; differentiable in the DUKF's O and Q.
 
     Args:
         imu_stamps: ``(N,)`` float64 seconds; gyro, accel ``(N, 3)``.
         frame_stamps: ``(F,)`` float64 seconds, each >= ``imu_stamps[0]``.
-        images: ``(F, H, W)``.
+        images: ``(F, H, W)`` (any device; each window is moved to the attitude's).
         source: ``"dukf"``, ``"accel"`` (w/o DUKF) or ``"given"`` (``given_pitch_roll_road``, e.g.
             ground truth: the "w/ GT" ablation; used as is, without ``mounting_attitude``).
         mounting_attitude: static (pitch, roll) of the base on the road, added to the filtered
@@ -173,19 +179,47 @@ def run_sequence(
             the speeds come from a first, gradient-free pass (online they come from the previous
             frame's estimate, so the two differ only by what that first pass changes).
         max_imu_gap: longer IMU gaps restart the filter (the engine's ``max_imu_gap``).
+        window: frame pairs per BEV/DPC chunk, to bound memory (None: one chunk, and the
+            registration is kept in the result).
+        pair_loss: ``(registration of a window's registered pairs, their pair indices (K,) cpu) ->
+            summed loss``. With gradients enabled, the gradient of the mean over all ``F-1`` pairs is
+            accumulated into the DUKF's ``.grad``: each window's gradient w.r.t. the attitude is
+            accumulated, then pushed through the DUKF once (exact, memory bounded by the window).
     """
     if source not in ATTITUDE_SOURCES:
         raise ValueError(f"source must be one of {ATTITUDE_SOURCES}, got {source!r}")
+    n_pairs = frame_stamps.shape[0] - 1
+    if window is not None and window < 1:
+        raise ValueError(f"window must be >= 1 frame pair, got {window}")
     speed = None
     if turn_compensation and source != "given":
         with torch.no_grad():
             first = run_sequence(dukf, camera, spec, dpc, imu_stamps, gyro, accel, frame_stamps, images,
                                  road_tilt_time_constant, source, None, mounting_attitude, turn_compensation=False,
-                                 max_imu_gap=max_imu_gap)
-        speed = imu_speeds(imu_stamps, frame_stamps, first.motion)
+                                 max_imu_gap=max_imu_gap, window=window)
+        speed = imu_speeds(imu_stamps, frame_stamps, first.motion.to(frame_stamps.device))
     gravity, road = frame_attitudes(dukf, imu_stamps, gyro, accel, frame_stamps, road_tilt_time_constant, source,
                                     given_pitch_roll_road, mounting_attitude, speed, max_imu_gap)
-    return _register_frames(images, camera, road, gravity, spec, dpc)
+    accumulate = pair_loss is not None and road.requires_grad
+    road_in = road.detach().requires_grad_() if accumulate else road  # the windows' gradients gather here
+    motion = torch.zeros(n_pairs, 3, dtype=torch.float64)
+    failed = torch.zeros(n_pairs, dtype=torch.bool)
+    registration, loss_sum = None, 0.0
+    step = window or max(n_pairs, 1)
+    for w0 in range(0, n_pairs, step):
+        w1 = min(w0 + step, n_pairs)  # pairs w0..w1-1 = frames w0..w1
+        reg, m, bad = register_frames(images[w0:w1 + 1].to(road.device), camera, road_in[w0:w1 + 1], spec, dpc)
+        motion[w0:w1] = m.detach().double().cpu()
+        failed[w0:w1] = bad.cpu()
+        registration = reg if window is None else None
+        if pair_loss is not None and reg is not None:
+            loss = pair_loss(reg, torch.arange(w0, w1)[~bad.cpu()])
+            if accumulate and loss.requires_grad:
+                (loss / n_pairs).backward()
+            loss_sum += float(loss.detach())
+    if accumulate and road_in.grad is not None:
+        road.backward(road_in.grad)
+    return SequenceResult(registration, motion, failed, gravity, road, loss_sum)
 
 
 def frame_attitudes(dukf: DUKF | None, imu_stamps: Tensor, gyro: Tensor, accel: Tensor, frame_stamps: Tensor,
@@ -213,12 +247,30 @@ def frame_attitudes(dukf: DUKF | None, imu_stamps: Tensor, gyro: Tensor, accel: 
     return attitude[idx], road
 
 
-def _register_frames(images: Tensor, camera: CameraModel, road: Tensor, gravity: Tensor, spec: BevSpec,
-                     dpc: DpcConfig) -> SequenceResult:
+def register_frames(images: Tensor, camera: CameraModel, road: Tensor, spec: BevSpec,
+                    dpc: DpcConfig) -> tuple[Registration | None, Tensor, Tensor]:
+    """The per-frame batched math: BEVs at the road-relative attitude, each frame prepared once,
+    consecutive pairs registered, motion. A frame whose BEV has no valid pixel (the engine's
+    :func:`~bevo_ros.core.phase_correlation.prepare` would refuse it) fails both its pairs.
+
+    Args:
+        images: ``(F, H, W)``; road: ``(F, 2)`` [pitch, roll].
+
+    Returns:
+        registration of the ``K`` registered pairs (None if none), motion ``(F-1, 3)`` (zero where
+        failed) and failed ``(F-1,)`` bool.
+    """
     bev, mask = project_frames(images, camera, road.float(), spec)
-    reg = register_consecutive(bev, mask, dpc)
-    motion = vehicle_motion_from_registration(reg.angle, reg.shift, spec)
-    return SequenceResult(reg, motion, gravity, road)
+    valid = soft_weight(mask, dpc).sum(dim=(-1, -2)) > MIN_BEV_WEIGHT  # (F,)
+    ok = valid[:-1] & valid[1:]
+    motion = bev.new_zeros(ok.shape[0], 3)
+    if not bool(ok.any()):
+        return None, motion, ~ok
+    pos = torch.cumsum(valid.long(), 0) - 1  # frame -> index among the valid ones
+    prepared = prepare(bev[valid], mask[valid], dpc)
+    reg = register_prepared(prepared[pos[:-1][ok]], prepared[pos[1:][ok]], dpc)
+    motion = motion.index_put((ok,), vehicle_motion_from_registration(reg.angle, reg.shift, spec))
+    return reg, motion, ~ok
 
 
 def registration_targets(motion: Tensor, spec: BevSpec) -> tuple[Tensor, Tensor]:

@@ -34,7 +34,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "sensor_late_factor": (1.0, 1000.0),
     "camera.fx": (0.0, INF), "camera.fy": (0.0, INF), "camera.cx": (-INF, INF), "camera.cy": (-INF, INF),
     "camera.width": (0, 100_000), "camera.height_px": (0, 100_000),
-    "camera.height": (0.01, 100.0),
+    "camera.mount_height": (0.01, 100.0),
     "bev.size": (8, 4096), "bev.metres_per_pixel": (1e-4, 10.0), "bev.forward_offset": (-1000.0, 1000.0),
     "filter.road_tilt_time_constant": (0.0, 3600.0), "filter.max_imu_gap": (0.001, 3600.0),
     "filter.mounting_pitch": (-math.pi / 2, math.pi / 2), "filter.mounting_roll": (-math.pi / 2, math.pi / 2),

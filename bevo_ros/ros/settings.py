@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from bevo_ros.config import BevoConfig, ConfigError, coerce_setting, resolve_path
+from bevo_ros.config import RENAMED, BevoConfig, ConfigError, coerce_setting, resolve_path
 from bevo_ros.ros import parameters as ros_params
 
 
@@ -109,7 +109,7 @@ DESCRIPTIONS = {
     "camera.cy": "principal point y (px)",
     "camera.width": "image width (px); images of another size are dropped",
     "camera.height_px": "image height (px)",
-    "camera.height": "camera centre height above the road (m)",
+    "camera.mount_height": "camera centre height above the road (m)",
     "camera.base_T_camera": "camera optical frame pose in base_frame, 4x4 row-major (used when /tf_static has no "
                             "base_frame -> camera frame)",
     "bev.size": "BEV grid is size x size pixels",
@@ -158,21 +158,28 @@ def defaults() -> dict[str, Any]:
 def declare(node, node_name: str) -> tuple[NodeSettings, BevoConfig]:
     """Declare one parameter per NodeSettings field and per flat BevoConfig key (descriptors with
     ranges, read_only for what is fixed at start) and read them; ConfigError when one is unusable."""
+    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
     flat: dict[str, Any] = {}
-    for name, default in defaults().items():
+    names = defaults()
+    for name, default in names.items():
         desc = ros_params.descriptor(name, default, DESCRIPTIONS.get(name, "engine setting, see params/kitti.yaml"))
         try:
             flat[name] = node.declare_parameter(name, default, desc).value
         except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
             raise ConfigError(f"parameter '{name}': {exc}") from None
+    for old, new in RENAMED.items():  # old names still read (BevoConfig.from_flat warns)
+        value = node.declare_parameter(old, None, ParameterDescriptor(
+            description=f"deprecated: renamed {new}", dynamic_typing=True)).value
+        if value is not None:
+            flat[old] = value
     settings = NodeSettings(**{f.name: coerce_setting(flat[f.name], getattr(NodeSettings(), f.name), f.name)
                                for f in dataclasses.fields(NodeSettings)})
     validate(settings)
-    config = BevoConfig.from_flat(flat, source=f"{node_name} parameters")
+    config = BevoConfig.from_flat(flat, source=f"{node_name} parameters", warn=node.get_logger().warning)
     config_flat = config.to_flat()
-    for name in flat:
+    for name in names:
         why = ros_params.check(name, getattr(settings, name) if hasattr(settings, name) else config_flat.get(name))
         if why:
             raise ConfigError(why)

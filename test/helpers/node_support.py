@@ -19,7 +19,8 @@ from typing import Any, Callable
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+from helpers.env import REPO
+
 KITTI_PARAMS = REPO / "params" / "kitti.yaml"
 VENV_BIN = Path(sys.executable).parent
 
@@ -35,7 +36,7 @@ def small_camera():
     cam = kitti_like_camera()
     K = cam.K.clone()
     K[:2] *= 0.25  # 1241x376 -> ~310x94; a 320x96 image keeps the principal point inside
-    return CameraModel(K, 320, 96, cam.T_base_cam.clone(), cam.height)
+    return CameraModel(K, 320, 96, cam.T_base_cam.clone(), cam.mount_height)
 
 
 @functools.lru_cache(maxsize=8)
@@ -52,7 +53,7 @@ def camera_overrides(camera) -> dict[str, Any]:
         "camera.fx": float(K[0, 0]), "camera.fy": float(K[1, 1]),
         "camera.cx": float(K[0, 2]), "camera.cy": float(K[1, 2]),
         "camera.width": int(camera.width), "camera.height_px": int(camera.height_px),
-        "camera.height": float(camera.height),
+        "camera.mount_height": float(camera.mount_height),
         "camera.base_T_camera": [float(v) for v in camera.T_base_cam.detach().cpu().double().reshape(-1)],
     }
 
