@@ -107,7 +107,7 @@ def dump_config_main(argv: list[str]) -> int:
     node = None
     if not args.engine_only:
         try:
-            from bevo_ros.node import DESCRIPTIONS, NodeSettings
+            from bevo_ros.ros.settings import DESCRIPTIONS, NodeSettings
 
             node = (NodeSettings(), DESCRIPTIONS)
         except ImportError as exc:  # no ROS in this environment: the engine's part still helps

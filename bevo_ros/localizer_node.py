@@ -183,9 +183,9 @@ class BevoLocalizerNode(Node):
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._tf_name, self._send_tf = ("none", None)
         if s.publish_tf:
-            from bevo_ros.node import _tf_backend
+            from bevo_ros.ros.publishers import tf_backend
 
-            self._tf_name, self._send_tf = _tf_backend(self)
+            self._tf_name, self._send_tf = tf_backend(self)
             if self._send_tf is None:
                 self.get_logger().error("publish_tf is true but neither tf2_ros nor tf2_msgs is available: "
                                         "TF map -> odom is DISABLED (the pose is still published)")

@@ -73,7 +73,7 @@ def test_dump_config_round_trips_through_load_config(tmp_path, capsys):
     assert got == expected
     for name, value in expected.items():  # also typed as the dataclass has it (1e-05 must not read as text)
         assert type(flat[name]) is type(value), name
-    from bevo_ros.node import NodeSettings
+    from bevo_ros.ros.settings import NodeSettings
 
     for field in NodeSettings.__dataclass_fields__:  # and the node's own settings
         assert field in flat

@@ -152,6 +152,8 @@ def test_black_frame_does_not_move_a_still_vehicle(camera):
     print(f"\nper-frame motion max {moves.max():.4f} m; rejected textureless {odo.counters.rejected_textureless}")
     assert moves.max() < 0.2
     assert odo.counters.rejected_textureless >= 1
+    rejected = [e for e in odo.take_events() if e.kind == "rejected_textureless"]  # what the node reports
+    assert len(rejected) == odo.counters.rejected_textureless and rejected[0].stamp == float(d.frame_stamps[8])
     assert np.linalg.norm(steps[-1].position[:2]) < 0.2
 
 

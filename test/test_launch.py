@@ -92,7 +92,7 @@ def description(monkeypatch):
 def test_launch_file_names_only_what_exists(description):
     from bevo_ros import cli
     from bevo_ros.commands import play
-    from bevo_ros.node import NodeSettings
+    from bevo_ros.ros.settings import NodeSettings
     from bevo_ros.config import BevoConfig
 
     objs = list(_walk(description))

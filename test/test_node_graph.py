@@ -174,7 +174,7 @@ def test_read_only_parameters_are_refused_and_live_ones_take_effect(graph, drive
 
     tf = graph.sub(TFMessage, "/tf", QoSProfile(depth=100))
     assert graph.until(lambda: imu_pub.get_subscription_count() and image_pub.get_subscription_count()
-                       and node.bev_pub.get_subscription_count() and node.path_pub.get_subscription_count())
+                       and node.outputs.bev_pub.get_subscription_count() and node.outputs.path_pub.get_subscription_count())
     messages = drive_messages(drive)
     _feed(graph, node, imu_pub, image_pub, messages[:40])
     assert graph.until(lambda: len(odom) >= 3 and len(tf) >= 3 and len(bevs) >= 3)
@@ -205,8 +205,8 @@ def test_learned_params_file_resolves_beside_the_params_file_that_set_it(context
 
     import yaml
 
-    from bevo_ros.node import BevoNode, _params_file_from_args
-    from bevo_ros.ros.parameters import params_file_setting
+    from bevo_ros.node import BevoNode
+    from bevo_ros.ros.parameters import params_file_setting, params_files_from_args
 
     car = tmp_path / "vehicle" / "config"
     car.mkdir(parents=True)
@@ -222,7 +222,7 @@ def test_learned_params_file_resolves_beside_the_params_file_that_set_it(context
     ctx = rclpy.context.Context()
     rclpy.init(args=argv, context=ctx, domain_id=DOMAIN_ID)
     try:
-        node = BevoNode(context=ctx, namespace="car1", params_file=_params_file_from_args(argv))
+        node = BevoNode(context=ctx, namespace="car1", params_file=params_files_from_args(argv))
         try:
             assert node.learned_path == (car / "car_learned.yaml").resolve()
         finally:
@@ -257,7 +257,7 @@ def test_parameters_are_the_fallback_after_camera_info_timeout(graph, drive):
                                                                       if k == "no_camera_info"][0]
     graph.until(lambda: False, 0.35)
     _feed(graph, node, imu_pub, image_pub, messages[2:40])
-    assert node.events["camera_info_timeout"] == 1 and node.calibration.source == "parameters camera.*"
+    assert node.events["camera_info_timeout"] == 1 and node.rig.calibration.source == "parameters camera.*"
     assert graph.until(lambda: len(odom) >= 3)
     diag = graph.sub(DiagnosticArray, "/diagnostics", 100)
 
@@ -273,7 +273,7 @@ def test_parameters_are_the_fallback_after_camera_info_timeout(graph, drive):
     # a CameraInfo arriving later replaces the parameters
     info = _camera_info(drive.camera)
     graph.send(node, info_pub, info, "camera_info_in")
-    assert node.calibration.source.startswith("CameraInfo on /camera/camera_info")
+    assert node.rig.calibration.source.startswith("CameraInfo on /camera/camera_info")
     diag.clear()
     assert graph.until(lambda: calibration_status() is not None and calibration_status().level == DiagnosticStatus.OK)
 
@@ -336,7 +336,7 @@ def test_tf_static_extrinsics_and_a_z_down_imu(graph, drive):
     _feed(graph, node, imu_pub, image_pub, sent)
     expected = offline_steps(base_messages, truth)
     assert graph.until(lambda: len(odom) >= len(expected))
-    assert node._extrinsics_source == "/tf_static base_link -> cam_optical"
+    assert node.rig.extrinsics_source == "/tf_static base_link -> cam_optical"
     got = np.array([[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z] for m in odom])
     want = np.array([s.position for s in expected])
     print(f"/tf_static rig + z-down IMU vs offline truth: max |dp| = {np.abs(got - want).max():.2e} m over {len(got)}")
@@ -460,7 +460,7 @@ def test_distorted_camera_info_makes_the_node_undistort(graph, drive):
     assert graph.until(lambda: imu_pub.get_subscription_count() and image_pub.get_subscription_count()
                        and info_pub.get_subscription_count())
     graph.send(node, info_pub, info, "camera_info_in")
-    assert node.calibration.maps is not None and "undistorted" in node.calibration.source
+    assert node.rig.calibration.maps is not None and "undistorted" in node.rig.calibration.source
     messages = drive_messages(drive)
     _feed(graph, node, imu_pub, image_pub, messages)
     calib = calibration_from_camera_info(info, image_topic="camera/image_raw")

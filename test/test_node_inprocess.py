@@ -94,9 +94,9 @@ class Harness:
         wanted = [self.imu_pub, self.image_pub] + ([self.info_pub] if ov.get("use_camera_info") else [])
         assert spin_until(self.executor, lambda: all(p.get_subscription_count() > 0 for p in wanted), 10), \
             "the node's subscriptions were not discovered"
-        assert spin_until(self.executor, lambda: self.node.odom_pub.get_subscription_count() > 0, 10)
+        assert spin_until(self.executor, lambda: self.node.outputs.odom_pub.get_subscription_count() > 0, 10)
         if subscribe_outputs:
-            spin_until(self.executor, lambda: self.node.bev_pub.get_subscription_count() > 0, 10)
+            spin_until(self.executor, lambda: self.node.outputs.bev_pub.get_subscription_count() > 0, 10)
 
     def send(self, kind: str, msg, timeout: float = 10.0) -> None:
         """Publish one message and spin until the node has taken it (lock-step, deterministic)."""
@@ -173,7 +173,7 @@ def test_odometry_equals_offline_core(harness_factory, drive):
     assert np.linalg.norm(_odom_arrays(h.odom[-1])[0]) > 1.0
 
     # TF through the locally built tf2_msgs (or tf2_ros), one transform per odometry message
-    if h.node.tf_backend != "none":
+    if h.node.outputs.tf_backend != "none":
         assert spin_until(h.executor, lambda: len(h.tf) >= len(h.odom), 5)
         tf = h.tf[-1].transforms[0]
         assert (tf.header.frame_id, tf.child_frame_id) == ("odom", "base_link")
@@ -194,7 +194,7 @@ def test_odometry_equals_offline_core(harness_factory, drive):
         assert key in values, values
     assert values["drops_total"] == "0" and int(values["odometry_published"]) == len(expected)
     assert 0.0 <= float(values["peak_quality_mean"]) <= 1.0
-    p50, p99, _ = h.node.latency_percentiles()
+    p50, p99, _ = h.node.report.latency_percentiles()
     assert 0 < p50 <= p99 < 60.0  # figures: tools/bench_node.py
 
 
@@ -359,7 +359,7 @@ def test_camera_info_supplies_the_intrinsics(harness_factory, drive):
     P[:, :3] = K
     info.p = P.reshape(-1).tolist()
     h.send("info", info)
-    assert h.node.engine is not None and h.node.camera.width == drive.camera.width
+    assert h.node.engine is not None and h.node.rig.camera.width == drive.camera.width
     h.send_all(messages[2:60])
     h.settle()
     assert len(h.odom) >= 4
@@ -396,7 +396,7 @@ def test_tf_disabled_is_said_once(harness_factory, drive, monkeypatch):
     monkeypatch.setitem(sys.modules, "tf2_msgs", None)
     monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)
     h = harness_factory(base_overrides(drive), subscribe_outputs=False)
-    assert h.node.tf_backend == "none"
+    assert h.node.outputs.tf_backend == "none"
     h.send_all(drive_messages(drive)[:40])
     h.settle()
     assert len(h.odom) >= 3

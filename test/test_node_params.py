@@ -13,7 +13,7 @@ import pytest
 rclpy = pytest.importorskip("rclpy")
 
 from bevo_ros.config import BevoConfig, load_config  # noqa: E402
-from bevo_ros.node import DESCRIPTIONS, NodeSettings  # noqa: E402
+from bevo_ros.ros.settings import DESCRIPTIONS, NodeSettings  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI_PARAMS = REPO / "params" / "kitti.yaml"
@@ -42,7 +42,7 @@ def test_every_parameter_is_in_kitti_yaml_with_a_comment():
 
 def test_every_node_parameter_has_a_description():
     missing = [f.name for f in dataclasses.fields(NodeSettings) if not DESCRIPTIONS.get(f.name)]
-    assert not missing, f"bevo_ros/node.py DESCRIPTIONS lacks {missing}"
+    assert not missing, f"bevo_ros/ros/settings.py DESCRIPTIONS lacks {missing}"
 
 
 @pytest.mark.parametrize("namespace", ["", "car1"])  # launch's namespace:=car1 must not lose the file
@@ -64,7 +64,7 @@ def test_kitti_yaml_loads_through_rcl_into_the_node(namespace):
                 assert getattr(node.settings, f.name) == flat[f.name], f.name
             assert node.learned_path == (REPO / "params" / "learned_default.yaml").resolve()
             # CameraInfo first: no camera until it arrives (the 1226x370 parameters are the fallback)
-            assert node.camera is None and node.calibration is None
+            assert node.rig.camera is None and node.rig.calibration is None
             assert (config.camera.width, config.camera.height_px) == (1226, 370)
         finally:
             node.destroy_node()

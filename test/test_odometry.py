@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from bevo_ros.config import BevoConfig, build_odometry
+from bevo_ros.core.odometry import EngineEvent, OutOfOrderError
 from bevo_ros.io.learned_params import LearnedParams
-from bevo_ros.core.odometry import OutOfOrderError
 from bevo_ros.core.phase_correlation import DpcConfig
 from bevo_ros.core.sequence import frame_attitudes, run_sequence
 from bevo_ros.datasets.rosbag import feed_engine
@@ -181,9 +181,31 @@ def test_bad_input_raises_clear_errors(drive):
 def test_images_before_any_imu_are_dropped_and_counted(drive):
     d, images = drive
     odo = engine(d)
-    assert odo.add_image(float(d.frame_stamps[0]), images[0]) == []
+    assert odo.add_image(float(d.frame_stamps[0]), images[0], tag="frame 0") == []
+    assert odo.pending_tags == ["frame 0"]
     assert odo.flush() == []
     assert odo.counters.dropped_no_imu == 1
+    assert odo.take_events() == [EngineEvent("dropped_no_imu", float(d.frame_stamps[0]), "frame 0")]
+    assert odo.take_events() == []  # taken once
+
+
+def test_each_step_carries_its_images_tag_and_drops_are_events(drive):
+    """The caller's tag comes back with the step of its image (queued or not); a queue overflow
+    reports the dropped image's tag, an IMU gap its stamp."""
+    d, images = drive
+    odo = engine(d, max_imu_gap=0.05)
+    odo.max_pending_images = 1
+    t0 = float(d.imu_stamps[0])
+    odo.add_imu(t0, d.gyro[0], d.accel[0])
+    assert odo.add_image(t0 + 0.01, images[0], tag="a") == []
+    assert odo.add_image(t0 + 0.02, images[1], tag="b") == []  # "a" overflows the queue of one
+    steps = odo.add_imu(t0 + 1.0, d.gyro[1], d.accel[1])  # releases "b"; a gap > max_imu_gap
+    steps += odo.add_image(t0 + 0.5, images[2], tag="c")  # the IMU is past it: processed at once
+    assert [s.tag for s in steps] == ["b", "c"]
+    assert odo.take_events() == [EngineEvent("dropped_pending_overflow", t0 + 0.01, "a"),
+                                 EngineEvent("imu_gaps", t0 + 1.0)]
+    assert (odo.counters.dropped_pending_overflow, odo.counters.imu_gaps) == (1, 1)
+    assert feed(engine(d), d, images[:2])[0].tag is None  # no tag given
 
 
 def test_imu_gap_reinitialises_and_reset_restarts(drive):
@@ -215,6 +237,35 @@ def test_a_frame_whose_bev_is_invalid_is_dropped_not_raised(drive):
     steps += odo.add_image(t0 + 0.10, images[1])
     print(f"\nsteps {len(steps)}, dropped (invalid BEV) {odo.counters.dropped_invalid_bev}")
     assert odo.counters.dropped_invalid_bev >= 1
+    assert [e.kind for e in odo.take_events()] == ["dropped_invalid_bev"] * odo.counters.dropped_invalid_bev
     assert odo._last_imu == t0 + 0.10  # the IMU sample was fused, nothing raised
     odo.reset()
     assert len(feed(odo, d, images)) == len(images)  # and the engine works on afterwards
+
+
+@pytest.mark.parametrize("error", [ValueError, TypeError])
+def test_a_bug_while_processing_a_frame_is_raised_not_counted_as_a_drop(drive, monkeypatch, error):
+    """Only InvalidBevError is bad input (a drop); any other exception in the frame's processing is
+    a bug and must reach the caller."""
+    import bevo_ros.core.odometry as odometry
+
+    d, images = drive
+    odo = engine(d)
+
+    def broken(*args, **kwargs):
+        raise error("a bug in the registration")
+
+    monkeypatch.setattr(odometry, "register_prepared", broken)
+    with pytest.raises(error, match="a bug in the registration"):
+        feed(odo, d, images[:3])
+    assert odo.counters.dropped_invalid_bev == 0
+
+
+def test_the_invalid_bev_error_is_what_the_engine_counts(drive):
+    """The BEV check raises the dedicated error (a ValueError for older callers)."""
+    from bevo_ros.core.phase_correlation import InvalidBevError, prepare
+
+    empty = torch.zeros(1, 1, 32, 32)
+    with pytest.raises(InvalidBevError):
+        prepare(empty, empty, DpcConfig())
+    assert issubclass(InvalidBevError, ValueError)

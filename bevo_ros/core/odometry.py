@@ -3,7 +3,10 @@
 Feed it IMU and image messages in any interleaving; it keeps the one ordering rule that makes
 online and offline results identical: an image is processed once every IMU sample with a stamp
 <= the image stamp has been fused (a later IMU sample arrives), or when ``flush()`` is called
-(the node's configurable wait; the end of a bag).
+(the node's configurable wait; the end of a bag). An image's ``tag`` (anything the caller needs
+back, e.g. the node's header stamp and arrival time) comes back on its :class:`OdometryStep`;
+what the engine drops or rejects is counted (:class:`Counters`) and reported as
+:class:`EngineEvent` s the caller reads with :meth:`BevoOdometry.take_events`.
 """
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,7 +24,7 @@ from .dukf import DUKF, steady_state_variance
 from .geometry import BevSpec, CameraModel
 from .motion import (motion_covariance_from_registration, pitch_scale_sensitivity, roll_yaw_sensitivity,
                      vehicle_motion_from_registration)
-from .phase_correlation import DpcConfig, prepare, register_prepared
+from .phase_correlation import DpcConfig, InvalidBevError, prepare, register_prepared
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
@@ -68,6 +72,18 @@ class OdometryStep:
     accepted: tuple[bool, bool] = (True, True)  # fused mode: (translation, rotation) measurement used
     speed: float = float("nan")  # fused mode: the motion filter's forward speed, m/s
     filter_inputs: dict | None = None  # fused mode: VehicleFilter.step's arguments this frame (training replays them)
+    tag: Any = None  # the caller's tag given to add_image with this image
+
+
+@dataclass(frozen=True)
+class EngineEvent:
+    """One thing the engine counted (``kind`` is the :class:`Counters` field it incremented):
+    a dropped image (``dropped_*``, with the image's ``tag``), an IMU gap (``imu_gaps``, at the
+    IMU stamp) or a frame whose measurement the motion filter rejected (``rejected_*``)."""
+
+    kind: str
+    stamp: float
+    tag: Any = None
 
 
 @dataclass
@@ -154,6 +170,8 @@ class BevoOdometry:
         self.turn_compensation = turn_compensation
         self.max_pending_images = max_pending_images
         self.counters = Counters()
+        # what was counted, for a caller that reports it (the node); bounded for callers that never read it
+        self._events: deque[EngineEvent] = deque(maxlen=1000)
         self.reset()
         self.counters.resets = 0  # count explicit resets only
 
@@ -174,7 +192,7 @@ class BevoOdometry:
         # projected with the attitude of the last IMU sample at or before its stamp, however late
         # it arrives.
         self._history: deque[tuple[float, tuple[float, float], tuple]] = deque(maxlen=4000)
-        self._pending: list[tuple[float, np.ndarray]] = []
+        self._pending: list[tuple[float, np.ndarray, Any]] = []  # (stamp, image, tag) waiting for IMU
         self._prev = None  # prepared BEV of the previous frame
         self._prev_stamp: float | None = None
         self._speed = 0.0  # forward speed of the latest VO step, m/s
@@ -206,17 +224,33 @@ class BevoOdometry:
     def pending_images(self) -> int:
         return len(self._pending)
 
+    @property
+    def pending_tags(self) -> list:
+        """The tags of the images waiting for IMU, oldest stamp first."""
+        return [tag for _, _, tag in self._pending]
+
+    def take_events(self) -> list[EngineEvent]:
+        """The events counted since the last call (at most the latest 1000), oldest first."""
+        events = list(self._events)
+        self._events.clear()
+        return events
+
+    def _count(self, kind: str, stamp: float, tag: Any = None) -> None:
+        setattr(self.counters, kind, getattr(self.counters, kind) + 1)
+        self._events.append(EngineEvent(kind, stamp, tag))
+
     # ------------------------------------------------------------------ inputs
     def add_imu(self, stamp: float, gyro, accel) -> list[OdometryStep]:
         """Fuse one IMU sample; returns the images it released (processed in stamp order).
 
-        Raises ValueError for non-finite data, ImplausibleImuError (a ValueError) for readings
-        outside ``self.imu_limits`` and OutOfOrderError for stamps not after the last.
+        Raises ImplausibleImuError (a ValueError; ``reason`` ``imu_nonfinite``, ``imu_accel_range``
+        or ``imu_gyro_range``) for NaN/inf or readings outside ``self.imu_limits``, ValueError for a
+        zero acceleration and OutOfOrderError for stamps not after the last.
         """
         g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
         a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
         if not (math.isfinite(stamp) and all(math.isfinite(v) for v in g + a)):
-            raise ValueError("IMU sample contains NaN or inf")
+            raise ImplausibleImuError("imu_nonfinite", f"IMU sample at {stamp} has NaN/inf (gyro {g}, accel {a})")
         if (problem := imu_problem(g, a, self.imu_limits)) is not None:
             raise ImplausibleImuError(*problem)
         if math.hypot(*a) < 1e-6:
@@ -233,7 +267,7 @@ class BevoOdometry:
             a[1] -= self._speed * g[2]
         if self._state is None or stamp - self._last_imu > self.max_imu_gap:
             if self._state is not None:
-                self.counters.imu_gaps += 1
+                self._count("imu_gaps", stamp)
             init = self.dukf.init_state(accel=torch.tensor([a], dtype=torch.float64))
             c = init.cov[0].tolist()
             self._state = (tuple(init.mean[0].tolist()), (c[0][0], c[0][1], c[1][1]))
@@ -295,7 +329,7 @@ class BevoOdometry:
         restarted = self._state is None or stamp - self._last_imu > self.max_imu_gap
         if restarted:
             if self._state is not None:
-                self.counters.imu_gaps += 1
+                self._count("imu_gaps", stamp)
             # Start from the mounting attitude with a wide variance and take the first sample as a
             # measurement: one accelerometer sample read in a bend is not locked in.
             v0 = self.initial_attitude_std**2
@@ -327,8 +361,9 @@ class BevoOdometry:
         road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])
         self._history.append((stamp, road, self._state, self._yaw_cum))
 
-    def add_image(self, stamp: float, image) -> list[OdometryStep]:
-        """Queue or process one image ``(H, W)`` uint8 or float in [0, 1].
+    def add_image(self, stamp: float, image, tag: Any = None) -> list[OdometryStep]:
+        """Queue or process one image ``(H, W)`` uint8 or float in [0, 1]; ``tag`` comes back as
+        its step's ``tag`` (or its drop event's).
 
         Raises ValueError for a bad image and OutOfOrderError for stamps not after the last image.
         """
@@ -342,17 +377,17 @@ class BevoOdometry:
             )
         if not math.isfinite(stamp):
             raise ValueError("image stamp is not finite")
-        last = max([s for s, _ in self._pending] + ([self._last_image] if self._last_image is not None else []),
+        last = max([s for s, _, _ in self._pending] + ([self._last_image] if self._last_image is not None else []),
                    default=None)
         if last is not None and stamp <= last:
             raise OutOfOrderError("image", stamp, last)
         self.counters.images += 1
         if self._last_imu is not None and self._last_imu >= stamp:
-            return self._process_or_drop(stamp, img)
-        self._pending.append((stamp, img))
+            return self._process_or_drop(stamp, img, tag)
+        self._pending.append((stamp, img, tag))
         if len(self._pending) > self.max_pending_images:
-            self._pending.pop(0)
-            self.counters.dropped_pending_overflow += 1
+            old, _, old_tag = self._pending.pop(0)
+            self._count("dropped_pending_overflow", old, old_tag)
         return []
 
     def flush(self) -> list[OdometryStep]:
@@ -363,24 +398,25 @@ class BevoOdometry:
     def _release(self, ready) -> list[OdometryStep]:
         out = []
         while self._pending and ready(self._pending[0][0]):
-            stamp, img = self._pending.pop(0)
+            stamp, img, tag = self._pending.pop(0)
             if self._state is None:
-                self.counters.dropped_no_imu += 1
+                self._count("dropped_no_imu", stamp, tag)
                 continue
-            out += self._process_or_drop(stamp, img)
+            out += self._process_or_drop(stamp, img, tag)
         return out
 
-    def _process_or_drop(self, stamp: float, img: np.ndarray) -> list[OdometryStep]:
+    def _process_or_drop(self, stamp: float, img: np.ndarray, tag: Any = None) -> list[OdometryStep]:
         """One frame, or a counted drop when its BEV has no valid pixel (e.g. an absurd attitude):
-        ``_process`` changes no state before that check, so the next frame simply carries on."""
+        ``_process`` changes no state before that check, so the next frame simply carries on.
+        Any other exception is a bug and propagates."""
         try:
-            return [self._process(stamp, img)]
-        except ValueError:
-            self.counters.dropped_invalid_bev += 1
+            return [self._process(stamp, img, tag)]
+        except InvalidBevError:
+            self._count("dropped_invalid_bev", stamp, tag)
             return []
 
     @torch.no_grad()
-    def _process(self, stamp: float, img: np.ndarray) -> OdometryStep:
+    def _process(self, stamp: float, img: np.ndarray, tag: Any = None) -> OdometryStep:
         image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
         if image.dtype != torch.uint8:
             image = image.to(self.dtype)
@@ -396,7 +432,7 @@ class BevoOdometry:
             motion_cov = np.zeros((3, 3))
             quality = float("nan")
         elif self.mode == "fused":
-            reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, dt, yaw_cum, state)
+            reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, yaw_cum, state)
             quality = float(reg.quality[0])
         else:
             reg = register_prepared(self._prev, curr, self.dpc)
@@ -451,9 +487,10 @@ class BevoOdometry:
             accepted=accepted,
             speed=speed,
             filter_inputs=None if first or self.mode != "fused" else self._last_filter_inputs,
+            tag=tag,
         )
 
-    def _fused_motion(self, curr, dt: float, yaw_cum: float, state: tuple):
+    def _fused_motion(self, curr, stamp: float, dt: float, yaw_cum: float, state: tuple):
         """Fused mode, one frame: derotate by the gyro's yaw, correlate, filter, gate."""
         gyro_yaw = yaw_cum - self._prev_yaw_cum
         n = self.vehicle.noise
@@ -482,10 +519,11 @@ class BevoOdometry:
         self._last_filter_inputs = inputs
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
         if float(reg.quality[0]) < n.min_quality:
-            self.counters.rejected_textureless += 1
+            self._count("rejected_textureless", stamp)
         else:
-            self.counters.rejected_translation += int(not acc_t)
-            self.counters.rejected_rotation += int(not acc_r)
+            for kind, accepted in (("rejected_translation", acc_t), ("rejected_rotation", acc_r)):
+                if not accepted:
+                    self._count(kind, stamp)
         motion = np.array([float(v) for v in frame.motion])
         motion_cov = np.diag([float(v) for v in frame.variance])
         return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v)
@@ -522,4 +560,4 @@ class BevoOdometry:
         G = dx * np.array([[-self._scale_per_pitch, 0.0], [0.0, self.spec.centre[0] * k_r], [0.0, -k_r]])
         return cov + G @ att @ G.T
 
-__all__ = ["BevoOdometry", "OdometryStep", "OutOfOrderError", "Counters", "Z_VARIANCE"]
+__all__ = ["BevoOdometry", "OdometryStep", "OutOfOrderError", "Counters", "EngineEvent", "Z_VARIANCE"]

@@ -55,6 +55,12 @@ import torch.nn.functional as F
 Tensor = torch.Tensor
 
 
+class InvalidBevError(ValueError):
+    """A BEV with no valid pixel (e.g. an attitude that puts the ground patch out of the image):
+    bad input for this frame, not a bug (:class:`~bevo_ros.core.odometry.BevoOdometry` counts it
+    as a drop)."""
+
+
 @dataclass(frozen=True)
 class DpcConfig:
     """Phase-correlation settings (all hashable so derived grids can be cached).
@@ -404,7 +410,7 @@ def prepare(bev: Tensor, mask: Tensor, config: DpcConfig) -> Prepared:
     x = bev[:, 0]
     wsum = w.sum(dim=(-1, -2), keepdim=True)
     if bool((wsum <= 1e-6).any()):
-        raise ValueError("a BEV has no valid pixels after eroding its mask (camera model or BEV spec wrong?)")
+        raise InvalidBevError("a BEV has no valid pixels after eroding its mask (camera model or BEV spec wrong?)")
     mean = (w * x).sum(dim=(-1, -2), keepdim=True) / wsum
     image = w * (x - mean)
     spectrum = torch.fft.rfft2(image)
@@ -721,6 +727,7 @@ def register(bev_prev: Tensor, bev_curr: Tensor, mask_prev: Tensor, mask_curr: T
 
 __all__ = [
     "DpcConfig",
+    "InvalidBevError",
     "Prepared",
     "Registration",
     "angle_bins",

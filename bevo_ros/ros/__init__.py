@@ -1,2 +1,4 @@
-"""ROS-graph helpers of ``bevo_node`` (rclpy-side, no engine state): calibration from CameraInfo,
-static TF, parameter descriptors, per-input diagnostics and image decoding. The node wires them."""
+"""The ROS side of ``bevo_node`` (``bevo_ros.node`` only wires these together): ``settings``
+(parameters), ``rig`` (calibration, extrinsics, IMU frames), ``camera`` (CameraInfo, undistortion),
+``tf`` (static transforms), ``intake`` (messages into the engine), ``publishers`` (outputs),
+``diagnostics`` (counts, drops, status) and ``parameters`` (descriptors, live set)."""

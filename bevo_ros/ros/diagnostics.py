@@ -1,4 +1,6 @@
-"""Per-input health for ``/diagnostics``, the way robot_localization treats sensor timeouts.
+"""What ``bevo_node`` counts and reports: per-input health for ``/diagnostics`` (the way
+robot_localization treats sensor timeouts), drops and events by reason with throttled log lines,
+latency and correlation quality, and the odometry status built from them.
 
 Each input (IMU, images) keeps its recent arrival times on the steady clock:
 
@@ -12,9 +14,12 @@ and goes back to OK as soon as messages flow again.
 from __future__ import annotations
 
 import collections
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
+
+import numpy as np
 
 OK, WARN, ERROR = 0, 1, 2  # diagnostic_msgs/DiagnosticStatus levels
 LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
@@ -81,3 +86,118 @@ def status_message(node_name: str, what: str, state: SensorState, hardware_id: s
     return DiagnosticStatus(level=bytes([state.level]), name=f"{node_name}: {what}", message=state.message,
                             hardware_id=hardware_id,
                             values=[KeyValue(key=k, value=v) for k, v in state.values.items()])
+
+
+class Report:
+    """The node's tallies: ``counts`` (imu_in, images_in, camera_info_in, odometry_out), ``drops``
+    and ``events`` by reason, the recent log lines (``log_history``), latency and peak quality.
+
+    Args:
+        logger: the node's logger.
+        settings: the node's settings (``log_throttle_period`` is live, read at each line).
+    """
+
+    def __init__(self, logger, settings) -> None:
+        self.logger, self.settings = logger, settings
+        self.counts: collections.Counter[str] = collections.Counter()
+        self.drops: collections.Counter[str] = collections.Counter()
+        self.events: collections.Counter[str] = collections.Counter()
+        self.log_history: collections.deque[tuple[str, str]] = collections.deque(maxlen=200)
+        self._throttle: dict[str, list[float]] = {}
+        self.latency: collections.deque[float] = collections.deque(maxlen=settings.latency_window)
+        self.quality: collections.deque[float] = collections.deque(maxlen=100)
+        self._last = (time.monotonic(), collections.Counter())  # (time, counts) of the last values()
+
+    def log(self, key: str, text: str, level: str = "warning") -> None:
+        """Log ``text``, at most once per ``log_throttle_period`` per ``key`` (then with a count)."""
+        self.log_history.append((key, text))
+        now = time.monotonic()
+        state = self._throttle.setdefault(key, [-math.inf, 0])
+        if now - state[0] < self.settings.log_throttle_period:
+            state[1] += 1
+            return
+        if state[1]:
+            text += f" ({state[1]} more since the last report)"
+        state[0], state[1] = now, 0
+        # rclpy pins one severity per call site: one call per level.
+        if level == "error":
+            self.logger.error(text)
+        elif level == "info":
+            self.logger.info(text)
+        else:
+            self.logger.warning(text)
+
+    def drop(self, reason: str, text: str, level: str = "warning") -> None:
+        self.drops[reason] += 1
+        self.log(reason, f"dropped ({reason}): {text}", level)
+
+    def published(self, arrival: float | None, quality: float) -> None:
+        """One odometry message out: its latency since the image arrived (wall clock), its quality."""
+        if arrival is not None:
+            self.latency.append(time.time() - arrival)
+        self.counts["odometry_out"] += 1
+        if math.isfinite(quality):
+            self.quality.append(quality)
+
+    def latency_percentiles(self) -> tuple[float, float, float]:
+        """(p50, p99, max) of image arrival -> odometry publication, seconds (nan when empty)."""
+        if not self.latency:
+            return (math.nan,) * 3
+        a = np.asarray(self.latency)
+        return float(np.percentile(a, 50)), float(np.percentile(a, 99)), float(a.max())
+
+    def values(self, pending_images: int, tf_backend: str) -> dict[str, str]:
+        """The odometry status's key/values; rates are since the previous call."""
+        now = time.monotonic()
+        last_t, last_counts = self._last
+        dt = max(now - last_t, 1e-9)
+        self._last = (now, collections.Counter(self.counts))
+        rate = lambda k: (self.counts[k] - last_counts[k]) / dt  # noqa: E731
+        p50, p99, pmax = self.latency_percentiles()
+        values = {
+            "imu_rate_hz": f"{rate('imu_in'):.1f}",
+            "image_rate_hz": f"{rate('images_in'):.1f}",
+            "odometry_rate_hz": f"{rate('odometry_out'):.1f}",
+            "imu_received": str(self.counts["imu_in"]),
+            "images_received": str(self.counts["images_in"]),
+            "odometry_published": str(self.counts["odometry_out"]),
+            "drops_total": str(sum(self.drops.values())),
+            "latency_p50_ms": f"{p50 * 1e3:.2f}",
+            "latency_p99_ms": f"{p99 * 1e3:.2f}",
+            "latency_max_ms": f"{pmax * 1e3:.2f}",
+            "peak_quality_last": f"{self.quality[-1]:.3f}" if self.quality else "nan",
+            "peak_quality_mean": f"{float(np.mean(self.quality)):.3f}" if self.quality else "nan",
+            "pending_images": str(pending_images),
+            "tf": tf_backend,
+        }
+        for reason, n in sorted(self.drops.items()):
+            values[f"drop.{reason}"] = str(n)
+        for name, n in sorted(self.events.items()):
+            values[f"event.{name}"] = str(n)
+        return values
+
+    def summary(self) -> str:
+        """One line of totals: inputs received, odometry published, drops and filter events by reason."""
+        c = self.counts
+        drops = ", ".join(f"{k} {n}" for k, n in sorted(self.drops.items()) if n) or "none"
+        events = ", ".join(f"{k} {n}" for k, n in sorted(self.events.items()) if n) or "none"
+        return (f"imu {c['imu_in']}, images {c['images_in']}, camera_info {c['camera_info_in']} received; "
+                f"odometry {c['odometry_out']} published; dropped: {drops}; events: {events}")
+
+
+def odometry_state(values: dict[str, str], inputs: dict[str, SensorState], calibrated: bool,
+                   new_drops: int) -> SensorState:
+    """The odometry's status: WARN while uncalibrated, ERROR when an input is silent, WARN on new
+    drops, images without odometry or a late input, else OK."""
+    worst = max((st.level for st in inputs.values()), default=OK)
+    if not calibrated:
+        return SensorState(WARN, "waiting for CameraInfo", values)
+    if worst == ERROR:
+        return SensorState(ERROR, "; ".join(st.message for st in inputs.values() if st.level == ERROR), values)
+    if new_drops > 0:
+        return SensorState(WARN, f"{new_drops} input(s) dropped", values)
+    if float(values["image_rate_hz"]) > 0 and float(values["odometry_rate_hz"]) == 0:
+        return SensorState(WARN, "images arrive but no odometry is produced", values)
+    if worst == WARN:
+        return SensorState(WARN, "; ".join(st.message for st in inputs.values() if st.level == WARN), values)
+    return SensorState(OK, "running", values)

@@ -1,0 +1,290 @@
+"""bevo_node's data path from the subscriptions into the engine.
+
+:class:`Intake`: every IMU/image message already received is taken and handled in stamp order
+(``ordered_intake``: the offline order, so the IMU keeps up under load), through each stream's
+time-jump guard (a lone outlier stamp is dropped, a confirmed jump back resets).
+:class:`EngineFeed`: the engine calls; stamps not after the previous one (a drop, or a reset and
+retry for a big jump back); what the engine dropped or rejected (its events) turned into counted,
+logged drops and events; the IMU that arrives before the calibration; the ``image_wait`` flush.
+"""
+from __future__ import annotations
+
+import collections
+import time
+from typing import Any, Callable
+
+from bevo_ros.core.odometry import OutOfOrderError
+from bevo_ros.core.validation import TimeJumpGuard
+from bevo_ros.ros.diagnostics import Report
+from bevo_ros.io.ros_conversions import stamp_to_sec
+
+KINDS = ("imu", "image")
+
+
+def label(kind: str) -> str:
+    return "IMU" if kind == "imu" else kind
+
+
+def arrival(info) -> float:
+    """Wall-clock seconds when DDS received the message (else now): latency covers queueing."""
+    ns = info.get("received_timestamp") if isinstance(info, dict) else None
+    return ns * 1e-9 if ns else time.time()
+
+
+def watch_clock_jumps(node, max_back: float, on_jump: Callable[[Any], None]):
+    """Call ``on_jump`` when ROS time (``/clock`` with use_sim_time) jumps back by more than
+    ``max_back`` s; returns the handle to keep (None, logged, where rclpy cannot: resets then
+    rely on message stamps)."""
+    try:
+        from rclpy.clock import JumpThreshold
+        from rclpy.duration import Duration
+
+        threshold = JumpThreshold(min_forward=None, on_clock_change=False,
+                                  min_backward=Duration(nanoseconds=-int(max_back * 1e9)))
+        return node.get_clock().create_jump_callback(threshold, post_callback=on_jump)
+    except Exception as exc:  # noqa: BLE001 - optional feature
+        node.get_logger().warning(f"no clock jump handler (resets then rely on message stamps): {exc}")
+        return None
+
+
+class Intake:
+    """Ordered intake and time-jump guards. ``dispatch(kind, (msg, arrival))`` handles a message,
+    ``reset()`` restarts the odometry; ``subs`` maps ``imu``/``image`` to their subscriptions."""
+
+    def __init__(self, settings, report: Report, monitors: dict, dispatch: Callable[[str, tuple], None],
+                 reset: Callable[[], None]) -> None:
+        s = self.settings = settings
+        self.report, self.monitors, self.dispatch, self.reset = report, monitors, dispatch, reset
+        self.subs: dict[str, Any] = {}
+        self.guards = {kind: TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward, s.time_jump_confirmations)
+                       for kind in KINDS}
+
+    def take_all(self, sub) -> list:
+        """Every message ``sub`` has already received, taken now (not one per executor turn).
+        rclpy has no public call for it: its subscription handle is used, and when that changes
+        ``ordered_intake`` turns itself off (executor order then)."""
+        out: list = []
+        try:
+            with sub.handle:
+                while len(out) < 100000:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if taken is None:
+                        break
+                    out.append((taken[0], arrival(taken[1])))
+        except (AttributeError, TypeError, KeyError) as exc:
+            self.settings.ordered_intake = False
+            self.report.log("ordered_intake", f"ordered_intake disabled (rclpy cannot take messages directly: {exc})")
+        return out
+
+    def received(self, kind: str, msg, info) -> None:
+        """Executor callback (message + message info)."""
+        item = (msg, arrival(info))
+        self.merge([item] if kind == "imu" else [], [item] if kind == "image" else [])
+
+    def merge(self, imus: list, images: list) -> None:
+        """Process IMU and image messages in stamp order (IMU first on equal stamps).
+
+        The executor takes one message per subscription per turn, so when the node is behind,
+        images would outrun the IMU they wait for (and see an attitude from the wrong time).
+        With ``ordered_intake`` everything already received is taken and merged by stamp: the
+        offline order. Two streams whose heads are further apart than ``max_time_jump_back``
+        (a bag restart inside the backlog) are taken IMU first, in arrival order.
+        """
+        if self.settings.ordered_intake:
+            imus = imus + self.take_all(self.subs["imu"])
+            images = images + self.take_all(self.subs["image"])
+        i = j = 0
+        jump = self.settings.max_time_jump_back
+        while i < len(imus) or j < len(images):
+            if j >= len(images):
+                take_imu = True
+            elif i >= len(imus):
+                take_imu = False
+            else:
+                ti, tg = stamp_to_sec(imus[i][0].header.stamp), stamp_to_sec(images[j][0].header.stamp)
+                take_imu = ti <= tg or abs(ti - tg) > jump
+            if take_imu:
+                self._gated("imu", imus[i])
+                i += 1
+            else:
+                self._gated("image", images[j])
+                j += 1
+
+    def _gated(self, kind: str, item: tuple) -> None:
+        """Count one received ``(msg, arrival)`` and hand it on through the stream's time-jump guard."""
+        self.report.counts["imu_in" if kind == "imu" else "images_in"] += 1
+        self.monitors[kind].tick()
+        self._gate(kind, item)
+
+    def _gate(self, kind: str, item: tuple) -> None:
+        guard = self.guards[kind]
+        v = guard.check(stamp_to_sec(item[0].header.stamp), item)
+        self._drop_outliers(kind, v.outliers)
+        if v.accept:
+            self.dispatch(kind, item)
+            return
+        if v.jump is None:
+            return  # held until confirmed or found to be an outlier
+        self.report.events[f"time_jump_{v.jump}"] += 1
+        release = [(kind, it) for it in v.release]
+        if v.jump == "back":
+            self.reset()
+            for other, g in self.guards.items():  # the other inputs move to the new timeline too
+                if g is not guard:
+                    more, outliers = g.rebase(guard.ref)
+                    self._drop_outliers(other, outliers)
+                    release += [(other, it) for it in more]
+            release.sort(key=lambda r: (stamp_to_sec(r[1][0].header.stamp), r[0] != "imu"))
+        self.report.log(f"time_jump_{v.jump}", f"time jumped {v.jump} by {v.jump_size:.3f} s (confirmed by "
+                                               f"{len(v.release)} {label(kind)} messages; bag restarted?): "
+                                               + ("odometry reset, the trajectory restarts at identity"
+                                                  if v.jump == "back" else "continuing on the new timeline"))
+        for k, it in release:
+            self.dispatch(k, it)
+
+    def rejudge(self) -> None:
+        """After a reset by a clock jump: held messages are judged again on the new timeline."""
+        for kind, guard in self.guards.items():
+            for item in guard.reset():
+                self._gate(kind, item)
+
+    def _drop_outliers(self, kind: str, items: list) -> None:
+        for msg, _ in items:
+            self.report.drop("stamp_outlier", f"{label(kind)} stamp {stamp_to_sec(msg.header.stamp):.6f} is off the "
+                                              f"{label(kind)} timeline ({self.guards[kind].ref:.6f}) by more than "
+                                              "max_time_jump_back/forward and no other message confirmed the jump "
+                                              f"(time_jump_confirmations={self.settings.time_jump_confirmations})")
+
+
+# fused mode: frames whose measurement the motion filter rejected (the pose is carried by its
+# prediction, the odometry still published): events, not drops
+ENGINE_REJECTIONS = (
+    ("rejected_textureless", "a correlation peak below odometry.min_quality (black, covered or textureless frame)"),
+    ("rejected_translation", "a forward motion beyond the odometry.gate Mahalanobis gate"),
+    ("rejected_rotation", "an image rotation disagreeing with the gyro beyond the odometry.gate"),
+)
+# engine event -> node drop reason, and why (formatted with the node settings as ``s``)
+ENGINE_DROPS = (
+    ("dropped_no_imu", "no_imu", "with no IMU sample at or before their stamp (frames before any IMU)"),
+    ("dropped_pending_overflow", "pending_overflow",
+     "more than max_pending_images={s.max_pending_images} images were waiting for IMU"),
+    ("dropped_invalid_bev", "invalid_bev",
+     "whose BEV had no valid pixel (pitch/roll put the ground patch out of the image)"),
+)
+
+
+class EngineFeed:
+    """The engine behind the node (None until the camera is known; IMU meanwhile waits in a
+    bounded backlog). ``reset()`` is the node's (engine, path, backlog); each call returns the
+    steps to publish, or None when the input was dropped (counted)."""
+
+    def __init__(self, settings, max_imu_gap: float, report: Report, reset: Callable[[], None]) -> None:
+        self.settings, self.max_imu_gap, self.report, self.reset_node = settings, max_imu_gap, report, reset
+        self.engine = None
+        self.last_imu_stamp: float | None = None
+        self._last_gap = 0.0
+        self._imu_backlog: collections.deque = collections.deque(maxlen=max(settings.imu_qos_depth, 1000))
+
+    def start(self, engine) -> None:
+        """Use ``engine`` from now on and fuse the IMU that arrived before it, in order."""
+        self.engine = engine
+        engine.max_pending_images = self.settings.max_pending_images
+        backlog = list(self._imu_backlog)
+        self._imu_backlog.clear()
+        for t, gyro, accel in backlog:
+            if self._call("imu", t, lambda: engine.add_imu(t, gyro, accel)) is not None:
+                self.last_imu_stamp = t
+
+    def reset(self) -> None:
+        if self.engine is not None:
+            self.engine.reset()
+        self._imu_backlog.clear()
+        self.last_imu_stamp = None
+
+    @property
+    def pending_images(self) -> int:
+        return self.engine.pending_images if self.engine is not None else 0
+
+    def imu(self, t: float, gyro, accel) -> list | None:
+        if self.engine is None:  # kept (bounded) and fused once the camera is known: the filter warms up
+            self._imu_backlog.append((t, gyro, accel))
+            return None
+        self._last_gap = 0.0 if self.last_imu_stamp is None else t - self.last_imu_stamp
+        steps = self._call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
+        if steps is not None:
+            self.last_imu_stamp = t
+        return steps
+
+    def image(self, t: float, img, tag) -> list | None:
+        return self._call("image", t, lambda: self.engine.add_image(t, img, tag=tag))
+
+    def flush_due(self) -> bool:
+        """Images have waited for IMU past their stamp longer than ``image_wait``."""
+        if not self.pending_images:
+            return False
+        oldest = min(arrived for _, arrived in self.engine.pending_tags)
+        return time.time() - oldest >= self.settings.image_wait
+
+    def flush(self) -> list:
+        """Process the waiting images with the IMU fused so far."""
+        n = self.engine.pending_images
+        steps = self.engine.flush()
+        self.report.events["flushed_images"] += len(steps)
+        self._report_events()
+        self.report.log("image_wait", f"{n} image(s) waited more than image_wait={self.settings.image_wait} s for "
+                                      f"IMU past their stamp: processed with the IMU fused so far ({len(steps)} "
+                                      "published)", level="info")
+        return steps
+
+    def _call(self, kind: str, t: float, call: Callable[[], list]) -> list | None:
+        try:
+            steps = call()
+        except OutOfOrderError as exc:
+            steps = None
+            try:
+                steps = self._out_of_order(kind, exc, t, call)
+            except ValueError as exc2:
+                self.report.drop(f"{kind}_invalid", f"{label(kind)} at {t:.6f}: {exc2}")
+        except ValueError as exc:  # ImplausibleImuError carries its own reason
+            steps = None
+            self.report.drop(getattr(exc, "reason", f"{kind}_invalid"), f"{label(kind)} at {t:.6f}: {exc}")
+        self._report_events()
+        return steps
+
+    def _out_of_order(self, kind: str, exc: OutOfOrderError, stamp: float, retry: Callable[[], list]) -> list | None:
+        """A stamp not after the previous one: a big jump back resets and retries, else a drop (None)."""
+        s = self.settings
+        if exc.jump > s.max_time_jump_back:
+            self.report.events["time_jump_reset"] += 1
+            self.report.log(
+                "time_jump_reset", f"{label(kind)} stamp {stamp:.6f} is {exc.jump:.3f} s before the previous one "
+                f"(> max_time_jump_back={s.max_time_jump_back} s): time jumped back (bag restarted?) - resetting "
+                "the odometry; the trajectory restarts at identity")
+            self.reset_node()
+            return retry()
+        reason = f"{kind}_duplicate" if exc.jump == 0 else f"{kind}_out_of_order"
+        self.report.drop(reason, f"{label(kind)} stamp {stamp:.9f} is not after the previous {label(kind)} stamp "
+                                 f"{exc.last:.9f} ({exc.jump * 1e3:.3f} ms back)")
+        return None
+
+    def _report_events(self) -> None:
+        """Turn what the engine dropped or rejected (its events) into counted, logged node drops/events."""
+        d = collections.Counter(e.kind for e in self.engine.take_events()) if self.engine is not None else {}
+        if not d:
+            return
+        for kind, reason, why in ENGINE_DROPS:
+            if d[kind] > 0:
+                self.report.drops[reason] += d[kind]
+                self.report.log(reason, f"dropped ({reason}): {d[kind]} image(s) " + why.format(s=self.settings))
+        for kind, why in ENGINE_REJECTIONS:
+            if d[kind] > 0:
+                self.report.events[kind] += d[kind]
+                self.report.log(kind, f"{d[kind]} frame(s) with {why}: carried by the motion filter's prediction")
+        if d["imu_gaps"] > 0:
+            self.report.events["imu_gap"] += d["imu_gaps"]
+            self.report.log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.max_imu_gap} s (last gap "
+                                       f"{self._last_gap:.3f} s): the DUKF re-initialised its pitch/roll from the "
+                                       "accelerometer")
+
+
+__all__ = ["Intake", "EngineFeed", "arrival", "watch_clock_jumps", "ENGINE_DROPS", "ENGINE_REJECTIONS"]

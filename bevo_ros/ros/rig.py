@@ -1,0 +1,229 @@
+"""The rig as the node sees it: which camera calibration and extrinsics the engine uses, and how
+each IMU frame maps into ``base_frame``.
+
+Calibration: CameraInfo first (re-read when it changes; a broken one is a counted drop that keeps
+the last good calibration), the ``camera.*`` parameters as the fallback after
+``camera_info_timeout`` s without it. Extrinsics: /tf_static ``base_frame -> image frame`` when
+published, else ``camera.base_T_camera``. Every change rebuilds the camera model and hands it to
+``on_camera`` (the node's engine).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from bevo_ros.config import BevoConfig, ConfigError, camera_model
+from bevo_ros.core.validation import intrinsics_problem
+from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from_camera_info,
+                                 calibration_from_parameters, same_camera_info)
+from bevo_ros.ros.diagnostics import OK, WARN, Report, SensorState
+from bevo_ros.ros.settings import NodeSettings
+from bevo_ros.ros.tf import StaticTransforms
+from bevo_ros.io.ros_conversions import ImageConversionError, image_to_gray
+
+PARAMETERS_EXTRINSICS = "parameters camera.base_T_camera"
+
+
+class Rig:
+    """Calibration, camera extrinsics and IMU axes; ``camera`` is None until a calibration is known.
+
+    Args:
+        settings, config: the node's settings and engine configuration.
+        report: where drops and log lines go.
+        logger: the node's logger (one-off info lines).
+        static_tf: /tf_static lookups, or None (``extrinsics_from_tf`` false).
+        info_topic: the resolved CameraInfo topic (for messages).
+        queued_infos: CameraInfo messages already received, taken now (the ordered intake).
+        on_camera: called with every new camera model.
+    """
+
+    def __init__(self, settings: NodeSettings, config: BevoConfig, report: Report, logger,
+                 static_tf: StaticTransforms | None, info_topic: str,
+                 queued_infos: Callable[[], list], on_camera: Callable[[Any], None]) -> None:
+        self.settings, self.config, self.report, self.logger = settings, config, report, logger
+        self.static_tf, self.info_topic = static_tf, info_topic
+        self._queued_infos, self._on_camera = queued_infos, on_camera
+        self.calibration: Calibration | None = None
+        self.camera = None  # the CameraModel handed to on_camera
+        self.extrinsics_source = PARAMETERS_EXTRINSICS
+        self._base_T_camera: np.ndarray | None = None
+        self._camera_frame = ""  # header.frame_id of the images (for /tf_static)
+        self._tf_version = -1  # /tf_static tree version the camera was built with
+        self._image_size: tuple[int, int] | None = None  # (width, height) of the last decoded image
+        self._first_image_wait: float | None = None  # steady time of the first image seen without calibration
+        self._R_base_imu: dict[str, tuple[int, np.ndarray | None]] = {}  # IMU frame -> (tf version, R_base_imu)
+        self._imu_frame_warned: set[str] = set()
+
+    def start(self) -> None:
+        """The calibration known at start: the parameters when CameraInfo is off or not waited for."""
+        s, cam = self.settings, self.config.camera
+        if not s.use_camera_info:
+            if not cam.has_intrinsics():
+                raise ConfigError("camera intrinsics are not set (camera.fx, fy, cx, cy, width, height_px) and "
+                                  "use_camera_info is false: set them or enable use_camera_info")
+            self.apply(calibration_from_parameters(cam))
+        elif s.camera_info_timeout == 0 and cam.has_intrinsics():
+            self.apply(calibration_from_parameters(cam))
+
+    # ------------------------------------------------------------------ calibration
+    def apply(self, calib: Calibration) -> None:
+        """Use ``calib`` from now on; the log says where it came from."""
+        self.calibration = calib
+        self.logger.info(f"camera calibration from {calib.describe()}")
+        self.refresh(force=True)
+
+    def camera_info(self, msg) -> None:
+        """A CameraInfo (counted): a new calibration when it differs and is usable, else a counted drop."""
+        self.report.counts["camera_info_in"] += 1
+        if same_camera_info(self.calibration, msg):
+            return
+        s = self.settings
+        try:
+            calib = calibration_from_camera_info(msg, s.camera_info_use_p, s.undistort, s.image_topic,
+                                                 source=f"CameraInfo on {self.info_topic}")
+        except CalibrationError as exc:
+            self.report.drop("bad_camera_info", str(exc))
+            return
+        w, h = calib.width, calib.height
+        problem = intrinsics_problem(calib.K, w, h)
+        if problem is None and self._image_size not in (None, (w, h)):
+            problem = f"its size {w}x{h} disagrees with the images ({self._image_size[0]}x{self._image_size[1]})"
+        if problem is not None:
+            keep = "keeping the last good calibration" if self.camera is not None else "still waiting for a valid one"
+            self.report.drop("bad_camera_info", f"CameraInfo rejected ({keep}): {problem}")
+            return
+        self.apply(calib)
+
+    def _await_calibration(self) -> None:
+        """No camera yet: read a CameraInfo already queued, else fall back to the parameters after
+        ``camera_info_timeout`` seconds since the first image."""
+        s = self.settings
+        for msg, _ in self._queued_infos():
+            self.camera_info(msg)
+        if self.camera is not None:
+            return
+        now = time.monotonic()
+        if self._first_image_wait is None:
+            self._first_image_wait = now
+        if s.use_camera_info and now - self._first_image_wait >= s.camera_info_timeout and \
+                self.config.camera.has_intrinsics():
+            self.report.events["camera_info_timeout"] += 1
+            self.logger.warning(
+                f"no CameraInfo on {self.info_topic} within camera_info_timeout={s.camera_info_timeout:g} s of the "
+                "first image: using the camera.* parameters (a CameraInfo arriving later replaces them)")
+            self.apply(calibration_from_parameters(self.config.camera))
+
+    # ------------------------------------------------------------------ extrinsics
+    def _extrinsics(self) -> tuple[np.ndarray, str]:
+        """``(base_T_camera (4, 4), source)``: /tf_static ``base_frame -> image frame`` when known."""
+        base = self.settings.base_frame
+        if self.static_tf is not None and self._camera_frame:
+            T = self.static_tf.lookup(base, self._camera_frame)
+            if T is not None:
+                return T, f"/tf_static {base} -> {self._camera_frame}"
+        return np.asarray(self.config.camera.base_T_camera, dtype=np.float64).reshape(4, 4), PARAMETERS_EXTRINSICS
+
+    def refresh(self, force: bool = False) -> None:
+        """(Re)build the camera model when the calibration or the camera's static TF changed."""
+        if self.calibration is None:
+            return
+        T, source = self._extrinsics()
+        old = self._base_T_camera
+        if not force and old is not None and np.allclose(old, T, rtol=0, atol=1e-9):
+            return
+        calib = self.calibration
+        settings = dataclasses.replace(self.config.camera, base_T_camera=T.reshape(-1).tolist())
+        try:
+            camera = camera_model(settings, K=calib.K, width=calib.width, height_px=calib.height)
+        except ConfigError as exc:  # e.g. a non-rigid transform on /tf_static
+            self.report.drop("bad_extrinsics", f"camera extrinsics from {source} unusable: {exc}", level="error")
+            return
+        if source != self.extrinsics_source or (old is not None and not np.allclose(old, T, rtol=0, atol=1e-9)):
+            self.logger.info(f"camera extrinsics from {source}: camera at "
+                             f"{np.round(T[:3, 3], 3).tolist()} m in {self.settings.base_frame}")
+        self._base_T_camera, self.extrinsics_source = T, source
+        self._on_camera(camera)
+        self.camera = camera
+
+    def imu_rotation(self, frame: str) -> np.ndarray | None:
+        """Rotation taking vectors from the IMU's ``frame`` into ``base_frame`` (None: same axes)."""
+        base = self.settings.base_frame
+        frame = frame.lstrip("/")
+        if not frame or frame == base.lstrip("/"):
+            return None
+        cached = self._R_base_imu.get(frame)
+        version = 0
+        if self.static_tf is not None:
+            if cached is None or cached[1] is None:
+                self.static_tf.poll()  # still unknown: a /tf_static already received counts now
+            version = self.static_tf.version
+        if cached is not None and cached[0] == version:
+            return cached[1]
+        T = self.static_tf.lookup(base, frame) if self.static_tf is not None else None
+        R = None if T is None else T[:3, :3].copy()
+        self._R_base_imu[frame] = (version, R)
+        if R is not None:
+            if cached is None or cached[1] is None or not np.allclose(cached[1], R, rtol=0, atol=1e-12):
+                self.logger.info(f"IMU frame '{frame}': rates and accelerations rotated into '{base}' "
+                                 f"(/tf_static), rotation {np.round(R, 4).tolist()}")
+        elif frame not in self._imu_frame_warned:
+            self._imu_frame_warned.add(frame)
+            self.report.log("imu_frame", f"IMU frame '{frame}' is not base_frame '{base}' and /tf_static has no "
+                                         f"{base} -> {frame}: the IMU axes are taken as the base axes (REP-103 x "
+                                         "forward, y left, z up)")
+        return R
+
+    # ------------------------------------------------------------------ images
+    def image(self, msg, t: float) -> np.ndarray | None:
+        """The grey, rectified image of ``msg`` (stamp ``t``), or None when it was dropped (counted):
+        no calibration yet, an undecodable image, or a size other than the calibration's."""
+        frame = msg.header.frame_id
+        tf_version = -1
+        if self.static_tf is not None:
+            self.static_tf.poll()
+            tf_version = self.static_tf.version
+        if (frame and frame != self._camera_frame) or tf_version != self._tf_version:
+            self._camera_frame, self._tf_version = frame or self._camera_frame, tf_version
+            self.refresh()
+        if self.camera is None:
+            self._await_calibration()
+        if self.camera is None:
+            s = self.settings
+            fallback = (f"camera.* parameters after camera_info_timeout={s.camera_info_timeout:g} s"
+                        if self.config.camera.has_intrinsics() else "no camera.* fallback set")
+            self.report.drop("no_camera_info", f"image at {t:.6f}: no calibration yet (waiting for CameraInfo on "
+                                               f"{self.info_topic}; {fallback})")
+            return None
+        try:
+            img = image_to_gray(msg)
+        except ImageConversionError as exc:
+            self.report.drop(exc.reason, f"image at {t:.6f}: {exc}")
+            return None
+        self._image_size = (img.shape[1], img.shape[0])
+        calib = self.calibration
+        if (img.shape[1], img.shape[0]) != (calib.width, calib.height):
+            self.report.drop("bad_image_size", f"image at {t:.6f} is {img.shape[1]}x{img.shape[0]} but the "
+                                               f"calibration is {calib.width}x{calib.height} (from {calib.source})")
+            return None
+        return calib.rectify(img)
+
+    # ------------------------------------------------------------------ diagnostics
+    def state(self) -> SensorState:
+        """Where the camera model comes from: OK from CameraInfo (or the parameters when chosen with
+        use_camera_info false), WARN while waiting or when the parameters stand in for CameraInfo."""
+        s, calib = self.settings, self.calibration
+        values = {"intrinsics": calib.source if calib else "none yet", "extrinsics": self.extrinsics_source,
+                  "undistorting": str(bool(calib and calib.maps is not None)).lower(),
+                  "imu_frames": ", ".join(f"{f}: {'tf' if r[1] is not None else 'as base'}"
+                                          for f, r in sorted(self._R_base_imu.items())) or "base_frame"}
+        if calib is None:
+            return SensorState(WARN, f"waiting for CameraInfo on {self.info_topic}", values)
+        if s.use_camera_info and not calib.source.startswith("CameraInfo"):
+            return SensorState(WARN, "no CameraInfo: the camera.* parameters stand in for it", values)
+        return SensorState(OK, calib.describe(), values)
+
+
+__all__ = ["Rig", "PARAMETERS_EXTRINSICS"]
