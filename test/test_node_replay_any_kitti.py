@@ -2,8 +2,8 @@
 00-10 with no parameter edits.
 
 Synthetic drives rendered at both KITTI image sizes (sequences 00-02: 1241x376, fx 718.856;
-03-10: 1226x370, fx 707.0912) are written as bags the way ``kitti_to_bag.py`` writes them
-(CameraInfo per frame, the rig on latched ``/tf_static``) and replayed with ``play_bag.py`` into
+03-10: 1226x370, fx 707.0912) are written as bags the way ``bevo convert`` writes them
+(CameraInfo per frame, the rig on latched ``/tf_static``) and replayed with ``bevo play`` into
 ``bevo_node --ros-args --params-file params/kitti.yaml --params-file params/replay.yaml`` - the
 same params files both times. replay.yaml makes the inputs reliable, so every frame arrives and
 every published pose equals the offline one. The node must calibrate from CameraInfo, take the synthetic rig's camera
