@@ -21,19 +21,15 @@ of every variant's trajectory, and the road pitch/roll each fed to the BEV).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
-
-import numpy as np
-
 from bevo_ros.commands import add_threads_option, set_threads
 from bevo_ros.config import REPO_ROOT, ConfigError
-from bevo_ros.io.files import atomic_write_text
-from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, make_synthetic_bag, notes, plot_bag,
-                                        reference_attitude, run_variants, table_markdown)
+# make_synthetic_bag and reference_attitude are re-exported: tests reach them through the command module.
+from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, AblationOptions,  # noqa: F401
+                                        make_synthetic_bag, reference_attitude, run_ablation)
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
@@ -95,10 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from bevo_ros.config import load_config
-    from bevo_ros.datasets.rosbag import load_sequence, split_frames
     from bevo_ros.io import bag
-    from bevo_ros.io.learned_params import load_learned_params, save_learned_params
-    from bevo_ros.training.trainer import TrainingDiverged, TrainOptions, resolve_device, train
+    from bevo_ros.training.trainer import TrainingDiverged
 
     set_threads(args.threads)
     out = Path(args.out)
@@ -108,86 +102,20 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("give at least one BAG or --synthetic SECONDS")
         out.mkdir(parents=True, exist_ok=True)
         config, _ = load_config(args.params)
-        device = resolve_device(args.device, print)
-        bag_paths = [Path(b) for b in args.bags]
-        gt_modes = {}
-        if args.synthetic is not None:
-            t0 = time.perf_counter()
-            syn, drive = make_synthetic_bag(out / "synthetic_bag", args.synthetic, args.synthetic_seed, args.bumps,
-                                            args.noise, args.image_scale)
-            print(f"wrote {syn} ({args.synthetic:.0f} s drive, seed {args.synthetic_seed}, bumps {args.bumps}, "
-                  f"noise {args.noise}) in {time.perf_counter() - t0:.1f} s")
-            bag_paths.append(syn)
-            gt_modes[str(syn)] = np.asarray(drive.pitch_roll_road, dtype=np.float64)  # exact, per frame
-        seqs = []
-        for b in bag_paths:
-            s = load_sequence(b, config)
-            s.name = b.resolve().name
-            seqs.append(s)
-        eval_mode = args.eval or ("held-out" if args.train else "all")
-        if args.train:
-            options = TrainOptions(epochs=args.epochs, lr=args.lr, split=args.split, seed=args.seed,
-                                   init=tuple(args.init) if args.init else None, device=str(device))
-            result = train(seqs, config, options, checkpoint=out / "learned.yaml.ckpt.yaml", progress=not args.quiet)
-            learned = result.learned
-            save_learned_params(learned, out / "learned.yaml")
-            learned_src = (f"trained here on the first {'three quarters' if args.split == '3/4' else '20 %'} of "
-                           f"each bag ({result.epochs_run} epochs, status {result.status}, best epoch "
-                           f"{result.best_epoch}; {out / 'learned.yaml'})")
-            if result.status == "diverged":
-                print(f"ablation: warning: {result.message}", file=sys.stderr)
-        else:
-            path = args.learned or config.learned_params_file
-            learned = load_learned_params(path)
-            learned_src = f"from {path}"
-        print(f"learned O = {list(learned.process_noise_density)}, Q = {list(learned.measurement_noise_variance)}")
-        fused_learned = load_learned_params(args.fused_learned)
-
-        md = ["# BEVO ablation (paper Table 3)", "",
-              f"Parameters: {args.params}. Frames evaluated: {eval_mode}. Every variant runs the engine's BEV "
-              "projection and phase correlation; only the attitude fed to the BEV differs.", ""]
-        report: dict = {"params": str(args.params), "eval": eval_mode, "learned": {
-            "process_noise_density": list(learned.process_noise_density),
-            "measurement_noise_variance": list(learned.measurement_noise_variance), "source": learned_src},
-            "bags": {}}
-        rows_by_bag = {}
-        for b, s in zip(bag_paths, seqs):
-            if eval_mode == "held-out":
-                _, (c, d) = split_frames(len(s), args.split)
-            else:
-                c, d = 0, len(s)
-            part = s.frames(c, d)
-            mode = gt_modes.get(str(b), args.gt_attitude)
-            if not isinstance(mode, str):
-                if len(mode) != len(s):
-                    raise ValueError(f"{s.name}: {len(s)} frames in the bag but {len(mode)} in the drive")
-                mode = mode[c:d]
-            t0 = time.perf_counter()
-            label = mode if isinstance(mode, str) else "simulator (exact road-relative attitude)"
-            rows = run_variants(part, config, learned, mode, args.empirical_O, args.empirical_Q, device,
-                                fused_learned=fused_learned)
-            frames = f"frames {c}..{d - 1} of {len(s)}" + (" (held out from training)" if eval_mode == "held-out" else "")
-            md.append(table_markdown(s.name, rows, frames, label))
-            gt = part.gt_poses.double().numpy()
-            gt = np.linalg.inv(gt[0]) @ gt
-            ref = reference_attitude(part, mode, config).numpy()
-            png = out / f"{s.name}_ablation.png"
-            plot_bag(png, s.name, gt, rows, ref)
-            md.append(f"![{s.name}]({png.name})\n")
-            rows_by_bag[s.name] = rows
-            report["bags"][s.name] = {"frames": [c, d], "gt_attitude": label, "plot": png.name,
-                                      "rows": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]}
-            print(f"{s.name}: {len(rows)} variants over {d - c} frames in {time.perf_counter() - t0:.1f} s")
-            print(table_markdown(s.name, rows, frames, label))
-        md.append(notes(rows_by_bag, learned_src, args.empirical_O, args.empirical_Q))
-        atomic_write_text(out / "ablation.md", "\n".join(md))
-        atomic_write_text(out / "ablation.json", json.dumps(report, indent=2, default=float) + "\n")
+        options = AblationOptions(
+            params=args.params, learned=args.learned, train=args.train, fused_learned=args.fused_learned,
+            epochs=args.epochs, lr=args.lr, seed=args.seed, init=tuple(args.init) if args.init else None,
+            split=args.split, eval=args.eval, gt_attitude=args.gt_attitude, empirical_o=args.empirical_O,
+            empirical_q=args.empirical_Q, synthetic=args.synthetic, synthetic_seed=args.synthetic_seed,
+            bumps=args.bumps, noise=args.noise, image_scale=args.image_scale, device=args.device, quiet=args.quiet)
+        result = run_ablation(args.bags, config, options, out,
+                              warn=lambda msg: print(f"ablation: warning: {msg}", file=sys.stderr))
     except (ConfigError, bag.BagError, FileNotFoundError, ValueError, TrainingDiverged) as exc:
         print(f"ablation: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("ablation: interrupted", file=sys.stderr)
         return 130
-    print(notes(rows_by_bag, learned_src, args.empirical_O, args.empirical_Q))
+    print(result.notes)
     print(f"wrote {out / 'ablation.md'}, {out / 'ablation.json'} and the plots in {time.perf_counter() - t_start:.0f} s")
     return 0

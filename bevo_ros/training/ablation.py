@@ -2,9 +2,12 @@
 their metrics, the markdown table, notes and plots (``bevo ablation`` runs them over bags)."""
 from __future__ import annotations
 
+import json
 import math
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -242,3 +245,130 @@ def notes(rows_by_bag: dict[str, list[dict]], learned_src: str, empirical_o: flo
             verdict.append(f"path {rows[0]['path_m']:.1f} m < 100 m: no KITTI t_rel/r_rel")
         out.append(f"* {name}: " + "; ".join(verdict) + ".")
     return "\n".join(out) + "\n"
+
+
+@dataclass
+class AblationOptions:
+    """What ``run_ablation`` does: the fields of ``bevo ablation``'s options (see its ``--help``)."""
+
+    params: str                                 # parameters file the config came from (recorded in the report)
+    learned: str | None = None                  # learned-parameters YAML (None: the config's); ignored with train
+    train: bool = False                         # train O/Q on the recordings first
+    fused_learned: str = ""                     # learned-parameters YAML of the fused row
+    epochs: int = 10
+    lr: float = 0.3
+    seed: int = 0
+    init: tuple[float, float, float, float] | None = None
+    split: str = "3/4"
+    eval: str | None = None                     # "all" | "held-out" | None (held-out with train, else all)
+    gt_attitude: str = "imu-highpass"
+    empirical_o: float = EMPIRICAL_O
+    empirical_q: float = EMPIRICAL_Q
+    synthetic: float | None = None              # seconds of a synthetic drive written to OUT/synthetic_bag
+    synthetic_seed: int = 3
+    bumps: float = 2.0
+    noise: float = 2.0
+    image_scale: float = 1.0
+    device: str = "cpu"
+    quiet: bool = False
+
+
+@dataclass
+class AblationResult:
+    report: dict                                # what OUT/ablation.json holds
+    rows_by_bag: dict[str, list[dict]] = field(default_factory=dict)
+    learned_src: str = ""
+    notes: str = ""                             # the markdown notes (also at the end of OUT/ablation.md)
+
+
+def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: str | Path,
+                 log: Callable[[str], None] = print, warn: Callable[[str], None] = print) -> AblationResult:
+    """The whole study: (optional synthetic drive,) load the bags, (train or load O/Q,) every variant per bag;
+    writes OUT/ablation.md, OUT/ablation.json and OUT/<bag>_ablation.png. Progress goes to ``log``,
+    a diverged training's message to ``warn``. Raises ``ValueError`` (and the loaders' errors) on bad input."""
+    from bevo_ros.datasets.rosbag import load_sequence, split_frames
+    from bevo_ros.io.files import atomic_write_text
+    from bevo_ros.io.learned_params import load_learned_params, save_learned_params
+    from bevo_ros.training.trainer import TrainOptions, resolve_device, train
+
+    o = options
+    if not bags and o.synthetic is None:
+        raise ValueError("give at least one BAG or --synthetic SECONDS")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = resolve_device(o.device, log)
+    bag_paths = [Path(b) for b in bags]
+    gt_modes = {}
+    if o.synthetic is not None:
+        t0 = time.perf_counter()
+        syn, drive = make_synthetic_bag(out / "synthetic_bag", o.synthetic, o.synthetic_seed, o.bumps,
+                                        o.noise, o.image_scale)
+        log(f"wrote {syn} ({o.synthetic:.0f} s drive, seed {o.synthetic_seed}, bumps {o.bumps}, "
+            f"noise {o.noise}) in {time.perf_counter() - t0:.1f} s")
+        bag_paths.append(syn)
+        gt_modes[str(syn)] = np.asarray(drive.pitch_roll_road, dtype=np.float64)  # exact, per frame
+    seqs = []
+    for b in bag_paths:
+        s = load_sequence(b, config)
+        s.name = b.resolve().name
+        seqs.append(s)
+    eval_mode = o.eval or ("held-out" if o.train else "all")
+    if o.train:
+        topts = TrainOptions(epochs=o.epochs, lr=o.lr, split=o.split, seed=o.seed,
+                             init=tuple(o.init) if o.init else None, device=str(device))
+        result = train(seqs, config, topts, checkpoint=out / "learned.yaml.ckpt.yaml", progress=not o.quiet)
+        learned = result.learned
+        save_learned_params(learned, out / "learned.yaml")
+        learned_src = (f"trained here on the first {'three quarters' if o.split == '3/4' else '20 %'} of "
+                       f"each bag ({result.epochs_run} epochs, status {result.status}, best epoch "
+                       f"{result.best_epoch}; {out / 'learned.yaml'})")
+        if result.status == "diverged":
+            warn(result.message)
+    else:
+        path = o.learned or config.learned_params_file
+        learned = load_learned_params(path)
+        learned_src = f"from {path}"
+    log(f"learned O = {list(learned.process_noise_density)}, Q = {list(learned.measurement_noise_variance)}")
+    fused_learned = load_learned_params(o.fused_learned)
+
+    md = ["# BEVO ablation (paper Table 3)", "",
+          f"Parameters: {o.params}. Frames evaluated: {eval_mode}. Every variant runs the engine's BEV "
+          "projection and phase correlation; only the attitude fed to the BEV differs.", ""]
+    report: dict = {"params": str(o.params), "eval": eval_mode, "learned": {
+        "process_noise_density": list(learned.process_noise_density),
+        "measurement_noise_variance": list(learned.measurement_noise_variance), "source": learned_src},
+        "bags": {}}
+    rows_by_bag = {}
+    for b, s in zip(bag_paths, seqs):
+        if eval_mode == "held-out":
+            _, (c, d) = split_frames(len(s), o.split)
+        else:
+            c, d = 0, len(s)
+        part = s.frames(c, d)
+        mode = gt_modes.get(str(b), o.gt_attitude)
+        if not isinstance(mode, str):
+            if len(mode) != len(s):
+                raise ValueError(f"{s.name}: {len(s)} frames in the bag but {len(mode)} in the drive")
+            mode = mode[c:d]
+        t0 = time.perf_counter()
+        label = mode if isinstance(mode, str) else "simulator (exact road-relative attitude)"
+        rows = run_variants(part, config, learned, mode, o.empirical_o, o.empirical_q, device,
+                            fused_learned=fused_learned)
+        frames = f"frames {c}..{d - 1} of {len(s)}" + (" (held out from training)" if eval_mode == "held-out" else "")
+        md.append(table_markdown(s.name, rows, frames, label))
+        gt = part.gt_poses.double().numpy()
+        gt = np.linalg.inv(gt[0]) @ gt
+        ref = reference_attitude(part, mode, config).numpy()
+        png = out / f"{s.name}_ablation.png"
+        plot_bag(png, s.name, gt, rows, ref)
+        md.append(f"![{s.name}]({png.name})\n")
+        rows_by_bag[s.name] = rows
+        report["bags"][s.name] = {"frames": [c, d], "gt_attitude": label, "plot": png.name,
+                                  "rows": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]}
+        log(f"{s.name}: {len(rows)} variants over {d - c} frames in {time.perf_counter() - t0:.1f} s")
+        log(table_markdown(s.name, rows, frames, label))
+    text = notes(rows_by_bag, learned_src, o.empirical_o, o.empirical_q)
+    md.append(text)
+    atomic_write_text(out / "ablation.md", "\n".join(md))
+    atomic_write_text(out / "ablation.json", json.dumps(report, indent=2, default=float) + "\n")
+    return AblationResult(report, rows_by_bag, learned_src, text)
