@@ -112,7 +112,6 @@ def main(argv: list[str] | None = None) -> int:
         seqs = []
         for b in args.bags:
             s = load_sequence(b, config)
-            s.name = str(Path(b).resolve().name)
             seqs.append(s)
             print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
                   f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")

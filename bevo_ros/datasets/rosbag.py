@@ -150,7 +150,7 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
         camera=camera,
         gt_poses=gt,
         gt_pitch_roll=gt_pr,
-        name=Path(bag_path).name,
+        name=Path(bag_path).resolve().name,  # the bag directory's own name, also for '.' or 'bag/'
     )
 
 

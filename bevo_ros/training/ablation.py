@@ -307,11 +307,7 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
             f"noise {o.noise}) in {time.perf_counter() - t0:.1f} s")
         bag_paths.append(syn)
         gt_modes[str(syn)] = np.asarray(drive.pitch_roll_road, dtype=np.float64)  # exact, per frame
-    seqs = []
-    for b in bag_paths:
-        s = load_sequence(b, config)
-        s.name = b.resolve().name
-        seqs.append(s)
+    seqs = [load_sequence(b, config) for b in bag_paths]
     eval_mode = o.eval or ("held-out" if o.train else "all")
     if o.train:
         topts = TrainOptions(epochs=o.epochs, lr=o.lr, split=o.split, seed=o.seed,
