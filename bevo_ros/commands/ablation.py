@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from bevo_ros.commands import add_threads_option, set_threads
+from bevo_ros.commands import add_threads_option, guarded, set_threads
 from bevo_ros.config import REPO_ROOT, ConfigError
 # make_synthetic_bag and reference_attitude are re-exported: tests reach them through the command module.
 from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, AblationOptions,  # noqa: F401
@@ -90,32 +90,31 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from bevo_ros.config import load_config
     from bevo_ros.io import bag
     from bevo_ros.training.trainer import TrainingDiverged
 
     set_threads(args.threads)
+    return guarded("ablation", lambda: _ablation(args),
+                   (ConfigError, bag.BagError, FileNotFoundError, ValueError, TrainingDiverged))
+
+
+def _ablation(args: argparse.Namespace) -> int:
+    from bevo_ros.config import load_config
+
     out = Path(args.out)
     t_start = time.perf_counter()
-    try:
-        if not args.bags and args.synthetic is None:
-            raise ValueError("give at least one BAG or --synthetic SECONDS")
-        out.mkdir(parents=True, exist_ok=True)
-        config, _ = load_config(args.params)
-        options = AblationOptions(
-            params=args.params, learned=args.learned, train=args.train, fused_learned=args.fused_learned,
-            epochs=args.epochs, lr=args.lr, seed=args.seed, init=tuple(args.init) if args.init else None,
-            split=args.split, eval=args.eval, gt_attitude=args.gt_attitude, empirical_o=args.empirical_O,
-            empirical_q=args.empirical_Q, synthetic=args.synthetic, synthetic_seed=args.synthetic_seed,
-            bumps=args.bumps, noise=args.noise, image_scale=args.image_scale, device=args.device, quiet=args.quiet)
-        result = run_ablation(args.bags, config, options, out,
-                              warn=lambda msg: print(f"ablation: warning: {msg}", file=sys.stderr))
-    except (ConfigError, bag.BagError, FileNotFoundError, ValueError, TrainingDiverged) as exc:
-        print(f"ablation: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("ablation: interrupted", file=sys.stderr)
-        return 130
+    if not args.bags and args.synthetic is None:
+        raise ValueError("give at least one BAG or --synthetic SECONDS")
+    out.mkdir(parents=True, exist_ok=True)
+    config, _ = load_config(args.params)
+    options = AblationOptions(
+        params=args.params, learned=args.learned, train=args.train, fused_learned=args.fused_learned,
+        epochs=args.epochs, lr=args.lr, seed=args.seed, init=tuple(args.init) if args.init else None,
+        split=args.split, eval=args.eval, gt_attitude=args.gt_attitude, empirical_o=args.empirical_O,
+        empirical_q=args.empirical_Q, synthetic=args.synthetic, synthetic_seed=args.synthetic_seed,
+        bumps=args.bumps, noise=args.noise, image_scale=args.image_scale, device=args.device, quiet=args.quiet)
+    result = run_ablation(args.bags, config, options, out,
+                          warn=lambda msg: print(f"ablation: warning: {msg}", file=sys.stderr))
     print(result.notes)
     print(f"wrote {out / 'ablation.md'}, {out / 'ablation.json'} and the plots in {time.perf_counter() - t_start:.0f} s")
     return 0

@@ -12,8 +12,8 @@ Writes into --out: summary.md, metrics.json, trajectory.png, frame_errors.png an
 from __future__ import annotations
 
 import argparse
-import sys
 
+from bevo_ros.commands import guarded
 from bevo_ros.evaluation.metrics import CONVENTIONS
 from bevo_ros.pipeline import evaluate_files
 
@@ -43,15 +43,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        metrics, paths = evaluate_files(args.gt, args.est, args.out, args.pitch_roll, args.first, args.convention,
-                                        args.title)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"evaluate: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("evaluate: interrupted", file=sys.stderr)
-        return 130
+    return guarded("evaluate", lambda: _evaluate(args), (FileNotFoundError, ValueError))
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    metrics, paths = evaluate_files(args.gt, args.est, args.out, args.pitch_roll, args.first, args.convention,
+                                    args.title)
     for line in metrics.summary_lines():
         print(line)
     print(f"wrote {', '.join(str(p) for p in paths)}")

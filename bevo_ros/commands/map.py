@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 
 import torch
 
+from bevo_ros.commands import guarded
 from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
 from bevo_ros.io import bag
 from bevo_ros.io.maps import save_map
@@ -39,22 +39,22 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     torch.set_num_threads(1)
-    try:
-        if not (args.resolution > 0 and math.isfinite(args.resolution)) or args.every < 1:
-            raise ValueError("--resolution must be > 0 and --every >= 1")
-        config, _ = load_config(args.params)
-        steps, rec, _ = run_bag(args.bag, config, args.learned or config.learned_params_file)
-        if rec.gt_poses is None:
-            raise ValueError(f"{args.bag}: no /ground_truth/odometry messages: a map needs ground-truth poses")
-        first, _, stop = args.frames.partition(":")
-        sel = steps[int(first) if first else 0:int(stop) if stop else None:args.every]
-        if len(sel) < 1:
-            raise ValueError(f"--frames {args.frames} --every {args.every} selects no frame")
-        aerial = map_from_steps(sel, rec, bev_spec(config), args.resolution, args.margin)
-        path = save_map(aerial, args.out)
-    except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
-        print(f"map_from_bag: error: {exc}", file=sys.stderr)
-        return 2
+    return guarded("map_from_bag", lambda: _map(args), (ConfigError, bag.BagError, FileNotFoundError, ValueError))
+
+
+def _map(args: argparse.Namespace) -> int:
+    if not (args.resolution > 0 and math.isfinite(args.resolution)) or args.every < 1:
+        raise ValueError("--resolution must be > 0 and --every >= 1")
+    config, _ = load_config(args.params)
+    steps, rec, _ = run_bag(args.bag, config, args.learned or config.learned_params_file)
+    if rec.gt_poses is None:
+        raise ValueError(f"{args.bag}: no /ground_truth/odometry messages: a map needs ground-truth poses")
+    first, _, stop = args.frames.partition(":")
+    sel = steps[int(first) if first else 0:int(stop) if stop else None:args.every]
+    if len(sel) < 1:
+        raise ValueError(f"--frames {args.frames} --every {args.every} selects no frame")
+    aerial = map_from_steps(sel, rec, bev_spec(config), args.resolution, args.margin)
+    path = save_map(aerial, args.out)
     w, h = aerial.extent
     print(f"map_from_bag: {len(sel)} BEVs -> {aerial.width}x{aerial.height} px at {aerial.resolution:.3f} m/px "
           f"({w:.0f} x {h:.0f} m, origin {aerial.origin[0]:.2f}, {aerial.origin[1]:.2f}); wrote {path}")

@@ -13,13 +13,12 @@ equals the node's. Writes into --out:
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bevo_ros.commands import add_threads_option, set_threads
+from bevo_ros.commands import add_threads_option, guarded, set_threads
 from bevo_ros.config import ConfigError, REPO_ROOT, load_config
 from bevo_ros.io import bag
 from bevo_ros.pipeline import run_bag, write_outputs
@@ -47,25 +46,22 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     set_threads(args.threads)
-    try:
-        config, _ = load_config(args.params)
-        if args.mode:
-            config.odometry.mode = args.mode
-        learned = args.learned or config.learned_params_file
-        t0 = time.perf_counter()
-        steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
+    return guarded("run_bag", lambda: _run(args), (ConfigError, bag.BagError, FileNotFoundError, ValueError))
+
+
+def _run(args: argparse.Namespace) -> int:
+    config, _ = load_config(args.params)
+    if args.mode:
+        config.odometry.mode = args.mode
+    learned = args.learned or config.learned_params_file
+    t0 = time.perf_counter()
+    steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
                               progress=not args.quiet)
-        elapsed = time.perf_counter() - t0
-        if len(steps) < 2:
-            raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
-        T_base_cam = np.array(config.camera.base_T_camera, dtype=float).reshape(4, 4)
-        paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
-    except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
-        print(f"run_bag: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("run_bag: interrupted", file=sys.stderr)
-        return 130
+    elapsed = time.perf_counter() - t0
+    if len(steps) < 2:
+        raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
+    T_base_cam = np.array(config.camera.base_T_camera, dtype=float).reshape(4, 4)
+    paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
     c = odo.counters
     print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
           f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
@@ -73,4 +69,3 @@ def main(argv: list[str] | None = None) -> int:
           f"translation {c.rejected_translation}, rotation {c.rejected_rotation}")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
-

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 
-from bevo_ros.commands import add_threads_option, set_threads
+from bevo_ros.commands import add_threads_option, guarded, set_threads
 from bevo_ros.config import REPO_ROOT, ConfigError, load_config
 
 DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
@@ -90,49 +90,52 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from bevo_ros.datasets.rosbag import load_sequence
     from bevo_ros.io import bag
-    from bevo_ros.io.learned_params import save_learned_params
-    from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainingDiverged, TrainOptions, train
-    from bevo_ros.training.vehicle import fit_vehicle_on_sequences
+    from bevo_ros.training.trainer import TrainingDiverged
 
     set_threads(args.threads)
+    # TrainingDiverged here: before any good parameters existed (e.g. the initial loss)
+    return guarded("train_from_bag", lambda: _train(args),
+                   (ConfigError, bag.BagError, FileNotFoundError, ValueError, TrainingDiverged),
+                   codes={TrainingDiverged: 3},
+                   interrupted=f"interrupted; the checkpoint {_checkpoint(args)} holds the last finished epoch")
+
+
+def _checkpoint(args: argparse.Namespace) -> Path:
     out = Path(args.out)
-    checkpoint = Path(args.checkpoint) if args.checkpoint else out.with_name(out.name + ".ckpt.yaml")
-    try:
-        options = TrainOptions(
-            epochs=args.epochs, lr=args.lr, patience=args.patience, lr_decay=args.lr_decay, split=args.split,
-            steps_per_bag=args.steps_per_bag, window=args.window,
-            temperature=LOSS_TEMPERATURE if args.temperature is None else args.temperature,
-            sigma_angle=math.radians(args.sigma_angle), sigma_shift=args.sigma_shift, seed=args.seed,
-            init=tuple(args.init) if args.init else None, init_search=args.init_search, device=args.device)
-        options.check()
-        config, _ = load_config(args.params)
-        t0 = time.perf_counter()
-        seqs = []
-        for b in args.bags:
-            s = load_sequence(b, config)
-            seqs.append(s)
-            print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
-                  f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")
-        print(f"loaded {len(seqs)} bag(s) in {time.perf_counter() - t0:.1f} s; split {args.split}, "
-              f"{args.epochs} epochs, lr {args.lr}, checkpoint {checkpoint}")
-        result = train(seqs, config, options, checkpoint=checkpoint, resume=args.resume, progress=not args.quiet,
-                       extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
-                                   "params_file": str(Path(args.params).resolve())})
-        if config.odometry.mode == "fused" and args.vehicle_steps > 0:
-            fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps)
-        save_learned_params(result.learned, out)
-    except (ConfigError, bag.BagError, FileNotFoundError, ValueError) as exc:
-        print(f"train_from_bag: error: {exc}", file=sys.stderr)
-        return 2
-    except TrainingDiverged as exc:  # before any good parameters existed (e.g. the initial loss)
-        print(f"train_from_bag: error: {exc}", file=sys.stderr)
-        return 3
-    except KeyboardInterrupt:
-        print(f"train_from_bag: interrupted; the checkpoint {checkpoint} holds the last finished epoch",
-              file=sys.stderr)
-        return 130
+    return Path(args.checkpoint) if args.checkpoint else out.with_name(out.name + ".ckpt.yaml")
+
+
+def _train(args: argparse.Namespace) -> int:
+    from bevo_ros.datasets.rosbag import load_sequence
+    from bevo_ros.io.learned_params import save_learned_params
+    from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, train
+    from bevo_ros.training.vehicle import fit_vehicle_on_sequences
+
+    out, checkpoint = Path(args.out), _checkpoint(args)
+    options = TrainOptions(
+        epochs=args.epochs, lr=args.lr, patience=args.patience, lr_decay=args.lr_decay, split=args.split,
+        steps_per_bag=args.steps_per_bag, window=args.window,
+        temperature=LOSS_TEMPERATURE if args.temperature is None else args.temperature,
+        sigma_angle=math.radians(args.sigma_angle), sigma_shift=args.sigma_shift, seed=args.seed,
+        init=tuple(args.init) if args.init else None, init_search=args.init_search, device=args.device)
+    options.check()
+    config, _ = load_config(args.params)
+    t0 = time.perf_counter()
+    seqs = []
+    for b in args.bags:
+        s = load_sequence(b, config)
+        seqs.append(s)
+        print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
+              f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")
+    print(f"loaded {len(seqs)} bag(s) in {time.perf_counter() - t0:.1f} s; split {args.split}, "
+          f"{args.epochs} epochs, lr {args.lr}, checkpoint {checkpoint}")
+    result = train(seqs, config, options, checkpoint=checkpoint, resume=args.resume, progress=not args.quiet,
+                   extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
+                               "params_file": str(Path(args.params).resolve())})
+    if config.odometry.mode == "fused" and args.vehicle_steps > 0:
+        fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps)
+    save_learned_params(result.learned, out)
     o, q = result.learned.process_noise_density, result.learned.measurement_noise_variance
     b, a = result.before, result.after
     print(f"validation before: loss {b.loss:.4f}, RPE {b.trans_m:.4f} m / {b.yaw_deg:.4f} deg per frame"
