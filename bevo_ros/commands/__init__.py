@@ -7,6 +7,23 @@ import argparse
 import sys
 from typing import Callable, Mapping
 
+from bevo_ros.config import REPO_ROOT
+
+DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
+
+
+def new_parser(doc: str | None, epilog: str | None = None) -> argparse.ArgumentParser:
+    """A command's parser: its module docstring as the description, layout kept (examples, tables)."""
+    return argparse.ArgumentParser(description=doc, epilog=epilog, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def add_params_option(p: argparse.ArgumentParser, learned: bool = False) -> None:
+    """``--params FILE``: the ROS parameters file (default params/kitti.yaml); with ``learned`` also
+    ``--learned FILE``, the learned-parameters YAML overriding the one the parameters file names."""
+    p.add_argument("--params", default=str(DEFAULT_PARAMS), help="ROS parameters file (default params/kitti.yaml)")
+    if learned:
+        p.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
+
 
 def add_threads_option(p: argparse.ArgumentParser, why: str = "") -> None:
     """``--threads N``: torch CPU threads of a command that runs the engine or trains (default 1)."""
@@ -35,3 +52,11 @@ def guarded(prog: str, work: Callable[[], int], errors: tuple[type[BaseException
     except KeyboardInterrupt:
         print(f"{prog}: {interrupted}", file=sys.stderr)
         return 130
+
+
+def bag_errors(*extra: type[BaseException]) -> tuple[type[BaseException], ...]:
+    """The expected errors of a command that reads a parameters file and bags (``extra`` appended)."""
+    from bevo_ros.config import ConfigError
+    from bevo_ros.io.bag import BagError
+
+    return (ConfigError, BagError, FileNotFoundError, ValueError, *extra)

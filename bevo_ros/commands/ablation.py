@@ -25,13 +25,11 @@ import sys
 import time
 from pathlib import Path
 
-from bevo_ros.commands import add_threads_option, guarded, set_threads
-from bevo_ros.config import REPO_ROOT, ConfigError
+from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
+from bevo_ros.config import REPO_ROOT
 # make_synthetic_bag and reference_attitude are re-exported: tests reach them through the command module.
 from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, AblationOptions,  # noqa: F401
                                         make_synthetic_bag, reference_attitude, run_ablation)
-
-DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
 
 EPILOG = """\
 reference attitude for "w/ GT" (--gt-attitude):
@@ -55,11 +53,10 @@ examples:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__, EPILOG)
     p.add_argument("bags", nargs="*", metavar="BAG", help="rosbag2 directories with ground truth")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--params", default=str(DEFAULT_PARAMS), help="ROS parameters file (default params/kitti.yaml)")
+    add_params_option(p)
     src = p.add_mutually_exclusive_group()
     src.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
     src.add_argument("--train", action="store_true", help="train O/Q on the bags first (bevo_ros.training.trainer)")
@@ -90,12 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from bevo_ros.io import bag
     from bevo_ros.training.trainer import TrainingDiverged
 
     set_threads(args.threads)
-    return guarded("ablation", lambda: _ablation(args),
-                   (ConfigError, bag.BagError, FileNotFoundError, ValueError, TrainingDiverged))
+    return guarded("ablation", lambda: _ablation(args), bag_errors(TrainingDiverged))
 
 
 def _ablation(args: argparse.Namespace) -> int:

@@ -18,16 +18,16 @@ import argparse
 import math
 import sys
 
-from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
+from bevo_ros.commands import add_params_option, new_parser
+from bevo_ros.config import ConfigError, bev_spec, load_config
 from bevo_ros.datasets.rosbag import load_sequence
 from bevo_ros.training.mounting import calibrate
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__)
     p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry")
-    p.add_argument("--params", default=str(REPO_ROOT / "params" / "kitti.yaml"), help="parameters file")
+    add_params_option(p)
     p.add_argument("--frames", default="0:11", help="frame range START:STOP of the calibration drive (default 0:11)")
     return p
 

@@ -19,6 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from bevo_ros.commands import new_parser
 from bevo_ros.io import bag
 from bevo_ros.datasets.kitti_bag import ConversionError, ConversionOptions, convert, load_source
 
@@ -45,8 +46,7 @@ def _dir_size(path: Path) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=EPILOG)
+    p = new_parser(__doc__, EPILOG)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--odometry", metavar="DIR", help="KITTI odometry root (holds sequences/ and poses/)")
     src.add_argument("--raw", metavar="DIR", help="a raw drive directory <date>/<date>_drive_NNNN_sync")

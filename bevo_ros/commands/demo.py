@@ -10,11 +10,11 @@ Every step is a `bevo` command called exactly as the README shows.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
 
+from bevo_ros.commands import new_parser
 from bevo_ros.config import REPO_ROOT as REPO
 
 KITTI = REPO.parent / "shared" / "data" / "kitti"
@@ -52,7 +52,7 @@ HEADER = ("| run | frames | path (m) | RPE trans RMSE (cm/frame) | RPE yaw RMSE 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__)
     p.add_argument("--out", default=str(REPO / "out" / "demo"), help="output directory (default out/demo)")
     p.add_argument("--duration", type=float, default=40.0, help="synthetic drive length, s (default 40)")
     p.add_argument("--epochs", type=int, default=6, help="training epochs (default 6)")

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 
-from bevo_ros.commands import guarded
+from bevo_ros.commands import guarded, new_parser
 from bevo_ros.evaluation.metrics import CONVENTIONS
 from bevo_ros.pipeline import evaluate_files
 
@@ -28,8 +28,7 @@ example:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__, EPILOG)
     p.add_argument("--gt", required=True, help="ground-truth poses (KITTI format)")
     p.add_argument("--est", required=True, help="estimated poses (KITTI format)")
     p.add_argument("--out", required=True, help="output directory (created if needed)")

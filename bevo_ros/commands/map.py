@@ -15,20 +15,17 @@ import math
 
 import torch
 
-from bevo_ros.commands import guarded
-from bevo_ros.config import REPO_ROOT, ConfigError, bev_spec, load_config
-from bevo_ros.io import bag
+from bevo_ros.commands import add_params_option, bag_errors, guarded, new_parser
+from bevo_ros.config import bev_spec, load_config
 from bevo_ros.io.maps import save_map
 from bevo_ros.pipeline import map_from_steps, run_bag
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__)
     p.add_argument("bag", help="rosbag2 directory with /ground_truth/odometry")
     p.add_argument("--out", required=True, help="map YAML to write (the PNG goes beside it)")
-    p.add_argument("--params", default=str(REPO_ROOT / "params" / "kitti.yaml"), help="ROS parameters file")
-    p.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
+    add_params_option(p, learned=True)
     p.add_argument("--resolution", type=float, default=0.1, help="metres per pixel (default 0.1, the BEV's)")
     p.add_argument("--margin", type=float, default=2.0, help="metres around the BEVs (default 2)")
     p.add_argument("--frames", default=":", help="frame range first:stop (default all)")
@@ -39,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     torch.set_num_threads(1)
-    return guarded("map_from_bag", lambda: _map(args), (ConfigError, bag.BagError, FileNotFoundError, ValueError))
+    return guarded("map_from_bag", lambda: _map(args), bag_errors())
 
 
 def _map(args: argparse.Namespace) -> int:

@@ -16,6 +16,7 @@ import sys
 import time
 
 
+from bevo_ros.commands import new_parser
 from bevo_ros.io import bag
 
 EPILOG = """\
@@ -45,8 +46,7 @@ def message_class(msgtype: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__, EPILOG)
     p.add_argument("bag", help="rosbag2 directory (or its .db3 / .mcap file)")
     p.add_argument("--rate", type=float, default=1.0, help="playback speed factor; 0 = as fast as possible (default 1)")
     p.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds of the bag")

@@ -18,21 +18,18 @@ from pathlib import Path
 
 import numpy as np
 
-from bevo_ros.commands import add_threads_option, guarded, set_threads
-from bevo_ros.config import ConfigError, REPO_ROOT, load_config
+from bevo_ros.commands import DEFAULT_PARAMS  # noqa: F401 (re-exported: tests load the default parameters)
+from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
+from bevo_ros.config import load_config
 from bevo_ros.io import bag
 from bevo_ros.pipeline import run_bag, write_outputs
 
-DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
-
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__)
     p.add_argument("bag", help="rosbag2 directory (sqlite3 or mcap)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--params", default=str(DEFAULT_PARAMS), help="ROS parameters file (default params/kitti.yaml)")
-    p.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
+    add_params_option(p, learned=True)
     p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
     p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
     p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
@@ -46,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     set_threads(args.threads)
-    return guarded("run_bag", lambda: _run(args), (ConfigError, bag.BagError, FileNotFoundError, ValueError))
+    return guarded("run_bag", lambda: _run(args), bag_errors())
 
 
 def _run(args: argparse.Namespace) -> int:

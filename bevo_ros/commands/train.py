@@ -20,10 +20,8 @@ import time
 from pathlib import Path
 
 
-from bevo_ros.commands import add_threads_option, guarded, set_threads
-from bevo_ros.config import REPO_ROOT, ConfigError, load_config
-
-DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
+from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
+from bevo_ros.config import load_config
 
 EPILOG = """\
 initial values (paper: O and Q uniform in [0, 1]):
@@ -55,11 +53,10 @@ examples:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = new_parser(__doc__, EPILOG)
     p.add_argument("bags", nargs="+", metavar="BAG", help="rosbag2 directories with /ground_truth/odometry")
     p.add_argument("--out", required=True, help="learned-parameters YAML to write (best validated O/Q)")
-    p.add_argument("--params", default=str(DEFAULT_PARAMS), help="ROS parameters file (default params/kitti.yaml)")
+    add_params_option(p)
     p.add_argument("--split", default="3/4", choices=["3/4", "20%"], help="train/validation split per bag")
     p.add_argument("--epochs", type=int, default=20, help="epochs (total, also when resuming; default 20)")
     p.add_argument("--lr", type=float, default=0.3, help="Adam learning rate on the log-variances (default 0.3)")
@@ -90,14 +87,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from bevo_ros.io import bag
     from bevo_ros.training.trainer import TrainingDiverged
 
     set_threads(args.threads)
     # TrainingDiverged here: before any good parameters existed (e.g. the initial loss)
-    return guarded("train_from_bag", lambda: _train(args),
-                   (ConfigError, bag.BagError, FileNotFoundError, ValueError, TrainingDiverged),
-                   codes={TrainingDiverged: 3},
+    return guarded("train_from_bag", lambda: _train(args), bag_errors(TrainingDiverged), codes={TrainingDiverged: 3},
                    interrupted=f"interrupted; the checkpoint {_checkpoint(args)} holds the last finished epoch")
 
 
