@@ -39,6 +39,7 @@ from bevo_ros.core.map_localization import (APPEARANCES, LocalizerConfig, MapLoc
 from bevo_ros.io.maps import load_map
 from bevo_ros.io.ros_conversions import (ImageConversionError, gray_to_image_msg, heatmap_to_mono8, image_to_gray,
                                          quaternion_from_rpy, rpy_from_quaternion, stamp_to_ns, stamp_to_sec)
+from bevo_ros.ros.diagnostics import counter_values
 
 NODE_NAME = "bevo_localizer"
 EXIT_CONFIG_ERROR = 2
@@ -368,10 +369,8 @@ class BevoLocalizerNode(Node):
             sd = np.sqrt(np.diag(self.localizer.filter.P))
             v["position_std_m"] = f"{math.hypot(sd[0], sd[1]):.3f}"
             v["yaw_std_deg"] = f"{math.degrees(sd[2]):.3f}"
-        for k, n in sorted(self.counts.items()):
-            v[f"count.{k}"] = str(n)
-        for k, n in sorted(self.drops.items()):
-            v[f"drop.{k}"] = str(n)
+        v.update(counter_values("count", self.counts))
+        v.update(counter_values("drop", self.drops))
         return v
 
     def _publish_diagnostics(self) -> None:

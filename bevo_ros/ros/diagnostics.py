@@ -79,6 +79,11 @@ class SensorMonitor:
         return SensorState(OK, f"{self.label}: {values['rate_hz']} Hz", values)
 
 
+def counter_values(prefix: str, counts: dict[str, int]) -> dict[str, str]:
+    """Counters as diagnostic key/values ``{"PREFIX.NAME": "N"}``, sorted by name (drops, events, counts)."""
+    return {f"{prefix}.{name}": str(n) for name, n in sorted(counts.items())}
+
+
 def status_message(node_name: str, what: str, state: SensorState, hardware_id: str = "bevo"):
     """A diagnostic_msgs/DiagnosticStatus named ``<node>: <what>``."""
     from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
@@ -170,10 +175,8 @@ class Report:
             "pending_images": str(pending_images),
             "tf": tf_backend,
         }
-        for reason, n in sorted(self.drops.items()):
-            values[f"drop.{reason}"] = str(n)
-        for name, n in sorted(self.events.items()):
-            values[f"event.{name}"] = str(n)
+        values.update(counter_values("drop", self.drops))
+        values.update(counter_values("event", self.events))
         return values
 
     def summary(self) -> str:
