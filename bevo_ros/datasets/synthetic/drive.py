@@ -907,6 +907,32 @@ class SyntheticDrive:
             return self.images[index]
         return render_frame(self, index)
 
+    def to_recording(self, frame_range: tuple[int, int] | None = None):
+        """The drive as the datasets' one recording type, :class:`bevo_ros.datasets.rosbag.Recording`,
+        without a bag: what ``load_sequence(write_drive_bag(drive, frame_range=...))`` gives (same IMU
+        span, ground truth relative to the first frame, gravity-referenced attitude), except that stamps
+        keep their float64 seconds (a bag rounds them to ns) and the camera is the drive's own.
+        Renders every frame in ``frame_range`` (first, stop) unless the images are already arrays."""
+        from bevo_ros.datasets.rosbag import Recording
+
+        f0, f1 = frame_range or (0, self.num_frames)
+        t_lo, t_hi = self.frame_stamps[f0], self.frame_stamps[f1 - 1]
+        imu = (self.imu_stamps >= t_lo - 0.5) & (self.imu_stamps <= t_hi)  # write_drive_bag's span
+        poses = base_poses_4x4(self)
+        poses = np.linalg.inv(poses[f0]) @ poses[f0:f1]
+        images = np.stack([np.asarray(self.image(i)) for i in range(f0, f1)])
+        return Recording(
+            imu_stamps=torch.from_numpy(self.imu_stamps[imu]),
+            gyro=torch.from_numpy(self.gyro[imu]),
+            accel=torch.from_numpy(self.accel[imu]),
+            frame_stamps=torch.from_numpy(self.frame_stamps[f0:f1].copy()),
+            images=torch.from_numpy(images),
+            camera=self.camera,
+            gt_poses=torch.from_numpy(poses),
+            gt_pitch_roll=torch.from_numpy(self.pitch_roll_gravity[f0:f1].copy()),
+            name=f"synthetic-seed{self.seed}",
+        )
+
 
 # ---------------------------------------------------------------------------------------------
 # Named drives (presets)
