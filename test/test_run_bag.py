@@ -16,7 +16,7 @@ from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.datasets.rosbag import feed_engine, load_sequence, split_frames, write_drive_bag
 from bevo_ros.training.mounting import calibrate
-from bevo_ros.datasets.synthetic.drive import kitti_like_camera, make_drive
+from bevo_ros.datasets.synthetic import kitti_like_camera, make_drive
 
 SYNTH_PARAMS = str(REPO_ROOT / "params" / "synthetic.yaml")
 
