@@ -20,6 +20,8 @@ import yaml
 if TYPE_CHECKING:
     from bevo_ros.io.learned_params import LearnedParams
 
+from bevo_ros.core.dpc_config import DpcConfig
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -106,6 +108,9 @@ class BevoConfig:
     bev: BevSettings = field(default_factory=BevSettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
     odometry: OdometrySettings = field(default_factory=OdometrySettings)
+    # Phase correlation (core.dpc_config.DpcConfig): the engine's defaults; training sets its own
+    # softmax temperatures on top (LOSS_TEMPERATURE).
+    dpc: DpcConfig = field(default_factory=DpcConfig)
     # Learned O/Q file; relative paths resolve against the parameters file, then the package.
     learned_params_file: str = "params/learned_default.yaml"
     # "cpu" or "cuda" ("cuda" falls back to CPU with a warning when unavailable).
@@ -156,7 +161,7 @@ def _flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         if isinstance(value, dict):
             out.update(_flatten(value, name + "."))
         else:
-            out[name] = value
+            out[name] = list(value) if isinstance(value, tuple) else value  # ROS arrays are lists
     return out
 
 
@@ -170,7 +175,10 @@ def _from_flat(cls: type, flat: dict[str, Any], prefix: str, source: str) -> Any
             kwargs[f.name] = _from_flat(type(default), flat, name + ".", source)
         elif name in flat:
             kwargs[f.name] = coerce_setting(flat[name], default, name, source)
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:  # a section's own checks (DpcConfig.__post_init__)
+        raise ConfigError(f"{source}: {prefix.rstrip('.') or 'settings'}: {exc}") from None
 
 
 def coerce_setting(value: Any, default: Any, name: str, source: str | None = None) -> Any:
@@ -188,16 +196,17 @@ def coerce_setting(value: Any, default: Any, name: str, source: str | None = Non
         elif isinstance(default, float):
             if not isinstance(value, bool) and math.isfinite(float(value)):
                 return float(value)
-        elif isinstance(default, list):
+        elif isinstance(default, (list, tuple)):  # a tuple default (hashable settings) stays a tuple
             out = [float(v) for v in value]
             if len(out) == len(default) and not any(isinstance(v, bool) for v in value):
-                return out
+                return type(default)(out)
         elif isinstance(value, str):
             return value
     except (TypeError, ValueError):
         pass
     raise ConfigError((f"{source}: " if source else "") + f"parameter '{name}' = {value!r} is not a valid "
-                      f"{type(default).__name__}" + (f" of length {len(default)}" if isinstance(default, list) else ""))
+                      f"{type(default).__name__}" + (f" of length {len(default)}" if isinstance(default, (list, tuple))
+                                                     else ""))
 
 
 def read_yaml(path: Path, what: str) -> Any:
@@ -245,10 +254,11 @@ def load_config(path: str | os.PathLike, node_name: str = "bevo_node") -> tuple[
 
 def field_comments(cls: type, prefix: str = "") -> dict[str, str]:
     """``{"a.b": comment}``: the ``#`` comment lines right above each field of the settings
-    dataclass ``cls`` (and of its nested ones), joined; the settings' documentation in one place."""
+    dataclass ``cls`` (and of its nested ones), joined, else the field's entry in the class
+    docstring's ``Attributes:`` (the engine's own settings); the settings' documentation in one place."""
     import inspect
 
-    out: dict[str, str] = {}
+    out = _docstring_attributes(cls, prefix)
     try:
         lines = inspect.getsource(cls).splitlines()
     except (OSError, TypeError):  # source not shipped
@@ -267,6 +277,33 @@ def field_comments(cls: type, prefix: str = "") -> dict[str, str]:
         default = getattr(cls(), f.name)
         if dataclasses.is_dataclass(default):
             out.update(field_comments(type(default), f"{prefix}{f.name}."))
+    return out
+
+
+def _docstring_attributes(cls: type, prefix: str) -> dict[str, str]:
+    """``{"a.b": text}`` from a Google-style ``Attributes:`` section (``name: text`` or
+    ``a, b: text``, continuation lines indented deeper)."""
+    import inspect
+
+    doc = inspect.getdoc(cls) or ""
+    if "Attributes:" not in doc:
+        return {}
+    out: dict[str, str] = {}
+    names: list[str] = []
+    for line in doc.split("Attributes:", 1)[1].splitlines():
+        if not line.strip():
+            continue
+        head, _, text = line.strip().partition(": ")
+        keys = [k.strip() for k in head.split(",")]
+        if line.startswith("    ") and not line.startswith("        ") and text and all(k.isidentifier() for k in keys):
+            names = keys
+            for k in names:
+                out[prefix + k] = text.strip()
+        elif line.startswith("        ") and names:
+            for k in names:
+                out[prefix + k] += " " + line.strip()
+        else:
+            break
     return out
 
 
@@ -396,6 +433,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         dukf=dukf,
         road_tilt_time_constant=config.filter.road_tilt_time_constant,
         mounting_attitude=(config.filter.mounting_pitch, config.filter.mounting_roll),
+        dpc=config.dpc,
         max_imu_gap=config.filter.max_imu_gap,
         turn_compensation=config.filter.turn_compensation,
         device=device,

@@ -163,3 +163,17 @@ def test_one_coercion_rule_rejects_with_the_name(value, default):
 
     with pytest.raises(ConfigError, match=r"file.yaml: parameter 'a\.b' = .* is not a valid"):
         coerce_setting(value, default, "a.b", "file.yaml")
+
+
+def test_phase_correlation_settings_reach_the_engine_from_the_parameters_file(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text(yaml.safe_dump({"bevo_node": {"ros__parameters": {
+        "dpc": {"angle_bins": 180, "radial_range": [0.06, 0.3], "whitening_floor": 0.1}}}}))
+    config, _ = load_config(p)
+    assert config.dpc.angle_bins == 180 and config.dpc.radial_range == (0.06, 0.3)
+    kitti, _ = load_config(REPO_ROOT / "params" / "kitti.yaml")
+    odo = build_odometry(config, load_learned_params(config.learned_params_file), camera=camera_model(kitti.camera))
+    assert odo.dpc == config.dpc and hash(odo.dpc)  # hashable: the derived grids are cached on it
+    p.write_text(yaml.safe_dump({"bevo_node": {"ros__parameters": {"dpc": {"radial_range": [0.3, 0.1]}}}}))
+    with pytest.raises(ConfigError, match="dpc.*radial_range"):
+        load_config(p)

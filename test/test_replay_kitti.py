@@ -25,18 +25,16 @@ pytestmark = [pytest.mark.ros, pytest.mark.kitti, pytest.mark.timeout(300)]
 def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path):
     bag_path = tmp_path / "kitti06"
     assert convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
-                                      "-o", str(bag_path), "--storage", "mcap", "-q"]) == 0
+                         "-o", str(bag_path), "--storage", "mcap", "-q"]) == 0
     offline = tmp_path / "offline"
     assert run.main([str(bag_path), "--out", str(offline), "-q"]) == 0
     expected = np.loadtxt(offline / "trajectory_tum.txt")
 
+    # The product's replay overlay (params/replay.yaml: use_sim_time, reliable inputs, images wait
+    # up to 5 s for the IMU of their stamp, which a loaded machine can deliver late).
     params = write_params(tmp_path / "params.yaml", {
-        "input_qos": "reliable", "imu_qos_depth": 1000, "image_qos_depth": 100,
         "learned_params_file": str(REPO / "params" / "learned_default.yaml")})
-    # image_wait 3 s: on a loaded machine an IMU sample can arrive more than the default 0.2 s after
-    # the image of its stamp; the node would then (correctly) process the image with the IMU so far,
-    # which is not the offline order this test compares against.
-    node = NodeProcess(params, str(DOMAIN_ID), extra_args=["-p", "use_sim_time:=true", "-p", "image_wait:=3.0"]).start()
+    node = NodeProcess(params, str(DOMAIN_ID), extra_args=["--params-file", str(REPO / "params" / "replay.yaml")]).start()
     listener = OdometryListener(DOMAIN_ID, "replay_tester")
     odom = listener.odom
     try:
@@ -49,8 +47,11 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path):
                                 env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         assert listener.spin_until(lambda: play.poll() is not None and len(odom) >= 51, 120), \
             f"{len(odom)} odometry messages; play_bag rc {play.poll()}\n{node.output}"
+        node.interrupt()  # its last line: what it received, published and dropped
         print("\n" + play.stdout.read().strip())
         assert play.returncode == 0
+        out = node.output
+        assert "odometry 51 published; dropped: none" in out and "flushed_images" not in out, out
         got = listener.positions()
         np.testing.assert_allclose(got[:, 0], expected[:, 0], atol=1e-9)  # stamps copied from the images
         diff = np.abs(got[:, 1:] - expected[:, 1:3]).max()

@@ -208,7 +208,7 @@ def register_grid(prev: Tensor, curr: Tensor, mask_prev: Tensor, mask_curr: Tens
     """
     p_prev, p_curr = prepare(prev, mask_prev, config), prepare(curr, mask_curr, config)
     angle0, _, rlog = estimate_rotation(p_prev, p_curr, config)
-    envelope = overlap_envelope(p_prev.weight_spectrum, p_curr.weight_spectrum) if config.envelope_correction else None
+    envelope = overlap_envelope(p_prev.weight_spectrum, p_curr.weight_spectrum)
     B, S = curr.shape[0], curr.shape[-1]
     n = max(1, int(round(half_range / step)))
     k = torch.arange(-n, n + 1, dtype=angle0.dtype, device=angle0.device)
@@ -216,8 +216,8 @@ def register_grid(prev: Tensor, curr: Tensor, mask_prev: Tensor, mask_curr: Tens
     m = 2 * n + 1
     der = rotate_about_centre(p_curr.image[:, None].repeat_interleave(m, dim=0), -cand)[:, 0]
     corr = translation_correlation(p_prev.spectrum.repeat_interleave(m, dim=0), der, config)
-    if envelope is not None:  # only where the weights overlap well: far shifts of a strip would blow up
-        corr = corr / envelope.repeat_interleave(m, dim=0).clamp_min(0.5)
+    # only where the weights overlap well: far shifts of a strip would blow up
+    corr = corr / envelope.repeat_interleave(m, dim=0).clamp_min(0.5)
     j = corr.reshape(B * m, S * S).argmax(dim=-1)
     _, log_h = _quadratic_peak_2d(corr, j // S, j % S)
     log_h = log_h.reshape(B, m)

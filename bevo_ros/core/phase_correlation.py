@@ -30,8 +30,7 @@ Pipeline (all differentiable, batched, no Python loops over the batch, no ``.ite
 3. :func:`rotate_about_centre` undoes the rotation of ``curr``; :func:`estimate_translation`
    does a 2-D phase correlation (same kind of band weight), softmax over the ``(S, S)`` shifts.
 4. Point estimates: the argmax cell plus a sub-bin / sub-pixel log-parabola fit through the
-   peak's neighbours (exact for the Gaussian peak the band weight produces; see
-   ``DpcConfig.subpixel``). The translation fit divides out the overlap of the two weights
+   peak's neighbours (exact for the Gaussian peak the band weight produces). The translation fit divides out the overlap of the two weights
    first (:func:`overlap_envelope`), which otherwise drags the peak towards zero shift.
    The distributions (log-softmax, for the KL loss) are over the full grids.
 
@@ -52,6 +51,8 @@ from functools import lru_cache
 import torch
 import torch.nn.functional as F
 
+from .dpc_config import DpcConfig
+
 Tensor = torch.Tensor
 
 
@@ -59,93 +60,6 @@ class InvalidBevError(ValueError):
     """A BEV with no valid pixel (e.g. an attitude that puts the ground patch out of the image):
     bad input for this frame, not a bug (:class:`~bevo_ros.core.odometry.BevoOdometry` counts it
     as a drop)."""
-
-
-@dataclass(frozen=True)
-class DpcConfig:
-    """Phase-correlation settings (all hashable so derived grids can be cached).
-
-    Attributes:
-        angle_bins: ``A`` bins over 180 degrees for the rotation distribution.
-        radial_range: Fourier radii used for rotation, cycles per pixel (excludes the lowest
-            frequencies, dominated by shading, and the highest, aliased ones).
-        radial_samples: number of radii sampled in ``radial_range``.
-        compression: ``"log"`` or ``"sqrt"`` compression of the Fourier magnitude.
-        rotation_padding: the rotation stage zero-pads the BEV to ``padding * S`` before its FFT so
-            that the magnitude is sampled finely enough for bilinear polar resampling (the
-            interpolation error is fixed to the pixel grid and would bias angles towards 0).
-        window_alpha: radial Tukey window, fraction of the radius ``S/2`` that is tapered
-            (1 = radial Hann).
-        mask_blur: Gaussian sigma (pixels) of the mask's soft edge: the weight is
-            ``smoothstep(2 * blur(mask) - 1)``, zero on the mask's border and rising to one about
-            ``2 * mask_blur`` pixels inside, so invalid pixels never leak in and the fixed footprint
-            has no sharp edge.
-        rotation_sigma: width (bins) of the Gaussian correlation peak for rotation.
-        rotation_lowcut: angular frequencies (cycles per 180 degrees) below ~this are suppressed.
-        translation_sigma: width (pixels) of the Gaussian correlation peak for translation.
-        translation_lowcut: spatial frequencies (cycles per pixel) below ~this are suppressed.
-        rotation_temperature, translation_temperature: softmax temperatures on correlations
-            normalised to 1 for a perfect match.
-        whitening_floor: the translation's phase normalisation divides the cross-power spectrum by
-            ``|C| + floor * mean|C|`` (0 = pure phase correlation); a floor keeps weak, leakage-
-            dominated frequencies (smooth textures) from pulling the peak towards zero shift.
-        subpixel: ``"gaussian"``: log-parabola fit through the peak and its neighbours (exact for
-            the Gaussian-shaped peak the band-pass produces); ``"expectation"``: soft expectation
-            of the correlation raised to ``1 / refine_temperature`` in a local window.
-        envelope_correction: divide the translation correlation by the weights' overlap before the
-            sub-pixel fit (removes a pull of ~0.05 px towards zero shift at 10 px shifts).
-        rotation_refine_step: degrees; the Fourier-magnitude angle is refined by direct alignment
-            (:func:`refine_rotation`) at +-step, halving the step at each of
-            ``rotation_refine_iters`` iterations (0 iterations = off).
-        refine_window: half-width of that local window (bins / pixels).
-        refine_temperature: see ``subpixel``.
-    """
-
-    angle_bins: int = 360
-    radial_range: tuple[float, float] = (0.05, 0.40)
-    radial_samples: int = 36
-    compression: str = "log"
-    rotation_padding: int = 2
-    window_alpha: float = 1.0
-    mask_blur: float = 2.0
-    rotation_sigma: float = 1.5
-    rotation_lowcut: float = 0.0
-    translation_sigma: float = 1.0
-    translation_lowcut: float = 0.0
-    rotation_temperature: float = 0.02
-    translation_temperature: float = 0.02
-    whitening_floor: float = 0.0
-    subpixel: str = "gaussian"
-    envelope_correction: bool = True
-    rotation_refine_step: float = 0.5
-    rotation_refine_iters: int = 0
-    refine_window: int = 3
-    refine_temperature: float = 1.0
-
-    def __post_init__(self) -> None:
-        if self.angle_bins < 8 or self.angle_bins % 2:
-            raise ValueError(f"angle_bins must be an even number >= 8, got {self.angle_bins}")
-        lo, hi = self.radial_range
-        if not 0.0 < lo < hi <= 0.5:
-            raise ValueError(f"radial_range must satisfy 0 < lo < hi <= 0.5 cycles/pixel, got {self.radial_range}")
-        if self.rotation_padding < 1:
-            raise ValueError(f"rotation_padding must be >= 1, got {self.rotation_padding}")
-        if self.radial_samples < 1:
-            raise ValueError(f"radial_samples must be >= 1, got {self.radial_samples}")
-        if self.compression not in ("log", "sqrt"):
-            raise ValueError(f"compression must be 'log' or 'sqrt', got {self.compression!r}")
-        if self.subpixel not in ("gaussian", "expectation"):
-            raise ValueError(f"subpixel must be 'gaussian' or 'expectation', got {self.subpixel!r}")
-        for name in ("rotation_temperature", "translation_temperature", "refine_temperature",
-                     "rotation_sigma", "translation_sigma"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if not 0.0 < self.window_alpha <= 1.0:
-            raise ValueError(f"window_alpha must be in (0, 1], got {self.window_alpha}")
-        if self.mask_blur < 0 or self.refine_window < 1:
-            raise ValueError(f"need mask_blur >= 0 and refine_window >= 1, got {self.mask_blur}, {self.refine_window}")
-        if self.rotation_refine_iters < 0 or self.rotation_refine_step <= 0:
-            raise ValueError("rotation_refine_iters must be >= 0 and rotation_refine_step > 0")
 
 
 @dataclass
@@ -386,7 +300,7 @@ def _polar_spectrum(spectrum: Tensor, config: DpcConfig) -> Tensor:
     B, S, W = spectrum.shape  # S here is the padded size; rfft2 layout
     mag = _magnitude(spectrum).reshape(B, S * W)
     mag = mag / (mag.mean(dim=1, keepdim=True) + 1e-12)  # brightness/contrast invariant
-    mag = torch.log1p(mag) if config.compression == "log" else torch.sqrt(mag + 1e-12)
+    mag = torch.log1p(mag)
     idx, w = _polar_sampler(S, config.angle_bins, config.radial_range, config.radial_samples, spectrum.device)
     w = w.to(mag.dtype)
     polar = (mag.index_select(1, idx).reshape(B, 4, -1) * w).sum(dim=1)
@@ -474,28 +388,13 @@ def estimate_rotation(prev: Prepared, curr: Prepared, config: DpcConfig) -> tupl
     corr = torch.roll(corr, A // 2, dims=-1)  # index i <-> (i - A/2) pi / A
     log_prob = F.log_softmax(corr / config.rotation_temperature, dim=-1)
     j = corr.argmax(dim=-1)
-    if config.subpixel == "gaussian":
-        cm = corr.gather(-1, ((j - 1) % A)[:, None])[:, 0]
-        c0 = corr.gather(-1, j[:, None])[:, 0]
-        cp = corr.gather(-1, ((j + 1) % A)[:, None])[:, 0]
-        offset = _gaussian_offset(cm, c0, cp)
-    else:
-        offset = _local_expectation_1d(corr, j, config)
+    cm = corr.gather(-1, ((j - 1) % A)[:, None])[:, 0]
+    c0 = corr.gather(-1, j[:, None])[:, 0]
+    cp = corr.gather(-1, ((j + 1) % A)[:, None])[:, 0]
+    offset = _gaussian_offset(cm, c0, cp)
     angle = (j.to(corr.dtype) + offset - A // 2) * (math.pi / A)
     angle = torch.remainder(angle + math.pi / 2, math.pi) - math.pi / 2
     return angle, corr, log_prob
-
-
-def _local_expectation_1d(corr: Tensor, j: Tensor, config: DpcConfig) -> Tensor:
-    """Soft expectation of ``corr^(1/T)`` in a circular window around ``j``. -> offset ``(B,)``."""
-    A = corr.shape[-1]
-    h = config.refine_window
-    d = torch.arange(-h, h + 1, device=corr.device)
-    win = corr.gather(-1, (j[:, None] + d) % A)  # (B, 2h+1)
-    peak = win[:, h : h + 1].abs().clamp_min(1e-12)
-    logits = torch.log(torch.clamp(win / peak, min=1e-6)) / config.refine_temperature
-    p = torch.softmax(logits, dim=-1)
-    return (p * d.to(corr.dtype)).sum(dim=-1)
 
 
 def overlap_envelope(prev_weight_spectrum: Tensor, curr_weight_spectrum: Tensor) -> Tensor:
@@ -552,10 +451,7 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
     j = flat.argmax(dim=-1)
     jr, jc = j // S, j % S
     fit = corr if envelope is None else corr / envelope.clamp_min(0.05)
-    if config.subpixel == "gaussian":
-        off, _ = _quadratic_peak_2d(fit, jr, jc)
-    else:
-        off = _local_expectation_2d(fit, jr, jc, config)
+    off, _ = _quadratic_peak_2d(fit, jr, jc)
     shift = torch.stack([jr, jc], dim=-1).to(corr.dtype) - S // 2 + off
     return shift, corr, log_prob
 
@@ -607,16 +503,6 @@ def _quadratic_peak_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> tuple[Tensor, Te
     return torch.stack([orow, ocol], dim=-1), log_height
 
 
-def _local_expectation_2d(corr: Tensor, jr: Tensor, jc: Tensor, config: DpcConfig) -> Tensor:
-    h = config.refine_window
-    win, d = _window_2d(corr, jr, jc, h)
-    B = win.shape[0]
-    peak = win[:, h, h].abs().clamp_min(1e-12)[:, None, None]
-    logits = torch.log(torch.clamp(win / peak, min=1e-6)) / config.refine_temperature
-    p = torch.softmax(logits.reshape(B, -1), dim=-1).reshape(win.shape)
-    return torch.stack([(p.sum(dim=2) * d).sum(dim=1), (p.sum(dim=1) * d).sum(dim=1)], dim=-1)
-
-
 def _wrapped_spread(log_prob_a: Tensor, bins_a: Tensor, angle: Tensor) -> Tensor:
     diff = torch.remainder(bins_a[None, :] - angle[:, None] + math.pi / 2, math.pi) - math.pi / 2
     return (log_prob_a.exp() * diff**2).sum(dim=-1).sqrt()
@@ -637,34 +523,6 @@ def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
     return torch.stack([torch.stack([rr, rc], -1), torch.stack([rc, cc], -1)], -2)
 
 
-def refine_rotation(prev: Prepared, curr: Prepared, angle: Tensor, step: float, config: DpcConfig,
-                    envelope: Tensor | None = None) -> Tensor:
-    """One refinement of ``angle (B,)`` by direct alignment: the translation-correlation peak
-    height at ``angle - step, angle, angle + step`` and the vertex of a log-parabola through them.
-
-    The Fourier-magnitude estimate is the global, translation-free search; it is disturbed by
-    the content that enters and leaves the BEV between frames. The peak height of the
-    translation correlation measures how well the derotated images really align, so its
-    maximum over the angle is the better local estimate. Moves by at most ``step``. -> ``(B,)``.
-    """
-    B, S = curr.image.shape[0], curr.size
-    k = torch.tensor([-1.0, 0.0, 1.0], dtype=angle.dtype, device=angle.device)
-    cand = (angle[:, None] + step * k).reshape(-1)  # (3B,)
-    img = curr.image[:, None].repeat_interleave(3, dim=0)
-    der = rotate_about_centre(img, -cand)[:, 0]
-    corr = translation_correlation(prev.spectrum.repeat_interleave(3, dim=0), der, config)
-    if envelope is not None:
-        corr = corr / envelope.repeat_interleave(3, dim=0).clamp_min(0.05)
-    j = corr.reshape(3 * B, S * S).argmax(dim=-1)
-    _, log_h = _quadratic_peak_2d(corr, j // S, j % S)
-    lm, l0, lp = log_h.reshape(B, 3).unbind(-1)
-    den = lm - 2.0 * l0 + lp
-    concave = den < -1e-9
-    off = torch.where(concave, 0.5 * (lm - lp) / torch.where(concave, den, -torch.ones_like(den)),
-                      torch.sign(lp - lm))  # not concave: step towards the higher side
-    return angle + step * off.clamp(-1.0, 1.0)
-
-
 def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: Tensor | None = None,
                       angle_std: Tensor | None = None) -> Registration:
     """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``).
@@ -677,15 +535,9 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
     if prev.image.shape != curr.image.shape:
         raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")
     estimate, rcorr, rlog = estimate_rotation(prev, curr, config)
-    envelope = overlap_envelope(prev.weight_spectrum, curr.weight_spectrum) if config.envelope_correction else None
+    envelope = overlap_envelope(prev.weight_spectrum, curr.weight_spectrum)
     given = angle is not None
-    if not given:
-        angle = estimate
-        for i in range(config.rotation_refine_iters):
-            angle = refine_rotation(prev, curr, angle, math.radians(config.rotation_refine_step) / 2**i, config,
-                                    envelope)
-    else:
-        angle = angle.to(estimate.dtype)
+    angle = angle.to(estimate.dtype) if given else estimate
     derotated = rotate_about_centre(curr.image[:, None], -angle)[:, 0]
     shift, tcorr, tlog = estimate_translation(prev.spectrum, derotated, config, envelope)
     dtype, device = rcorr.dtype, rcorr.device

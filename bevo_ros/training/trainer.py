@@ -177,7 +177,7 @@ def sequence_pass(
         raise ValueError(f"window must be >= 1 frame pair, got {window}")
     dev = torch.device(device)
     spec = bev_spec(config)
-    dpc = dpc if dpc is not None else loss_dpc(temperature)
+    dpc = dpc if dpc is not None else loss_dpc(temperature, getattr(config, "dpc", None))
     n_pairs = len(seq) - 1
     need_grad = backward and source == "dukf" and dukf is not None
     if turn_compensation is None:
