@@ -12,23 +12,18 @@ extrinsics from /tf_static (they differ from kitti.yaml's), and give what the of
 """
 from __future__ import annotations
 
-import os
-import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bevo_ros.commands import run
-from helpers.node_support import KITTI_PARAMS, VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
+from helpers.node_support import KITTI_PARAMS, VENV_BIN, replay_into_node, write_params  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 
 from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = domain_id_for(17)
-REPO = Path(__file__).resolve().parents[1]
-REPLAY_PARAMS = REPO / "params" / "replay.yaml"
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(300)]
 
 # (width, height, fx = fy, cx, cy) of KITTI odometry's rectified left grey camera
@@ -67,17 +62,10 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path):
     assert run.main([str(bag_path), "--out", str(tmp_path / "offline"), "--params", str(rig), "-q"]) == 0
     expected = np.loadtxt(tmp_path / "offline" / "trajectory_tum.txt")
 
-    node = NodeProcess(KITTI_PARAMS, str(DOMAIN_ID), extra_args=["--params-file", str(REPLAY_PARAMS)]).start()
-    listener = OdometryListener(DOMAIN_ID, "replay_sizes_tester")
-    odom = listener.odom
-    try:
-        assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
-        assert listener.wait_for_publisher(), "the odometry publisher was not discovered"
-        env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        play = subprocess.Popen([str(VENV_BIN / "python"), "-m", "bevo_ros.cli", "play", str(bag_path),
-                                 "--rate", "1.0", "--wait-for-subscribers", "30",  # the README's command
-                                 "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info", "/tf_static"],
-                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    play_args = ["--rate", "1.0", "--wait-for-subscribers", "30",  # the README's command
+                 "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info", "/tf_static"]
+    with replay_into_node(KITTI_PARAMS, DOMAIN_ID, "replay_sizes_tester", bag_path, play_args) as (node, listener, play):
+        odom = listener.odom
         n = drive.num_frames
         done = listener.spin_until(lambda: play.poll() is not None and len(odom) >= n, 120)
         node.interrupt()  # its last line: what it received, published and dropped
@@ -98,6 +86,3 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path):
         path = float(np.linalg.norm(np.diff(got[:, 1:], axis=0), axis=1).sum())
         print(f"{size}: {len(odom)} of {n} frames, {path:.2f} m, max difference to run_bag {diff:.2e} m")
         assert path > 3.0 and diff < 1e-6
-    finally:
-        node.interrupt()
-        listener.close()

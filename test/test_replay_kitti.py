@@ -2,15 +2,13 @@
 into bevo_node running with use_sim_time, equals bevo run on the same bag (one engine)."""
 from __future__ import annotations
 
-import os
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bevo_ros.commands import convert, run
-from helpers.node_support import VENV_BIN, NodeProcess, OdometryListener, write_params  # noqa: E402
+from helpers.node_support import VENV_BIN, replay_into_node, write_params  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -34,17 +32,10 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path):
     # up to 5 s for the IMU of their stamp, which a loaded machine can deliver late).
     params = write_params(tmp_path / "params.yaml", {
         "learned_params_file": str(REPO / "params" / "learned_default.yaml")})
-    node = NodeProcess(params, str(DOMAIN_ID), extra_args=["--params-file", str(REPO / "params" / "replay.yaml")]).start()
-    listener = OdometryListener(DOMAIN_ID, "replay_tester")
-    odom = listener.odom
-    try:
-        assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
-        assert listener.wait_for_publisher(), "the odometry publisher was not discovered"
-        env = dict(os.environ, ROS_DOMAIN_ID=str(DOMAIN_ID), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        play = subprocess.Popen([str(VENV_BIN / "python"), "-m", "bevo_ros.cli", "play", str(bag_path),
-                                 "--rate", "2.0", "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
-                                 "--wait-for-subscribers", "30"],
-                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    play_args = ["--rate", "2.0", "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
+                 "--wait-for-subscribers", "30"]
+    with replay_into_node(params, DOMAIN_ID, "replay_tester", bag_path, play_args) as (node, listener, play):
+        odom = listener.odom
         assert listener.spin_until(lambda: play.poll() is not None and len(odom) >= 51, 120), \
             f"{len(odom)} odometry messages; play_bag rc {play.poll()}\n{node.output}"
         node.interrupt()  # its last line: what it received, published and dropped
@@ -57,6 +48,3 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path):
         diff = np.abs(got[:, 1:] - expected[:, 1:3]).max()
         print(f"node (DDS replay, use_sim_time) vs run_bag: {len(odom)} poses, max position difference {diff:.2e} m")
         assert diff < 1e-6
-    finally:
-        node.interrupt()
-        listener.close()

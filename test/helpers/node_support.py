@@ -6,6 +6,7 @@ each test module uses its own ROS_DOMAIN_ID.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import signal
@@ -234,3 +235,25 @@ class OdometryListener:
         self.node.destroy_node()
         rclpy.shutdown(context=self.context)
 
+
+
+REPLAY_PARAMS = REPO / "params" / "replay.yaml"
+
+
+@contextlib.contextmanager
+def replay_into_node(params_file: Path, domain_id: int, name: str, bag_path: Path, play_args: list[str]):
+    """bevo_node on ``params_file`` + params/replay.yaml (the product's replay overlay), an
+    :class:`OdometryListener`, and ``bevo play BAG play_args`` started once the node is ready and its
+    odometry publisher discovered. Yields ``(node, listener, play)``; stops the node and the listener."""
+    node = NodeProcess(params_file, str(domain_id), extra_args=["--params-file", str(REPLAY_PARAMS)]).start()
+    listener = OdometryListener(domain_id, name)
+    try:
+        assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
+        assert listener.wait_for_publisher(), "the odometry publisher was not discovered"
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        play = subprocess.Popen([str(VENV_BIN / "python"), "-m", "bevo_ros.cli", "play", str(bag_path), *play_args],
+                                env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        yield node, listener, play
+    finally:
+        node.interrupt()
+        listener.close()
