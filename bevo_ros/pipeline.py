@@ -39,7 +39,7 @@ from bevo_ros.io.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_
 
 
 def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
-        image_topic: str = bag.IMAGE_TOPIC, first_frame: int = 0, progress: bool = False) -> tuple[list[OdometryStep], bag.Recording, BevoOdometry]:
+        image_topic: str = bag.IMAGE_TOPIC, first_frame: int = 0, progress: bool = False) -> tuple[list[OdometryStep], bag.BagContents, BevoOdometry]:
     """Feed a bag through the engine; returns the per-frame results, the recording (no images) and the engine."""
     rec = bag.read_recording(bag_path, imu_topic=imu_topic, image_topic=image_topic, load_images=False)
     odo = build_odometry(config, load_learned_params(learned_path), camera=camera_for_recording(rec, config))
@@ -94,7 +94,7 @@ def camera_trajectory(base: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:
     return np.linalg.inv(cam[0]) @ cam
 
 
-def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.Recording, T_base_cam: np.ndarray) -> list[Path]:
+def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.BagContents, T_base_cam: np.ndarray) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     base = base_poses(steps)
     paths = [out / "trajectory_kitti.txt", out / "trajectory_tum.txt", out / "pitch_roll.csv"]
@@ -146,7 +146,7 @@ def xy_yaw_from_4x4(T: np.ndarray) -> np.ndarray:
     return np.stack([T[:, 0, 3], T[:, 1, 3], np.arctan2(T[:, 1, 0], T[:, 0, 0])], axis=-1)
 
 
-def map_from_steps(steps: list[OdometryStep], rec: bag.Recording, spec: BevSpec, resolution: float,
+def map_from_steps(steps: list[OdometryStep], rec: bag.BagContents, spec: BevSpec, resolution: float,
                    margin: float) -> AerialMap:
     """A BEVO+ map ("a previous drive"): the engine's BEVs of ``steps`` mosaicked at the recording's
     ground-truth poses at their stamps (base_link in the bag's odom frame, which becomes the map frame)."""

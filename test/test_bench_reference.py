@@ -16,8 +16,8 @@ import torch
 from bevo_ros.core.bev import project_to_bev
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.motion import registration_from_vehicle_motion
-from bevo_ros.datasets.synthetic.drive import (RenderOptions, default_ground, ground_patch, kitti_like_camera,
-                                               render_view)
+from bevo_ros.datasets.synthetic import (RenderOptions, default_ground, ground_patch, kitti_like_camera,
+                                         render_view)
 from helpers.tools import load_tool
 
 SPEC = BevSpec()

@@ -7,7 +7,7 @@ import time
 import pytest
 import torch
 
-from bevo_ros.datasets.synthetic import drive as syn
+from bevo_ros.datasets import synthetic as syn
 from bevo_ros.core.bev import bev_sampling_grid, project_to_bev
 from bevo_ros.core.geometry import BevSpec, CameraModel
 

@@ -136,7 +136,7 @@ def test_one_device_rule_and_one_bev_grid_from_the_settings():
         with pytest.warns(RuntimeWarning, match="CUDA is not available"):
             assert resolve_device("cuda:0", logged.append) == torch.device("cpu")
         assert logged and "on the CPU" in logged[0]
-        from bevo_ros.datasets.synthetic.drive import kitti_like_camera
+        from bevo_ros.datasets.synthetic import kitti_like_camera
 
         with pytest.warns(RuntimeWarning, match="CUDA is not available"):
             assert cfg.build_odometry(c, LearnedParams(), camera=kitti_like_camera()).device == torch.device("cpu")

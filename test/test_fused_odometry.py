@@ -18,7 +18,7 @@ from bevo_ros.datasets.rosbag import feed_engine
 from bevo_ros.core.pose import integrate_motions
 from bevo_ros.core.vehicle_dynamics import compensate_floats, compensate_specific_force
 from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
-from bevo_ros.datasets.synthetic.drive import kitti_like_camera, preset_drive
+from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive
 
 FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
 PAPER = load_learned_params(REPO_ROOT / "params" / "learned_paper.yaml")

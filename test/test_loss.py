@@ -67,9 +67,9 @@ def test_loss_prefers_the_right_answer_and_is_nonnegative():
 
 def test_gradient_reaches_the_attitude():
     """KL loss -> DPC -> BEV projection -> pitch: finite, non-zero, matches finite differences."""
-    from bevo_ros.datasets.synthetic import drive as syn
+    from bevo_ros.datasets import synthetic as syn
     from bevo_ros.core.bev import project_to_bev
-    from bevo_ros.core.geometry import BevSpec
+    from bevo_ros.core.geometry import BevSpec, CameraModel
     from bevo_ros.core.motion import registration_from_vehicle_motion
 
     spec = BevSpec()
@@ -77,7 +77,7 @@ def test_gradient_reaches_the_attitude():
     K = cam.K.clone()
     K[:2] /= 4  # quarter resolution: a fast smooth test image
     K[:2, 2] -= 3 / 8
-    cam = syn.CameraModel(K, cam.width // 4, cam.height_px // 4, cam.T_base_cam, cam.mount_height)
+    cam = CameraModel(K, cam.width // 4, cam.height_px // 4, cam.T_base_cam, cam.mount_height)
     ground, opts = syn.default_ground(0), syn.RenderOptions(supersample=2, noise_std=0.0, vignette=0.0)
     poses = [(0.0, 0.0, 0.0), (1.0, 0.02, 0.01)]
     imgs = torch.stack([torch.from_numpy(syn.render_view(ground, cam, p, (0.0, 0.0), opts)) for p in poses])

@@ -37,7 +37,7 @@ def _drive(size: str):
     import torch
 
     from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.datasets.synthetic.drive import RenderOptions, kitti_like_camera, make_drive
+    from bevo_ros.datasets.synthetic import RenderOptions, kitti_like_camera, make_drive
 
     w, h, f, cx, cy = KITTI_CAMERAS[size]
     rig = kitti_like_camera()

@@ -13,7 +13,7 @@ from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core.phase_correlation import DpcConfig
 from bevo_ros.core.sequence import frame_attitudes, run_sequence
 from bevo_ros.datasets.rosbag import feed_engine
-from bevo_ros.datasets.synthetic.drive import make_drive
+from bevo_ros.datasets.synthetic import make_drive
 
 # Trust the gyro (the synthetic accelerometer vibrates by 0.3-0.7 m/s^2, i.e. 2-4 deg).
 LEARNED = LearnedParams((1e-6, 1e-6), (1e-1, 1e-1))

@@ -16,7 +16,7 @@ from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.datasets.rosbag import feed_engine, load_sequence, split_frames, write_drive_bag
 from bevo_ros.training.mounting import calibrate
-from bevo_ros.datasets.synthetic.drive import kitti_like_camera, make_drive
+from bevo_ros.datasets.synthetic import kitti_like_camera, make_drive
 
 SYNTH_PARAMS = str(REPO_ROOT / "params" / "synthetic.yaml")
 
@@ -42,6 +42,24 @@ def test_drive_bag_holds_sensors_and_ground_truth(synthetic_bag):
     np.testing.assert_allclose(seq.gt_motion().numpy(), drive.relative_motion, atol=3e-4)
     (a, b), (c, d) = split_frames(len(seq), "3/4")
     assert (a, d) == (0, len(seq)) and b == c and b == round(0.75 * len(seq))
+
+
+def test_drive_to_recording_equals_its_bag(synthetic_bag):
+    """A synthetic drive yields the datasets' one Recording type directly: what its bag loads to."""
+    drive, path = synthetic_bag
+    seq = load_sequence(path, load_config(SYNTH_PARAMS)[0])
+    rec = drive.to_recording()
+    assert type(rec) is type(seq) and len(rec) == len(seq)
+    np.testing.assert_allclose(rec.frame_stamps.numpy(), seq.frame_stamps.numpy(), atol=1e-9)
+    np.testing.assert_allclose(rec.imu_stamps.numpy(), seq.imu_stamps.numpy(), atol=1e-9)
+    np.testing.assert_array_equal(rec.gyro.numpy(), seq.gyro.numpy())
+    np.testing.assert_array_equal(rec.accel.numpy(), seq.accel.numpy())
+    np.testing.assert_array_equal(rec.images[[0, -1]].numpy(), seq.images[[0, -1]].numpy())
+    np.testing.assert_allclose(rec.gt_poses.numpy(), seq.gt_poses.numpy(), atol=1e-9)
+    np.testing.assert_allclose(rec.gt_pitch_roll.numpy(), seq.gt_pitch_roll.numpy(), atol=1e-9)
+    part = drive.to_recording((5, 12))
+    assert len(part) == 7 and np.allclose(part.gt_poses[0].numpy(), np.eye(4))
+    np.testing.assert_allclose(part.gt_motion().numpy(), seq.gt_motion()[5:11].numpy(), atol=1e-9)
 
 
 def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):

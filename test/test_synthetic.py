@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from bevo_ros.datasets.synthetic import drive as syn
+from bevo_ros.datasets import synthetic as syn
+from bevo_ros.datasets.synthetic import ground as syn_ground, motion as syn_motion
 from bevo_ros.core.geometry import BevSpec, camera_pose_on_road
 
 SPEC = BevSpec(size=100, metres_per_pixel=0.1, forward_offset=7.5)
@@ -87,7 +88,7 @@ def test_deterministic_by_seed():
     assert ia.shape == (376, 1241) and ia.dtype == np.uint8
     assert np.array_equal(ia, ib) and np.array_equal(ia, syn.render_frame(a, 3))
     assert np.abs(ia.astype(int) - ic).mean() > 5
-    t1, t2, t3 = (syn._make_textures(sd, 512, 128)[0] for sd in (3, 3, 4))
+    t1, t2, t3 = (syn_ground._make_textures(sd, 512, 128)[0] for sd in (3, 3, 4))
     print(f"texture tiles: same seed equal {torch.equal(t1, t2)}, other seed mean diff {(t1 - t3).abs().mean():.3f}")
     assert torch.equal(t1, t2) and (t1 - t3).abs().mean() > 0.02
 
@@ -113,7 +114,7 @@ def test_gyro_integrates_to_attitude(any_drive):
     assert err < 3e-4
     assert err_w > 10 * err
     # The stored angles are the Euler angles of the stored rotation.
-    r_, p_, _ = syn._rpy(rot)
+    r_, p_, _ = syn_motion._rpy(rot)
     assert np.allclose(np.stack([p_, r_], 1), drive.imu_pitch_roll_gravity, atol=1e-12)
 
 

@@ -32,7 +32,7 @@ import torch
 from bevo_ros.config import BevoConfig, build_odometry
 from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core import odometry as engine_module
-from bevo_ros.datasets.synthetic.drive import make_drive
+from bevo_ros.datasets.synthetic import make_drive
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from opencv_reference import OpenCvReference  # noqa: E402

@@ -41,7 +41,7 @@ TARGET_RSS_MB = 400.0
 def synthetic_messages(args) -> tuple[list, dict, str]:
     """``([(stamp, kind, msg)], camera parameter overrides, description)``; frames cached on disk."""
     from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.datasets.synthetic.drive import kitti_like_camera, make_drive
+    from bevo_ros.datasets.synthetic import kitti_like_camera, make_drive
     from bevo_ros.io.ros_conversions import gray_to_image_msg, sec_to_stamp
     from sensor_msgs.msg import Imu
 
@@ -57,7 +57,7 @@ def synthetic_messages(args) -> tuple[list, dict, str]:
     if cache.is_file():
         images = np.load(cache)
     else:
-        from bevo_ros.datasets.synthetic.drive import render_frame
+        from bevo_ros.datasets.synthetic import render_frame
 
         t = time.monotonic()
         print(f"rendering {drive.num_frames} frames {camera.width}x{camera.height_px} (cached in {cache}) ...",

@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(min(2, torch.get_num_threads()))
     from bevo_ros.datasets.rosbag import split_frames, write_drive_bag
-    from bevo_ros.datasets.synthetic.drive import make_drive
+    from bevo_ros.datasets.synthetic import make_drive
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

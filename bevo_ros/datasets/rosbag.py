@@ -64,7 +64,8 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
 @dataclass
 class Recording:
     """A recording as tensors, ready for :func:`bevo_ros.core.sequence.run_sequence` (float64 stamps)
-    (:class:`bevo_ros.bag.Recording` is the bag's content in numpy)."""
+    (:class:`bevo_ros.io.bag.BagContents` is a bag's raw content in numpy; this is the one recording type
+    of the datasets: bags via :func:`load_sequence`, synthetic drives via ``SyntheticDrive.to_recording``)."""
 
     imu_stamps: torch.Tensor  # (N,)
     gyro: torch.Tensor  # (N, 3)
@@ -98,7 +99,7 @@ class Recording:
                          None if self.gt_pitch_roll is None else self.gt_pitch_roll[start:stop], self.name)
 
 
-def camera_for_recording(rec: bag.Recording, config: BevoConfig) -> CameraModel:
+def camera_for_recording(rec: bag.BagContents, config: BevoConfig) -> CameraModel:
     """Intrinsics from the bag's CameraInfo (else the parameters), extrinsics from the parameters.
 
     Uses ``P[:3, :3]``, the rectified camera matrix, as bevo_node does by default

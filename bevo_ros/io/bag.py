@@ -3,8 +3,8 @@
 * :class:`BagWriter` writes sensor_msgs/nav_msgs messages into a new rosbag2 (sqlite3 or mcap)
   atomically: everything goes to a hidden temp directory beside the target, which is renamed
   into place only when the ``with`` block ends without an exception (and removed otherwise).
-* :func:`read_recording` loads a whole recording into numpy arrays (IMU, images, camera info,
-  ground truth) for the offline commands and training.
+* :func:`read_recording` loads a whole bag into numpy arrays (:class:`BagContents`: IMU, images,
+  camera info, ground truth) for the offline commands and training.
 * :func:`iter_messages` / :func:`iter_raw_messages` stream messages in bag-time order.
 
 Stamps: writer methods take ``stamp`` as float seconds, or as an ``int`` / numpy integer meaning
@@ -601,9 +601,10 @@ class CameraInfo:
 
 
 @dataclass
-class Recording:
-    """A whole recording in numpy arrays. Stamps are header stamps: float64 seconds, plus the
-    exact int64 nanoseconds in the ``*_ns`` twins.
+class BagContents:
+    """A bag's raw contents in numpy arrays (what :func:`read_recording` returns; the tensors the
+    engine and training run on are :class:`bevo_ros.datasets.rosbag.Recording`). Stamps are header
+    stamps: float64 seconds, plus the exact int64 nanoseconds in the ``*_ns`` twins.
 
     Attributes:
         imu_stamps: ``(N,)``; gyro, accel: ``(N, 3)`` float64 (rad/s, m/s^2).
@@ -653,7 +654,7 @@ class Recording:
 def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: str = IMAGE_TOPIC,
                    camera_info_topic: str = CAMERA_INFO_TOPIC, gt_odometry_topic: str = GT_ODOMETRY_TOPIC,
                    gt_imu_topic: str = GT_IMU_TOPIC, load_images: bool = True,
-                   required: Sequence[str] = ("imu", "image")) -> Recording:
+                   required: Sequence[str] = ("imu", "image")) -> BagContents:
     """Load a recording. Topics listed in ``required`` (``imu``, ``image``, ``camera_info``,
     ``gt_odometry``, ``gt_imu``) must exist; the others are read when present.
 
@@ -681,7 +682,7 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
     frame_t, images = [], []
     gt_t, gt_T = [], []
     att_t, att = [], []
-    rec = Recording(path, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
+    rec = BagContents(path, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
                     None, topics=topics)
     shape = None
     for topic, _, msg in iter_messages(path, wanted):

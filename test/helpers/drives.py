@@ -9,7 +9,7 @@ def make_bumpy_bag(path: Path, seconds: float = 6.0, seed: int = 3) -> Path:
     axis), gentle curves, no road tilt, 620x188 images."""
     from bevo_ros.core.geometry import CameraModel
     from bevo_ros.datasets.rosbag import write_drive_bag
-    from bevo_ros.datasets.synthetic.drive import RenderOptions, kitti_like_camera, make_drive
+    from bevo_ros.datasets.synthetic import RenderOptions, kitti_like_camera, make_drive
 
     cam = kitti_like_camera()
     K = cam.K.clone()

@@ -32,7 +32,7 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 def small_camera():
     """The KITTI-like camera at a quarter of the resolution (fast to render and project)."""
     from bevo_ros.core.geometry import CameraModel
-    from bevo_ros.datasets.synthetic.drive import kitti_like_camera
+    from bevo_ros.datasets.synthetic import kitti_like_camera
 
     cam = kitti_like_camera()
     K = cam.K.clone()
@@ -42,7 +42,7 @@ def small_camera():
 
 @functools.lru_cache(maxsize=8)
 def small_drive(seed: int = 3, duration: float = 2.0, frame_rate: float = 10.0, imu_rate: float = 100.0):
-    from bevo_ros.datasets.synthetic.drive import make_drive
+    from bevo_ros.datasets.synthetic import make_drive
 
     return make_drive(seed=seed, duration=duration, frame_rate=frame_rate, imu_rate=imu_rate,
                       camera=small_camera(), render=True)

@@ -1,6 +1,6 @@
 """Synthetic data for BEVO+ (map-based localisation), with exact ground truth.
 
-* :func:`render_aerial_map`: the synthetic world's ground (:class:`bevo_ros.datasets.synthetic.drive.RoadGround`)
+* :func:`render_aerial_map`: the synthetic world's ground (:class:`bevo_ros.datasets.synthetic.ground.RoadGround`)
   seen from above at 0.2-0.3 m/px with a *different appearance* (:class:`MapAppearance`): another
   exposure, gamma and contrast, a colour tint, smooth illumination, tree shadows, blur, sensor
   noise, 8-bit quantisation, and changed ground (re-paved patches, parked cars, lane markings
@@ -28,7 +28,9 @@ import torch
 from bevo_ros.core.aerial_map import AerialMap
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import LocalizerConfig, MapLocalizer, se2_compose, wrap
-from bevo_ros.datasets.synthetic.drive import RoadGround, SyntheticDrive, ground_patch, kitti_like_camera, make_drive
+from bevo_ros.datasets.synthetic.drive import SyntheticDrive, make_drive
+from bevo_ros.datasets.synthetic.ground import RoadGround
+from bevo_ros.datasets.synthetic.render import ground_patch, kitti_like_camera
 
 __all__ = ["HARSH_APPEARANCE", "LocalizationDrive", "MapAppearance", "SAME_APPEARANCE", "bev_footprint", "frame_bev", "localization_demo",
            "make_localization_drive", "render_aerial_map", "run_localization", "simulate_odometry"]

@@ -1,0 +1,231 @@
+"""Camera rendering of the synthetic ground and its true BEV.
+
+The renderer and the BEV projection share the geometry of :mod:`bevo_ros.core.geometry` exactly (the
+camera pose comes from :func:`~bevo_ros.core.geometry.camera_pose_on_road`). The BEV helpers
+(:func:`true_bev`, :func:`ground_patch`) return torch tensors to compare with ``core.bev``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from bevo_ros.core.geometry import BevSpec, CameraModel, camera_pose_on_road
+from bevo_ros.datasets.synthetic.ground import RoadGround, default_ground
+
+if TYPE_CHECKING:
+    from bevo_ros.datasets.synthetic.drive import SyntheticDrive
+
+__all__ = [
+    "RenderOptions", "camera_pose_world", "ground_patch", "kitti_like_camera", "render_frame", "render_view",
+    "true_bev",
+]
+
+Tensor = torch.Tensor
+
+KITTI_K = ((718.856, 0.0, 607.1928), (0.0, 718.856, 185.2157), (0.0, 0.0, 1.0))
+KITTI_SIZE = (1241, 376)  # width, height
+
+# ---------------------------------------------------------------------------------------------
+# Camera
+# ---------------------------------------------------------------------------------------------
+
+
+def kitti_like_camera(
+    mount_pitch: float = 0.0,
+    mount_height: float = 1.65,
+    offset: Sequence[float] = (1.08, 0.0, 0.73),
+    dtype: torch.dtype = torch.float64,
+) -> CameraModel:
+    """The KITTI grey camera (1241x376, fx = fy = 718.856) on the base frame.
+
+    Args:
+        mount_pitch: camera pitch on the base, radians; positive looks down (the nose-down sign).
+        mount_height: camera centre height above the road, metres.
+        offset: camera centre in the base frame (x fwd, y left, z up), metres.
+    """
+    # Optical axes in base coordinates: x_cam = -y_base (right), y_cam = -z_base (down), z_cam = x_base.
+    r_opt = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+    c, s = math.cos(mount_pitch), math.sin(mount_pitch)
+    r_y = torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=torch.float64)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = r_y @ r_opt
+    T[:3, 3] = torch.tensor([float(v) for v in offset], dtype=torch.float64)
+    K = torch.tensor(KITTI_K, dtype=torch.float64)
+    return CameraModel(K.to(dtype), KITTI_SIZE[0], KITTI_SIZE[1], T.to(dtype), float(mount_height))
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Renderer settings. ``noise_std`` in grey levels; vignette = relative darkening at the corners."""
+
+    supersample: int = 2
+    noise_std: float = 2.0
+    vignette: float = 0.15
+    haze_start: float = 60.0  # metres: far ground fades smoothly into a haze grey (hides aliasing)
+    haze_end: float = 300.0
+    haze_value: float = 0.55
+    sky_horizon: float = 0.75
+    sky_zenith: float = 0.95
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering
+# ---------------------------------------------------------------------------------------------
+
+def camera_pose_world(camera: CameraModel, pose_xy_yaw, pitch_roll_road) -> tuple[Tensor, Tensor]:
+    """World pose of the camera: ``R_world_cam (3, 3)``, ``t_world_cam (3,)`` float64.
+
+    Uses :func:`camera_pose_on_road` (road frame under the base) rotated by yaw and moved to (x, y).
+    """
+    x, y, yaw = (float(v) for v in pose_xy_yaw)
+    p = torch.tensor([float(pitch_roll_road[0])], dtype=torch.float64)
+    r = torch.tensor([float(pitch_roll_road[1])], dtype=torch.float64)
+    r_road_cam, t_road_cam = camera_pose_on_road(camera, p, r)
+    c, s = math.cos(yaw), math.sin(yaw)
+    rz = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return rz @ r_road_cam[0], rz @ t_road_cam[0] + torch.tensor([x, y, 0.0], dtype=torch.float64)
+
+
+def render_view(
+    ground: RoadGround,
+    camera: CameraModel,
+    pose_xy_yaw,
+    pitch_roll_road,
+    options: RenderOptions | None = None,
+    noise_seed: Sequence[int] | int | None = None,
+) -> np.ndarray:
+    """Render the camera image at a vehicle pose. -> ``(H, W)`` uint8.
+
+    Every (sub-)pixel ray is intersected with the road plane ``z = 0``; the pixel shows the ground
+    intensity there (bilinear texture), the sky for rays that do not hit the ground.
+
+    Args:
+        ground: the road surface.
+        camera: pinhole camera; integer pixel coordinates are pixel centres (KITTI/OpenCV).
+        pose_xy_yaw: world ``(x, y, yaw)`` of the base.
+        pitch_roll_road: ``(pitch, roll)`` of the base relative to the road, radians.
+        options: renderer settings; image noise is drawn from ``noise_seed``.
+    """
+    options = options or RenderOptions()
+    ss = int(options.supersample)
+    if ss < 1:
+        raise ValueError(f"supersample must be >= 1, got {options.supersample}")
+    if not 0 < options.haze_start < options.haze_end:
+        raise ValueError(f"need 0 < haze_start < haze_end, got {options.haze_start}, {options.haze_end}")
+    r_wc, t_wc = camera_pose_world(camera, pose_xy_yaw, pitch_roll_road)
+    # World direction of the ray through sub-pixel (u, v): M @ [u, v, 1].
+    m = r_wc @ torch.linalg.inv(camera.K.detach().cpu().double())
+    w, h = camera.width, camera.height_px
+    off = (torch.arange(ss, dtype=torch.float64) + 0.5) / ss - 0.5
+    us = (torch.arange(w, dtype=torch.float64)[:, None] + off).reshape(-1)  # (W*ss,)
+    vs = (torch.arange(h, dtype=torch.float64)[:, None] + off).reshape(-1)  # (H*ss,)
+    img = torch.empty(h, w, dtype=torch.float32)
+    rows = max(1, 96 // ss)  # image rows per block: bounded memory (~30 MB) whatever the size
+    for r0 in range(0, h, rows):
+        v = vs[r0 * ss:(r0 + rows) * ss]
+        # Ray directions (n_v, W*ss, 3): column-wise affine in u and v.
+        d = m[:, 0] * us[None, :, None] + (m[:, 1] * v[:, None, None] + m[:, 2])
+        rz = d[..., 2]
+        horiz = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        sin_elev = rz / torch.sqrt(horiz * horiz + rz * rz)  # sky: brighter with elevation, no texture
+        out = options.sky_horizon + (options.sky_zenith - options.sky_horizon) * (sin_elev / 0.35).clamp(0.0, 1.0)
+        down = rz < -1e-12
+        out = torch.where(down, options.haze_value, out)
+        lam = -t_wc[2] / torch.where(down, rz, -1.0)
+        dist = lam * horiz  # horizontal range of the ground point
+        near = down & (dist < options.haze_end)
+        if near.any():
+            lam, dn, dist = lam[near], d[near], dist[near]
+            val = ground._intensity_torch(t_wc[0] + lam * dn[:, 0], t_wc[1] + lam * dn[:, 1]).double()
+            # Far ground fades into haze (hides texture aliasing near the horizon).
+            wh = ((dist - options.haze_start) / (options.haze_end - options.haze_start)).clamp(0.0, 1.0)
+            wh = wh * wh * (3 - 2 * wh)
+            out[near] = val * (1 - wh) + options.haze_value * wh
+        n_r = out.shape[0] // ss
+        img[r0:r0 + n_r] = F.avg_pool2d(out.float()[None, None], ss)[0, 0] if ss > 1 else out.float()
+    if options.vignette:
+        vv = torch.arange(h, dtype=torch.float32)[:, None] - (h - 1) / 2
+        uu = torch.arange(w, dtype=torch.float32)[None, :] - (w - 1) / 2
+        img *= 1.0 - options.vignette * (uu * uu + vv * vv) / ((w / 2) ** 2 + (h / 2) ** 2)
+    out_np = img.numpy() * 255.0
+    if options.noise_std:
+        out_np += np.random.default_rng(noise_seed).normal(0.0, options.noise_std, out_np.shape).astype(np.float32)
+    return np.clip(np.rint(out_np), 0, 255).astype(np.uint8)
+
+
+def render_frame(drive: SyntheticDrive, index: int, options: RenderOptions | None = None) -> np.ndarray:
+    """Render frame ``index`` of a drive (deterministic: image noise seeded by drive seed + index)."""
+    n = drive.num_frames
+    if not -n <= index < n:
+        raise ValueError(f"frame index {index} out of range for {n} frames")
+    index = index % n
+    opts = options or drive.render_options
+    return render_view(drive.ground, drive.camera, drive.poses_xy_yaw[index], drive.pitch_roll_road[index], opts,
+                       noise_seed=[drive.seed, 3, index])
+
+
+# ---------------------------------------------------------------------------------------------
+# True BEV
+# ---------------------------------------------------------------------------------------------
+
+
+def ground_patch(x, y, yaw, spec: BevSpec, ground: RoadGround | None = None, supersample: int = 1,
+                 dtype: torch.dtype = torch.float32) -> Tensor:
+    """The true BEV of a vehicle at world pose ``(x, y, yaw)``: the ground sampled at
+    ``spec.ground_points()`` moved by the pose. Scalars -> ``(S, S)``; arrays ``(B,)`` -> ``(B, S, S)``.
+
+    ``supersample > 1`` averages ``ss x ss`` points per BEV cell (area-averaged BEV).
+    """
+    ground = ground or default_ground()
+    x_t = torch.as_tensor(np.asarray(x, dtype=np.float64))
+    batched = x_t.ndim > 0
+    x_t = x_t.reshape(-1)
+    y_t = torch.as_tensor(np.asarray(y, dtype=np.float64)).reshape(-1)
+    yaw_t = torch.as_tensor(np.asarray(yaw, dtype=np.float64)).reshape(-1)
+    if not (x_t.shape == y_t.shape == yaw_t.shape):
+        raise ValueError(f"x, y, yaw must have the same shape, got {x_t.shape}, {y_t.shape}, {yaw_t.shape}")
+    ss = int(supersample)
+    if ss < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    pts = spec.ground_points(dtype=torch.float64)  # (S, S, 2)
+    if ss > 1:
+        off = ((torch.arange(ss, dtype=torch.float64) + 0.5) / ss - 0.5) * spec.metres_per_pixel
+        ox, oy = torch.meshgrid(off, off, indexing="ij")
+        pts = pts[:, :, None, :] + torch.stack([ox, oy], -1).reshape(1, 1, -1, 2)
+    else:
+        pts = pts[:, :, None, :]
+    c, s = torch.cos(yaw_t), torch.sin(yaw_t)
+    px, py = pts[..., 0][None], pts[..., 1][None]
+    b = (slice(None),) + (None,) * 3
+    wx = x_t[b] + c[b] * px - s[b] * py
+    wy = y_t[b] + s[b] * px + c[b] * py
+    val = ground.intensity(wx, wy).mean(-1).to(dtype)
+    return val if batched else val[0]
+
+
+def true_bev(source, spec: BevSpec, frame: int | None = None, supersample: int = 1,
+             dtype: torch.dtype = torch.float32) -> Tensor:
+    """The exact BEV (ground truth for ``core.bev.project_to_bev``).
+
+    Args:
+        source: a :class:`SyntheticDrive` (BEV of ``frame``, or of all frames when None ->
+            ``(F, S, S)``), or a world pose ``(x, y, yaw)`` ``(3,)`` / ``(B, 3)`` on the default ground.
+        spec: BEV grid.
+
+    Returns:
+        ``(S, S)`` (or batched) intensities in [0, 1].
+    """
+    from bevo_ros.datasets.synthetic.drive import SyntheticDrive  # the drive renders through this module
+
+    if isinstance(source, SyntheticDrive):
+        poses = source.poses_xy_yaw if frame is None else source.poses_xy_yaw[frame]
+        return ground_patch(poses[..., 0], poses[..., 1], poses[..., 2], spec, source.ground, supersample, dtype)
+    pose = np.asarray(source, dtype=np.float64)
+    if pose.shape[-1:] != (3,) or pose.ndim > 2:
+        raise ValueError(f"pose must be (3,) or (B, 3) world (x, y, yaw), got shape {pose.shape}")
+    return ground_patch(pose[..., 0], pose[..., 1], pose[..., 2], spec, None, supersample, dtype)
