@@ -5,8 +5,6 @@ no traceback) when the learned-parameters file is missing or malformed.
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
@@ -21,7 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import Image, Imu  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from helpers.ros import domain_id_for  # noqa: E402
+from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(12)
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]
@@ -33,11 +31,7 @@ if not (VENV_BIN / "bevo_node").exists():
 
 @pytest.fixture(scope="module")
 def context():
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=DOMAIN_ID)
-    yield ctx
-    rclpy.shutdown(context=ctx)
+    yield from ros_context(DOMAIN_ID)
 
 
 def test_node_process_end_to_end(context, tmp_path):

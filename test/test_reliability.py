@@ -318,11 +318,7 @@ def adversarial_messages(rng: np.random.Generator, n: int, t: float, camera) -> 
 
 @pytest.fixture(scope="module")
 def process_context():
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx, domain_id=PROCESS_DOMAIN_ID)
-    yield ctx
-    rclpy.shutdown(context=ctx)
+    yield from ros_context(PROCESS_DOMAIN_ID)
 
 
 class Peer:
