@@ -369,6 +369,20 @@ def resolve_path(name: str, base_dir: Path | None = None) -> Path:
     return candidates[0].resolve() if base_dir is not None else (REPO_ROOT / p)
 
 
+def package_file(rel: str) -> Path:
+    """A file the package ships (``params/kitti.yaml``, ...): the source tree's, else the installed
+    ``share/bevo_ros`` one (a colcon install has no ``params/`` beside the Python package)."""
+    here = REPO_ROOT / rel
+    if here.exists():
+        return here
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory("bevo_ros")) / rel
+    except Exception:  # noqa: BLE001 - ament index absent or package not installed
+        return here
+
+
 # --------------------------------------------------------------------------- engine factory
 def camera_model(settings: CameraSettings, K=None, width: int | None = None, height_px: int | None = None):
     """CameraModel from settings; ``K``/size (e.g. from CameraInfo) override the settings."""

@@ -86,6 +86,12 @@ def test_colcon_build_and_ros2_run_style_start(tmp_path, monkeypatch):
         help_run = subprocess.run([str(bevo), command, "--help"], cwd=tmp_path, env=env, capture_output=True,
                                   text=True, timeout=120)
         assert help_run.returncode == 0 and f"usage: bevo {command}" in help_run.stdout, help_run.stderr[-2000:]
+    # past the parsing: an installed command's default params file is the installed one (share/), not
+    # one beside the Python package (site-packages has no params/)
+    calib = subprocess.run([str(bevo), "calibrate", str(tmp_path / "no_bag")], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=120)
+    assert calib.returncode == 2 and "parameters file not found" not in calib.stderr, calib.stderr[-2000:]
+    assert "no_bag" in calib.stderr, calib.stderr[-2000:]
     proc = subprocess.Popen([str(exe), "--ros-args", "--params-file", str(params)], cwd=tmp_path, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = []

@@ -328,6 +328,25 @@ def test_bad_inputs_are_dropped_counted_and_logged(harness_factory, drive):
     assert values.get("event.imu_gap") == "1"
 
 
+def test_an_engine_bug_is_a_callback_error_not_a_bad_input(harness_factory, drive, monkeypatch):
+    """Only what the engine refuses as input (InvalidInputError, ImplausibleImuError) is dropped as
+    that input; a plain ValueError out of the engine is a bug: counted and logged as callback_error."""
+    h = harness_factory(base_overrides(drive), subscribe_outputs=False)
+    messages = drive_messages(drive)
+    h.send_all(messages[:20])
+    engine = h.node.feed.engine
+    assert engine is not None
+
+    def broken(*args, **kwargs):
+        raise ValueError("a bug deep in the engine")
+
+    monkeypatch.setattr(engine, "add_imu", broken)
+    t = stamp_to_sec(messages[19][1].header.stamp)
+    h.send("imu", imu_msg(t + 0.001, drive.gyro[20], drive.accel[20]))
+    assert h.node.drops["callback_error"] == 1 and h.node.drops["imu_invalid"] == 0, dict(h.node.drops)
+    assert "a bug deep in the engine" in h.logged("callback_error")[0]
+
+
 def test_image_wait_processes_an_image_whose_imu_never_comes(harness_factory, drive):
     h = harness_factory(base_overrides(drive, image_wait=0.1), subscribe_outputs=False)
     messages = drive_messages(drive)

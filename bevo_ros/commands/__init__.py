@@ -7,9 +7,9 @@ import argparse
 import sys
 from typing import Callable, Mapping
 
-from bevo_ros.config import REPO_ROOT
+from bevo_ros.config import package_file
 
-DEFAULT_PARAMS = REPO_ROOT / "params" / "kitti.yaml"
+DEFAULT_PARAMS = package_file("params/kitti.yaml")
 
 
 def new_parser(doc: str | None, epilog: str | None = None) -> argparse.ArgumentParser:

@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
-from bevo_ros.config import REPO_ROOT
+from bevo_ros.config import package_file
 # make_synthetic_bag and reference_attitude are re-exported: tests reach them through the command module.
 from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, AblationOptions,  # noqa: F401
                                         make_synthetic_bag, reference_attitude, run_ablation)
@@ -60,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
     src.add_argument("--train", action="store_true", help="train O/Q on the bags first (bevo_ros.training.trainer)")
-    p.add_argument("--fused-learned", default=str(REPO_ROOT / "params" / "learned_default.yaml"),
+    p.add_argument("--fused-learned", default=str(package_file("params/learned_default.yaml")),
                    help="learned-parameters YAML of the fused row (default params/learned_default.yaml)")
     p.add_argument("--epochs", type=int, default=10, help="with --train: epochs (default 10)")
     p.add_argument("--lr", type=float, default=0.3, help="with --train: Adam learning rate (default 0.3)")

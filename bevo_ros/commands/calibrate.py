@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     spec = bev_spec(config)
     try:
-        pitch, roll = calibrate(seq, spec)
+        pitch, roll = calibrate(seq, spec, dpc=config.dpc)
     except ValueError as exc:
         print(f"calibrate_mounting: error: {exc}", file=sys.stderr)
         return 1

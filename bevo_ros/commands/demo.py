@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from bevo_ros.commands import new_parser
-from bevo_ros.config import REPO_ROOT as REPO
+from bevo_ros.config import REPO_ROOT as REPO, package_file
 
 KITTI = REPO.parent / "shared" / "data" / "kitti"
 
@@ -53,7 +53,7 @@ HEADER = ("| run | frames | path (m) | RPE trans RMSE (cm/frame) | RPE yaw RMSE 
 
 def main(argv: list[str] | None = None) -> int:
     p = new_parser(__doc__)
-    p.add_argument("--out", default=str(REPO / "out" / "demo"), help="output directory (default out/demo)")
+    p.add_argument("--out", default="out/demo", help="output directory (default out/demo, in the working directory)")
     p.add_argument("--duration", type=float, default=40.0, help="synthetic drive length, s (default 40)")
     p.add_argument("--epochs", type=int, default=6, help="training epochs (default 6)")
     p.add_argument("--seed", type=int, default=7, help="drive and initialisation seed (default 7)")
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    synth_params = str(REPO / "params" / "synthetic.yaml")
+    synth_params = str(package_file("params/synthetic.yaml"))
 
     t = step(f"1/4 synthetic bumpy drive ({args.duration:.0f} s, 10 Hz camera, 100 Hz IMU) -> rosbag2")
     drive = make_drive(seed=args.seed, duration=args.duration, bumps=1.5, render="lazy")
@@ -88,9 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     t = step(f"3/4 odometry over the held-out last quarter (frames {cut}..{n - 1})")
     rows = []
     # Training fits the paper pipeline's O and Q (the batched KL path); fused mode runs its own defaults.
-    runs = (("fused", "fused", str(REPO / "params" / "learned_default.yaml"), "fused (default params)"),
+    runs = (("fused", "fused", str(package_file("params/learned_default.yaml")), "fused (default params)"),
             ("learned", "paper", str(learned), "paper, learned O/Q"),
-            ("default", "paper", str(REPO / "params" / "learned_paper.yaml"), "paper, default O/Q"))
+            ("default", "paper", str(package_file("params/learned_paper.yaml")), "paper, default O/Q"))
     for label, mode, params_file, title in runs:
         run_dir, eval_dir = out / f"run_{label}", out / f"eval_{label}"
         call("run", [str(bag_path), "--out", str(run_dir), "--params", synth_params, "--learned", params_file,
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         for mode, learned_file in (("fused", "learned_default.yaml"), ("paper", "learned_paper.yaml")):
             run_dir, eval_dir = out / f"run_kitti06_{mode}", out / f"eval_kitti06_{mode}"
             call("run", [str(kbag), "--out", str(run_dir), "--mode", mode, "--learned",
-                         str(REPO / "params" / learned_file), "-q"])
+                         str(package_file(f"params/{learned_file}")), "-q"])
             call("evaluate", ["--gt", str(run_dir / "gt_kitti.txt"), "--est", str(run_dir / "trajectory_kitti.txt"),
                               "--pitch-roll", str(run_dir / "pitch_roll.csv"), "--out", str(eval_dir),
                               "--title", f"KITTI 06, frames 0-50, {mode}"])

@@ -37,7 +37,12 @@ ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceler
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 
 
-class OutOfOrderError(ValueError):
+class InvalidInputError(ValueError):
+    """An input the engine refuses before using it (the caller drops it, counted); any other
+    exception out of the engine is a bug, not bad input."""
+
+
+class OutOfOrderError(InvalidInputError):
     """A message's stamp is not after the previous one of its kind."""
 
     def __init__(self, kind: str, stamp: float, last: float):
@@ -245,7 +250,7 @@ class BevoOdometry:
 
         Raises ImplausibleImuError (a ValueError; ``reason`` ``imu_nonfinite``, ``imu_accel_range``
         or ``imu_gyro_range``) for NaN/inf or readings outside ``self.imu_limits``, ValueError for a
-        zero acceleration and OutOfOrderError for stamps not after the last.
+        zero acceleration (InvalidInputError) and OutOfOrderError for stamps not after the last.
         """
         g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
         a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
@@ -254,7 +259,7 @@ class BevoOdometry:
         if (problem := imu_problem(g, a, self.imu_limits)) is not None:
             raise ImplausibleImuError(*problem)
         if math.hypot(*a) < 1e-6:
-            raise ValueError("IMU linear acceleration is zero: no gravity, no attitude")
+            raise InvalidInputError("IMU linear acceleration is zero: no gravity, no attitude")
         if self._last_imu is not None and stamp <= self._last_imu:
             raise OutOfOrderError("IMU", stamp, self._last_imu)
         out = self._release(lambda s: s < stamp)
@@ -365,18 +370,18 @@ class BevoOdometry:
         """Queue or process one image ``(H, W)`` uint8 or float in [0, 1]; ``tag`` comes back as
         its step's ``tag`` (or its drop event's).
 
-        Raises ValueError for a bad image and OutOfOrderError for stamps not after the last image.
+        Raises InvalidInputError for a bad image and OutOfOrderError for stamps not after the last image.
         """
         img = np.asarray(image)
         if img.ndim != 2:
-            raise ValueError(f"image must be (H, W) grayscale, got shape {img.shape}")
+            raise InvalidInputError(f"image must be (H, W) grayscale, got shape {img.shape}")
         if (img.shape[1], img.shape[0]) != (self.camera.width, self.camera.height_px):
-            raise ValueError(
+            raise InvalidInputError(
                 f"image size {img.shape[1]}x{img.shape[0]} does not match the calibration "
                 f"{self.camera.width}x{self.camera.height_px}"
             )
         if not math.isfinite(stamp):
-            raise ValueError("image stamp is not finite")
+            raise InvalidInputError("image stamp is not finite")
         last = max([s for s, _, _ in self._pending] + ([self._last_image] if self._last_image is not None else []),
                    default=None)
         if last is not None and stamp <= last:
@@ -560,4 +565,4 @@ class BevoOdometry:
         G = dx * np.array([[-self._scale_per_pitch, 0.0], [0.0, self.spec.centre[0] * k_r], [0.0, -k_r]])
         return cov + G @ att @ G.T
 
-__all__ = ["BevoOdometry", "OdometryStep", "OutOfOrderError", "Counters", "EngineEvent", "Z_VARIANCE"]
+__all__ = ["BevoOdometry", "OdometryStep", "InvalidInputError", "OutOfOrderError", "Counters", "EngineEvent", "Z_VARIANCE"]

@@ -13,8 +13,8 @@ import collections
 import time
 from typing import Any, Callable
 
-from bevo_ros.core.odometry import OutOfOrderError
-from bevo_ros.core.validation import TimeJumpGuard
+from bevo_ros.core.odometry import InvalidInputError, OutOfOrderError
+from bevo_ros.core.validation import ImplausibleImuError, TimeJumpGuard
 from bevo_ros.ros.diagnostics import Report
 from bevo_ros.io.ros_conversions import stamp_to_sec
 
@@ -237,15 +237,17 @@ class EngineFeed:
         return steps
 
     def _call(self, kind: str, t: float, call: Callable[[], list]) -> list | None:
+        """Run an engine call; what the engine refuses as input is a counted drop (None). Anything
+        else it raises is a bug: it goes on to the callback guard (callback_error), blaming no input."""
         try:
             steps = call()
         except OutOfOrderError as exc:
             steps = None
             try:
                 steps = self._out_of_order(kind, exc, t, call)
-            except ValueError as exc2:
+            except (ImplausibleImuError, InvalidInputError) as exc2:
                 self.report.drop(f"{kind}_invalid", f"{label(kind)} at {t:.6f}: {exc2}")
-        except ValueError as exc:  # ImplausibleImuError carries its own reason
+        except (ImplausibleImuError, InvalidInputError) as exc:  # ImplausibleImuError carries its own reason
             steps = None
             self.report.drop(getattr(exc, "reason", f"{kind}_invalid"), f"{label(kind)} at {t:.6f}: {exc}")
         self._report_events()

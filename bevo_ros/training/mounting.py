@@ -18,12 +18,14 @@ from bevo_ros.core.sequence import project_frames, register_consecutive
 from bevo_ros.datasets.rosbag import Recording
 
 
-def constant_attitude_motion(seq: Recording, spec: BevSpec, pitch: float, roll: float) -> tuple[torch.Tensor, float]:
-    """``(F-1, 3)`` BEV motion with a constant road-relative attitude, and the mean peak quality."""
+def constant_attitude_motion(seq: Recording, spec: BevSpec, pitch: float, roll: float,
+                             dpc: DpcConfig | None = None) -> tuple[torch.Tensor, float]:
+    """``(F-1, 3)`` BEV motion with a constant road-relative attitude, and the mean peak quality
+    (``dpc``: the settings' phase correlation, the engine's defaults when None)."""
     pr = torch.tensor([[pitch, roll]], dtype=torch.float32).repeat(len(seq), 1)
     with torch.no_grad():
         bev, mask = project_frames(seq.images, seq.camera.to(dtype=torch.float32), pr, spec)
-        reg = register_consecutive(bev, mask, DpcConfig())
+        reg = register_consecutive(bev, mask, dpc or DpcConfig())
         motion = vehicle_motion_from_registration(reg.angle.double(), reg.shift.double(), spec)
         return motion, float(reg.quality.mean())
 
@@ -52,16 +54,16 @@ def find_roots(f, lo: float, hi: float, steps: int = 12, iters: int = 12) -> lis
     return roots
 
 
-def calibrate(seq: Recording, spec: BevSpec, roll0: float = 0.0) -> tuple[float, float]:
+def calibrate(seq: Recording, spec: BevSpec, roll0: float = 0.0, dpc: DpcConfig | None = None) -> tuple[float, float]:
     """``(pitch, roll)`` in radians: pitch first (at ``roll0``), then roll at that pitch. Where several
     attitudes match the ground truth, the one whose BEVs correlate best (the sharpest peaks) wins."""
     gt = seq.gt_motion()
     dist, yaw = float(gt[:, 0].sum()), float(gt[:, 2].sum())
     span = math.radians(3)
-    pitches = find_roots(lambda p: float(constant_attitude_motion(seq, spec, p, roll0)[0][:, 0].sum()) - dist,
+    pitches = find_roots(lambda p: float(constant_attitude_motion(seq, spec, p, roll0, dpc)[0][:, 0].sum()) - dist,
                          -span, span)
-    pitch = max(pitches, key=lambda p: constant_attitude_motion(seq, spec, p, roll0)[1])
-    rolls = find_roots(lambda r: float(constant_attitude_motion(seq, spec, pitch, r)[0][:, 2].sum()) - yaw,
+    pitch = max(pitches, key=lambda p: constant_attitude_motion(seq, spec, p, roll0, dpc)[1])
+    rolls = find_roots(lambda r: float(constant_attitude_motion(seq, spec, pitch, r, dpc)[0][:, 2].sum()) - yaw,
                        -span, span)
-    roll = max(rolls, key=lambda r: constant_attitude_motion(seq, spec, pitch, r)[1])
+    roll = max(rolls, key=lambda r: constant_attitude_motion(seq, spec, pitch, r, dpc)[1])
     return pitch, roll
