@@ -348,27 +348,6 @@ def dump_params_yaml(config: BevoConfig | None = None, node_settings: Any = None
     return "\n".join(lines) + "\n"
 
 
-def resolve_path(name: str, base_dir: Path | None = None) -> Path:
-    """Absolute path for ``name``: as given, else beside ``base_dir``, else in the repo/package share."""
-    p = Path(name).expanduser()
-    if p.is_absolute():
-        return p
-    candidates = []
-    if base_dir is not None:
-        candidates += [base_dir / p, base_dir.parent / p]
-    candidates += [Path.cwd() / p, REPO_ROOT / p]
-    try:  # installed package: <prefix>/share/bevo_ros/params/...
-        from ament_index_python.packages import get_package_share_directory
-
-        candidates.append(Path(get_package_share_directory("bevo_ros")) / p)
-    except Exception:  # noqa: BLE001 - ament index absent or package not installed
-        pass
-    for c in candidates:
-        if c.exists():
-            return c.resolve()
-    return candidates[0].resolve() if base_dir is not None else (REPO_ROOT / p)
-
-
 def package_file(rel: str) -> Path:
     """A file the package ships (``params/kitti.yaml``, ...): the source tree's, else the installed
     ``share/bevo_ros`` one (a colcon install has no ``params/`` beside the Python package)."""
@@ -381,6 +360,21 @@ def package_file(rel: str) -> Path:
         return Path(get_package_share_directory("bevo_ros")) / rel
     except Exception:  # noqa: BLE001 - ament index absent or package not installed
         return here
+
+
+def resolve_path(name: str, base_dir: Path | None = None) -> Path:
+    """Absolute path for ``name``: as given, else beside ``base_dir``, else in the repo/package share."""
+    p = Path(name).expanduser()
+    if p.is_absolute():
+        return p
+    candidates = []
+    if base_dir is not None:
+        candidates += [base_dir / p, base_dir.parent / p]
+    candidates += [Path.cwd() / p, package_file(str(p))]  # the source tree's, else the installed share's
+    for c in candidates:
+        if c.exists():
+            return c.resolve()
+    return candidates[0].resolve() if base_dir is not None else (REPO_ROOT / p)
 
 
 # --------------------------------------------------------------------------- engine factory
