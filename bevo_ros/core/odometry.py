@@ -24,7 +24,8 @@ from .dukf import DUKF, steady_state_variance
 from .geometry import BevSpec, CameraModel
 from .motion import (motion_covariance_from_registration, pitch_scale_sensitivity, roll_yaw_sensitivity,
                      vehicle_motion_from_registration)
-from .phase_correlation import DpcConfig, InvalidBevError, prepare, register_prepared
+from .phase_correlation import (DpcConfig, InvalidBevError, MaskWeight, mask_weight, overlap_envelope, prepare,
+                                register_prepared)
 from .pose import compose_se2, propagate_covariance_se2
 from .road_tilt import RoadTiltFilter
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
@@ -199,6 +200,8 @@ class BevoOdometry:
         self._history: deque[tuple[float, tuple[float, float], tuple]] = deque(maxlen=4000)
         self._pending: list[tuple[float, np.ndarray, Any]] = []  # (stamp, image, tag) waiting for IMU
         self._prev = None  # prepared BEV of the previous frame
+        self._weight_cache: MaskWeight | None = None  # the latest BEV mask's weight (_mask_weight)
+        self._envelope_cache = None  # ((prev, curr) weight spectra, their overlap envelope)
         self._prev_stamp: float | None = None
         self._speed = 0.0  # forward speed of the latest VO step, m/s
         self._pose = torch.zeros(3, dtype=torch.float64)
@@ -428,7 +431,7 @@ class BevoOdometry:
         road, state, yaw_cum = self._attitude_at(stamp)
         pr_road = torch.tensor([road], dtype=self.dtype, device=self.device)
         bev, mask = project_to_bev(image[None, None], self.camera, pr_road[:, 0], pr_road[:, 1], self.spec)
-        curr = prepare(bev, mask, self.dpc)
+        curr = prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
         first = self._prev is None
         dt = 0.0 if first else stamp - self._prev_stamp
         measured, accepted, speed = None, (True, True), float("nan")
@@ -440,7 +443,7 @@ class BevoOdometry:
             reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, yaw_cum, state)
             quality = float(reg.quality[0])
         else:
-            reg = register_prepared(self._prev, curr, self.dpc)
+            reg = register_prepared(self._prev, curr, self.dpc, envelope=self._envelope(curr))
             motion = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
             motion_cov = self._motion_covariance(reg, motion, state)
             quality = float(reg.quality[0])
@@ -504,7 +507,8 @@ class BevoOdometry:
         dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.var(2) * dt * dt)
         dev, dt_ = self.device, self.dtype
         reg = register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
-                                angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev))
+                                angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev),
+                                envelope=self._envelope(curr))
         measured = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
         cov = self._motion_covariance(reg, measured, state)
         rot = -float(reg.rotation_estimate[0])
@@ -532,6 +536,22 @@ class BevoOdometry:
         motion = np.array([float(v) for v in frame.motion])
         motion_cov = np.diag([float(v) for v in frame.variance])
         return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v)
+
+    def _mask_weight(self, mask: torch.Tensor, dtype: torch.dtype) -> MaskWeight:
+        """The BEV mask's correlation weight, reused while the mask stays the same (the ground
+        patch inside the image: most frames), as is the weights' overlap envelope."""
+        cached = self._weight_cache
+        if cached is None or cached.weight.dtype != dtype or not torch.equal(cached.mask, mask):
+            self._weight_cache = cached = mask_weight(mask, self.dpc, dtype)
+        return cached
+
+    def _envelope(self, curr) -> torch.Tensor:
+        """``overlap_envelope`` of the previous and current frames' weights, reused while both are
+        the same (cached) weights."""
+        key = (self._prev.weight_spectrum, curr.weight_spectrum)
+        if self._envelope_cache is None or any(a is not b for a, b in zip(self._envelope_cache[0], key)):
+            self._envelope_cache = (key, overlap_envelope(*key))
+        return self._envelope_cache[1]
 
     def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple, float]:
         """Road-relative attitude, DUKF state and integrated gyro yaw at ``stamp``: the last IMU

@@ -291,6 +291,8 @@ def _magnitude(z: Tensor) -> Tensor:
     BEV must stay "no information", not become a perfect match of rounding noise) with a zero,
     not NaN, gradient there (the DC term of a zero-mean image is 0): the double ``where``."""
     sq = z.real.square() + z.imag.square()
+    if not (z.requires_grad and torch.is_grad_enabled()):
+        return sq.sqrt_()  # the same values (sqrt(0) = 0); the wheres only guard the gradient
     nonzero = sq > 0
     return torch.where(nonzero, torch.where(nonzero, sq, torch.ones_like(sq)).sqrt(), torch.zeros_like(sq))
 
@@ -309,29 +311,59 @@ def _polar_spectrum(spectrum: Tensor, config: DpcConfig) -> Tensor:
     return polar / (polar.pow(2).mean(dim=-1, keepdim=True).sqrt() + 1e-12)
 
 
-def prepare(bev: Tensor, mask: Tensor, config: DpcConfig) -> Prepared:
+@dataclass
+class MaskWeight:
+    """What :func:`prepare` derives from the mask alone (:func:`mask_weight`): a caller whose mask
+    repeats (the engine: the BEV footprint rarely changes between frames) passes it back instead
+    of recomputing it.
+
+    Attributes:
+        mask: ``(B, 1, S, S)`` the mask it was computed from.
+        weight: ``(B, S, S)`` :func:`soft_weight` of the mask.
+        total: ``(B, 1, 1)`` its sum.
+        spectrum: ``(B, S, S // 2 + 1)`` complex ``rfft2(weight)``.
+    """
+
+    mask: Tensor
+    weight: Tensor
+    total: Tensor
+    spectrum: Tensor
+
+
+def mask_weight(mask: Tensor, config: DpcConfig, dtype: torch.dtype | None = None) -> MaskWeight:
+    """:class:`MaskWeight` of ``mask (B, 1, S, S)`` in ``dtype`` (default: the mask's).
+
+    Raises InvalidBevError when a BEV has no valid pixel after eroding its mask."""
+    w = soft_weight(mask.to(dtype or mask.dtype), config)
+    wsum = w.sum(dim=(-1, -2), keepdim=True)
+    if bool((wsum <= 1e-6).any()):
+        raise InvalidBevError("a BEV has no valid pixels after eroding its mask (camera model or BEV spec wrong?)")
+    return MaskWeight(mask, w, wsum, torch.fft.rfft2(w))
+
+
+def prepare(bev: Tensor, mask: Tensor, config: DpcConfig, weight: MaskWeight | None = None) -> Prepared:
     """Weight one batch of BEVs and compute the spectra both correlation stages need.
 
     Args:
         bev: ``(B, 1, S, S)`` float.
         mask: ``(B, 1, S, S)`` validity (1 valid, 0 not), same dtype family.
+        weight: ``mask_weight(mask, config, bev.dtype)`` if the caller has it (not checked).
 
     Returns:
         :class:`Prepared`.
     """
     _check_pair(bev, mask)
-    w = soft_weight(mask.to(bev.dtype), config)
+    if weight is None:
+        weight = mask_weight(mask, config, bev.dtype)
+    w, wsum = weight.weight, weight.total
     x = bev[:, 0]
-    wsum = w.sum(dim=(-1, -2), keepdim=True)
-    if bool((wsum <= 1e-6).any()):
-        raise InvalidBevError("a BEV has no valid pixels after eroding its mask (camera model or BEV spec wrong?)")
     mean = (w * x).sum(dim=(-1, -2), keepdim=True) / wsum
     image = w * (x - mean)
     spectrum = torch.fft.rfft2(image)
     p = config.rotation_padding
     padded = spectrum if p == 1 else torch.fft.rfft2(image, s=(p * image.shape[-2], p * image.shape[-1]))
     polar = torch.fft.rfft(_polar_spectrum(padded, config), dim=-1)
-    return Prepared(image, spectrum, polar, torch.fft.rfft2(w))
+    return Prepared(image, spectrum, polar, weight.spectrum)
 
 
 def rotate_about_centre(image: Tensor, angle: Tensor) -> Tensor:
@@ -450,8 +482,10 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
     log_prob = F.log_softmax(flat / config.translation_temperature, dim=-1).reshape(B, S, S)
     j = flat.argmax(dim=-1)
     jr, jc = j // S, j % S
-    fit = corr if envelope is None else corr / envelope.clamp_min(0.05)
-    off, _ = _quadratic_peak_2d(fit, jr, jc)
+    win, _ = _window_2d(corr, jr, jc, 1)
+    if envelope is not None:  # only the fit's 3x3 window is divided (the rest is never used)
+        win = win / _window_2d(envelope, jr, jc, 1)[0].clamp_min(0.05)
+    off, _ = _quadratic_peak_window(win)
     shift = torch.stack([jr, jc], dim=-1).to(corr.dtype) - S // 2 + off
     return shift, corr, log_prob
 
@@ -484,7 +518,11 @@ def _quadratic_peak_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> tuple[Tensor, Te
     Returns:
         offsets ``(B, 2)`` in [-1, 1] and the fitted log peak height ``(B,)``.
     """
-    win, _ = _window_2d(corr, jr, jc, 1)  # (B, 3, 3)
+    return _quadratic_peak_window(_window_2d(corr, jr, jc, 1)[0])
+
+
+def _quadratic_peak_window(win: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_quadratic_peak_2d` on the peak's 3x3 window ``(B, 3, 3)``."""
     B = win.shape[0]
     peak = win[:, 1, 1].abs().clamp_min(1e-12)
     L = torch.log(torch.clamp(win.reshape(B, 9) / peak[:, None], min=1e-6))
@@ -524,18 +562,21 @@ def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
 
 
 def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: Tensor | None = None,
-                      angle_std: Tensor | None = None) -> Registration:
+                      angle_std: Tensor | None = None, envelope: Tensor | None = None) -> Registration:
     """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``).
 
     With ``angle (B,)`` (and its ``angle_std``), e.g. the gyro's rotation, the BEV is derotated by
     it instead of by the image estimate, which is still computed (``rotation_estimate``, its
     distribution kept for the loss) but not refined: the gyro measures a car's yaw over a frame
     better than the BEVs do, and a translation correlation of well-derotated images is sharper.
+    ``envelope``: ``overlap_envelope(prev.weight_spectrum, curr.weight_spectrum)`` if the caller
+    has it (the engine, while the BEV mask does not change; not checked).
     """
     if prev.image.shape != curr.image.shape:
         raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")
     estimate, rcorr, rlog = estimate_rotation(prev, curr, config)
-    envelope = overlap_envelope(prev.weight_spectrum, curr.weight_spectrum)
+    if envelope is None:
+        envelope = overlap_envelope(prev.weight_spectrum, curr.weight_spectrum)
     given = angle is not None
     angle = angle.to(estimate.dtype) if given else estimate
     derotated = rotate_about_centre(curr.image[:, None], -angle)[:, 0]
@@ -585,6 +626,8 @@ __all__ = [
     "angle_bins",
     "shift_bins",
     "soft_weight",
+    "MaskWeight",
+    "mask_weight",
     "prepare",
     "rotate_about_centre",
     "estimate_rotation",
