@@ -47,6 +47,26 @@ def _ground_axes(spec: BevSpec, supersample: int, dtype: torch.dtype, device: to
     return x.to(dtype=dtype, device=device).contiguous(), y.to(dtype=dtype, device=device).contiguous()
 
 
+@lru_cache(maxsize=32)
+def _pixel_to_grid(size: tuple[int, int], image_size: tuple[int, int] | None, dtype: torch.dtype,
+                   device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pixel -> ``grid_sample`` affine map of :func:`bev_sampling_grid` for a camera of
+    ``size (W, H)`` sampled at ``image_size``: ``scale``, ``offset`` ``(2, 1)`` and the inside
+    test's centre and half width ``(2, 1, 1)`` in grid units. Cached: they depend only on the sizes."""
+    W, H = size
+    # Pixel u (OpenCV centres) -> grid_sample g = (2 u + 1) / W - 1, or on an image reduced by an
+    # integer factor f, where pixel j covers [f j - 0.5, f j + f - 0.5): u' = (u - (f - 1) / 2) / f.
+    f = 1 if image_size is None else W // image_size[0]
+    Ws, Hs = (W, H) if image_size is None else image_size
+    c = 1.0 - (f - 1.0) / f
+    scale = torch.tensor([2.0 / (f * Ws), 2.0 / (f * Hs)], dtype=dtype, device=device)
+    offset = torch.tensor([c / Ws - 1.0, c / Hs - 1.0], dtype=dtype, device=device)
+    # Inside with a 1-pixel margin, u in [1, W - 2] and v in [1, H - 2], in grid units.
+    lo = torch.tensor([1.0, 1.0], dtype=dtype, device=device) * scale + offset
+    hi = torch.tensor([W - 2.0, H - 2.0], dtype=dtype, device=device) * scale + offset
+    return scale[:, None], offset[:, None], (0.5 * (lo + hi))[:, None, None], (0.5 * (hi - lo))[:, None, None]
+
+
 def _check_attitude(pitch: Tensor, roll: Tensor) -> None:
     if pitch.ndim != 1 or roll.shape != pitch.shape:
         raise ValueError(f"pitch and roll must both be (B,), got {tuple(pitch.shape)} and {tuple(roll.shape)}")
@@ -82,22 +102,16 @@ def bev_sampling_grid(
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     dtype, device = pitch.dtype, pitch.device
     B, S, n = pitch.shape[0], spec.size, supersample
-    W, H = camera.width, camera.height_px
     R, t = camera_pose_on_road(camera, pitch, roll)  # (B, 3, 3), (B, 3)
     K = camera.K.to(dtype=dtype, device=device)
-    # Pixel u (OpenCV centres) -> grid_sample g = (2 u + 1) / W - 1, or on an image reduced by an
-    # integer factor f, where pixel j covers [f j - 0.5, f j + f - 0.5): u' = (u - (f - 1) / 2) / f.
-    f = 1 if image_size is None else W // image_size[0]
-    Ws, Hs = (W, H) if image_size is None else image_size
-    c = 1.0 - (f - 1.0) / f
-    scale = torch.tensor([2.0 / (f * Ws), 2.0 / (f * Hs)], dtype=dtype, device=device)
-    offset = torch.tensor([c / Ws - 1.0, c / Hs - 1.0], dtype=dtype, device=device)
+    size = None if image_size is None else (int(image_size[0]), int(image_size[1]))
+    scale, offset, mid, half = _pixel_to_grid((camera.width, camera.height_px), size, dtype, device)
     # The road plane maps to the image through a homography: for a road point p = (x, y, 0),
     # (u w, v w, w) = M (p - t) with M = K R^T. Folding the u -> g affine map into M's first two
     # rows gives g = (A (p - t))_xy / w directly, and as the grid is axis-aligned,
     # A (p - t) = (A[:, 0] x_row - A t) + A[:, 1] y_col: an outer sum, no per-point matmul.
     M = K @ R.transpose(-1, -2)  # (B, 3, 3)
-    A = torch.cat([M[:, :2] * scale[:, None] + offset[:, None] * M[:, 2:], M[:, 2:]], dim=1)
+    A = torch.cat([M[:, :2] * scale + offset * M[:, 2:], M[:, 2:]], dim=1)
     x, y = _ground_axes(spec, n, dtype, device)  # (n, S) each
     at = (A @ t[:, :, None])[:, :, :, None]  # (B, 3, 1, 1)
     by_row = A[:, :, 0, None, None] * x - at  # (B, 3, n, S)
@@ -106,10 +120,7 @@ def bev_sampling_grid(
     gw = (by_row[:, :, :, None, :, None] + by_col[:, :, None, :, None, :]).reshape(B, 3, n * n * S, S)
     w = gw[:, 2]
     g = gw[:, :2] / w.clamp_min(_MIN_DEPTH)[:, None]  # finite everywhere, also behind the camera
-    # Inside with a 1-pixel margin, u in [1, W - 2] and v in [1, H - 2], in grid units.
-    lo = torch.tensor([1.0, 1.0], dtype=dtype, device=device) * scale + offset
-    hi = torch.tensor([W - 2.0, H - 2.0], dtype=dtype, device=device) * scale + offset
-    out = (g - (0.5 * (lo + hi))[:, None, None]).abs() - (0.5 * (hi - lo))[:, None, None]
+    out = (g.detach() - mid).abs_().sub_(half)  # <= 0 inside the 1-pixel margin (a test: no gradient)
     valid = (torch.maximum(out[:, 0], out[:, 1]) <= 0) & (w > _MIN_DEPTH)
     return g.permute(0, 2, 3, 1), valid
 

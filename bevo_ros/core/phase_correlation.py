@@ -420,9 +420,7 @@ def estimate_rotation(prev: Prepared, curr: Prepared, config: DpcConfig) -> tupl
     corr = torch.roll(corr, A // 2, dims=-1)  # index i <-> (i - A/2) pi / A
     log_prob = F.log_softmax(corr / config.rotation_temperature, dim=-1)
     j = corr.argmax(dim=-1)
-    cm = corr.gather(-1, ((j - 1) % A)[:, None])[:, 0]
-    c0 = corr.gather(-1, j[:, None])[:, 0]
-    cp = corr.gather(-1, ((j + 1) % A)[:, None])[:, 0]
+    cm, c0, cp = corr.gather(-1, (j[:, None] + _offsets(1, None, corr.device)) % A).unbind(-1)
     offset = _gaussian_offset(cm, c0, cp)
     angle = (j.to(corr.dtype) + offset - A // 2) * (math.pi / A)
     angle = torch.remainder(angle + math.pi / 2, math.pi) - math.pi / 2
@@ -482,22 +480,36 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
     log_prob = F.log_softmax(flat / config.translation_temperature, dim=-1).reshape(B, S, S)
     j = flat.argmax(dim=-1)
     jr, jc = j // S, j % S
-    win, _ = _window_2d(corr, jr, jc, 1)
+    index = _window_index(jr, jc, S, 1)
+    win, _ = _window_2d(corr, jr, jc, 1, index)
     if envelope is not None:  # only the fit's 3x3 window is divided (the rest is never used)
-        win = win / _window_2d(envelope, jr, jc, 1)[0].clamp_min(0.05)
-    off, _ = _quadratic_peak_window(win)
+        win = win / _window_2d(envelope, jr, jc, 1, index)[0].clamp_min(0.05)
+    off, _ = _quadratic_peak_window(win, with_height=False)
     shift = torch.stack([jr, jc], dim=-1).to(corr.dtype) - S // 2 + off
     return shift, corr, log_prob
 
 
-def _window_2d(corr: Tensor, jr: Tensor, jc: Tensor, h: int) -> tuple[Tensor, Tensor]:
-    """Circular ``(2h+1)^2`` window around ``(jr, jc)``. -> values ``(B, 2h+1, 2h+1)``, offsets."""
+@lru_cache(maxsize=32)
+def _offsets(h: int, dtype: torch.dtype | None, device: torch.device) -> Tensor:
+    """``(2h+1,)`` the window offsets ``-h .. h`` (int64 for ``dtype`` None)."""
+    return torch.arange(-h, h + 1, device=device).to(dtype or torch.int64)
+
+
+def _window_index(jr: Tensor, jc: Tensor, size: int, h: int) -> Tensor:
+    """Flat indices ``(B, (2h+1)^2)`` into ``(B, S * S)`` of the circular window around ``(jr, jc)``."""
+    d = _offsets(h, None, jr.device)
+    rows = (jr[:, None] + d) % size  # (B, n)
+    cols = (jc[:, None] + d) % size
+    return (rows[:, :, None] * size + cols[:, None, :]).reshape(jr.shape[0], -1)
+
+
+def _window_2d(corr: Tensor, jr: Tensor, jc: Tensor, h: int, index: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Circular ``(2h+1)^2`` window around ``(jr, jc)``. -> values ``(B, 2h+1, 2h+1)``, offsets.
+    ``index``: :func:`_window_index` if the caller has it."""
     B, S, _ = corr.shape
-    d = torch.arange(-h, h + 1, device=corr.device)
-    rows = (jr[:, None] + d) % S  # (B, n)
-    cols = (jc[:, None] + d) % S
-    batch = torch.arange(B, device=corr.device)[:, None, None]
-    return corr[batch, rows[:, :, None], cols[:, None, :]], d.to(corr.dtype)  # (B, n, n)
+    n = 2 * h + 1
+    index = _window_index(jr, jc, S, h) if index is None else index
+    return corr.reshape(B, S * S).gather(1, index).reshape(B, n, n), _offsets(h, corr.dtype, corr.device)
 
 
 @lru_cache(maxsize=8)
@@ -521,8 +533,9 @@ def _quadratic_peak_2d(corr: Tensor, jr: Tensor, jc: Tensor) -> tuple[Tensor, Te
     return _quadratic_peak_window(_window_2d(corr, jr, jc, 1)[0])
 
 
-def _quadratic_peak_window(win: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`_quadratic_peak_2d` on the peak's 3x3 window ``(B, 3, 3)``."""
+def _quadratic_peak_window(win: Tensor, with_height: bool = True) -> tuple[Tensor, Tensor | None]:
+    """:func:`_quadratic_peak_2d` on the peak's 3x3 window ``(B, 3, 3)`` (the height None
+    without ``with_height``)."""
     B = win.shape[0]
     peak = win[:, 1, 1].abs().clamp_min(1e-12)
     L = torch.log(torch.clamp(win.reshape(B, 9) / peak[:, None], min=1e-6))
@@ -536,6 +549,8 @@ def _quadratic_peak_window(win: Tensor) -> tuple[Tensor, Tensor]:
     det = torch.where(ok, det, torch.ones_like(det))
     orow = torch.where(ok, (c * ff - b * h22) / det, -b / h11).clamp(-1.0, 1.0)
     ocol = torch.where(ok, (b * ff - c * h11) / det, -c / h22).clamp(-1.0, 1.0)
+    if not with_height:
+        return torch.stack([orow, ocol], dim=-1), None
     log_height = (a0 + b * orow + c * ocol + dd * (orow**2 - 2.0 / 3.0) + ee * (ocol**2 - 2.0 / 3.0)
                   + ff * orow * ocol + torch.log(peak))
     return torch.stack([orow, ocol], dim=-1), log_height
@@ -558,7 +573,7 @@ def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
     rr = (p.sum(dim=2) * dr**2).sum(dim=1)
     cc = (p.sum(dim=1) * dc**2).sum(dim=1)
     rc = (dr[:, None, :] @ p @ dc[:, :, None])[:, 0, 0]
-    return torch.stack([torch.stack([rr, rc], -1), torch.stack([rc, cc], -1)], -2)
+    return torch.stack([rr, rc, rc, cc], -1).reshape(-1, 2, 2)
 
 
 def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: Tensor | None = None,
