@@ -174,3 +174,26 @@ def test_bad_input_raises():
         project_to_bev(img, cam, torch.zeros(2), torch.zeros(2), SPEC)
     with pytest.raises(ValueError, match="supersample"):
         project_to_bev(img, cam, z, z, SPEC, supersample=0)
+
+
+def test_grids_cached_in_inference_mode_serve_autograd():
+    """The engine runs in torch.inference_mode; the grids and windows it caches first
+    (core.device.constant_cache) must still be usable by training's autograd afterwards."""
+    from bevo_ros.core.phase_correlation import DpcConfig, prepare, register_prepared
+
+    cam = half_res_camera(torch.float32)
+    spec = BevSpec(size=36, metres_per_pixel=0.25, forward_offset=6.0)  # sizes no other test caches
+    dpc = DpcConfig(angle_bins=90, radial_samples=11)
+    image = torch.rand(1, 1, cam.height_px, cam.width, generator=torch.Generator().manual_seed(0))
+
+    def step(pitch):
+        bev, mask = project_to_bev(image.expand(2, -1, -1, -1), cam, pitch, pitch * 0.5, spec)
+        p = prepare(bev, mask, dpc)
+        reg = register_prepared(p[:1], p[1:], dpc)
+        return reg.shift.sum() + reg.angle.sum() + reg.translation_log_prob.logsumexp(dim=(-1, -2)).sum()
+
+    with torch.inference_mode():
+        step(torch.tensor([0.01, 0.012]))
+    pitch = torch.tensor([0.01, 0.012], requires_grad=True)
+    step(pitch).backward()
+    assert pitch.grad is not None and torch.isfinite(pitch.grad).all()

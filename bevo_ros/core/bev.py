@@ -18,10 +18,11 @@ first reduced by ``downsample`` (area average) to cut the number of samples need
 """
 from __future__ import annotations
 
-from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
+
+from .device import constant_cache
 
 from .geometry import BevSpec, CameraModel, camera_pose_on_road
 
@@ -30,7 +31,7 @@ Tensor = torch.Tensor
 _MIN_DEPTH = 0.1  # metres in front of the camera; closer ground points are invalid
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _ground_axes(spec: BevSpec, supersample: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """Road-frame ``x`` of the sub-sample rows and ``y`` of the sub-sample columns, ``(n, S)`` each.
 
@@ -47,7 +48,7 @@ def _ground_axes(spec: BevSpec, supersample: int, dtype: torch.dtype, device: to
     return x.to(dtype=dtype, device=device).contiguous(), y.to(dtype=dtype, device=device).contiguous()
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _pixel_to_grid(size: tuple[int, int], image_size: tuple[int, int] | None, dtype: torch.dtype,
                    device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The pixel -> ``grid_sample`` affine map of :func:`bev_sampling_grid` for a camera of

@@ -1,6 +1,7 @@
 """The torch device a run asks for, with the one CUDA fallback rule (engine, training, map localisation)."""
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import Callable
 
@@ -24,3 +25,16 @@ def resolve_device(device: str | torch.device, log: Callable[[str], None] | None
     if name != "cpu":
         raise ValueError(f"device must be 'cpu' or 'cuda[:n]', got {name!r}")
     return torch.device("cpu")
+
+
+def constant_cache(maxsize: int = 32):
+    """``functools.lru_cache`` for tensors that depend only on settings (grids, windows, bands):
+    built outside inference mode, so the engine (which runs in ``torch.inference_mode``) and
+    training (autograd, which cannot save an inference tensor) share them whoever asks first."""
+    def decorate(fn):
+        @functools.wraps(fn)
+        def build(*args, **kwargs):
+            with torch.inference_mode(False):
+                return fn(*args, **kwargs)
+        return functools.lru_cache(maxsize=maxsize)(build)
+    return decorate

@@ -423,7 +423,7 @@ class BevoOdometry:
             self._count("dropped_invalid_bev", stamp, tag)
             return []
 
-    @torch.no_grad()
+    @torch.inference_mode()  # no autograd bookkeeping at all (cached grids: core.device.constant_cache)
     def _process(self, stamp: float, img: np.ndarray, tag: Any = None) -> OdometryStep:
         image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
         if image.dtype != torch.uint8:

@@ -46,10 +46,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import torch
 import torch.nn.functional as F
+
+from .device import constant_cache
 
 from .dpc_config import DpcConfig
 
@@ -134,7 +135,7 @@ class Registration:
 # ------------------------------------------------------------------------------------------------
 # Cached grids (depend only on size, config, device, dtype)
 # ------------------------------------------------------------------------------------------------
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _radial_window(size: int, alpha: float, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Radial Tukey window ``(S, S)``: 1 inside ``(1 - alpha) S/2``, cosine taper to 0 at ``S/2``."""
     c = (size - 1) / 2.0
@@ -146,7 +147,7 @@ def _radial_window(size: int, alpha: float, dtype: torch.dtype, device: torch.de
     return w.to(dtype=dtype, device=device)
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _polar_sampler(size: int, angle_bins: int, radial_range: tuple[float, float], radial_samples: int,
                    device: torch.device) -> tuple[Tensor, Tensor]:
     """Bilinear polar resampling of an ``rfft2`` magnitude (``S x (S // 2 + 1)``) as 4 gathers.
@@ -176,7 +177,7 @@ def _polar_sampler(size: int, angle_bins: int, radial_range: tuple[float, float]
     return torch.stack(idx).reshape(-1).to(device), torch.stack(wts).reshape(4, -1).to(device)
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _rotation_band(angle_bins: int, sigma: float, lowcut: float, dtype: torch.dtype,
                    device: torch.device) -> tuple[Tensor, float]:
     """Weights ``(A // 2 + 1,)`` on the angular frequencies and the normaliser of ``irfft``.
@@ -193,7 +194,7 @@ def _rotation_band(angle_bins: int, sigma: float, lowcut: float, dtype: torch.dt
     return g.to(dtype=dtype, device=device), float(total) / angle_bins
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _translation_band(size: int, sigma: float, lowcut: float, dtype: torch.dtype,
                       device: torch.device) -> tuple[Tensor, Tensor]:
     """Weights ``(S, S // 2 + 1)`` on the ``rfft2`` frequencies, and the multiplicity of each
@@ -211,18 +212,18 @@ def _translation_band(size: int, sigma: float, lowcut: float, dtype: torch.dtype
     return g.to(dtype=dtype, device=device), mult.to(dtype=dtype, device=device)
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _normalised_axis(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Pixel centres in ``grid_sample(align_corners=False)`` units, ``(S,)``: ``(2 i + 1) / S - 1``."""
     return ((2.0 * torch.arange(size, dtype=torch.float64) + 1.0) / size - 1.0).to(dtype=dtype, device=device)
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _angle_bins(A: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     return (torch.arange(A, dtype=torch.float64) - A // 2).mul(math.pi / A).to(dtype=dtype, device=device)
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _shift_bins(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     i = torch.arange(size, dtype=dtype, device=device) - size // 2
     rr, cc = torch.meshgrid(i, i, indexing="ij")
@@ -489,7 +490,7 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
     return shift, corr, log_prob
 
 
-@lru_cache(maxsize=32)
+@constant_cache(32)
 def _offsets(h: int, dtype: torch.dtype | None, device: torch.device) -> Tensor:
     """``(2h+1,)`` the window offsets ``-h .. h`` (int64 for ``dtype`` None)."""
     return torch.arange(-h, h + 1, device=device).to(dtype or torch.int64)
@@ -512,7 +513,7 @@ def _window_2d(corr: Tensor, jr: Tensor, jc: Tensor, h: int, index: Tensor | Non
     return corr.reshape(B, S * S).gather(1, index).reshape(B, n, n), _offsets(h, corr.dtype, corr.device)
 
 
-@lru_cache(maxsize=8)
+@constant_cache(8)
 def _quadratic_fit_3x3(dtype: torch.dtype, device: torch.device) -> Tensor:
     """``(9, 6)`` least-squares fit of ``a + b r + c k + d (r^2 - 2/3) + e (k^2 - 2/3) + f r k`` to
     the 3x3 stencil ``r, k in {-1, 0, 1}`` (closed form: the basis is orthogonal there)."""
