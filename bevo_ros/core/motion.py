@@ -18,13 +18,31 @@ from __future__ import annotations
 
 import torch
 
+from .device import constant_cache
 from .geometry import BevSpec
 
 Tensor = torch.Tensor
 
 
+@constant_cache(32)
+def _centre_of(spec: BevSpec, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """The BEV centre ``C (2,)`` and its two entries (0-d). Cached: it depends only on the grid."""
+    C = torch.tensor(spec.centre, dtype=dtype, device=device)
+    return C, C[0], C[1]
+
+
 def _centre(spec: BevSpec, like: Tensor) -> Tensor:
-    return torch.tensor(spec.centre, dtype=like.dtype, device=like.device)
+    return _centre_of(spec, like.dtype, like.device)[0]
+
+
+@constant_cache(32)
+def _jacobian_constants(spec: BevSpec, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(1, 3, 3)`` the entries of :func:`motion_jacobian` that do not depend on the angle."""
+    J = torch.zeros(1, 3, 3, dtype=dtype, device=device)
+    J[:, 0, 1] = spec.metres_per_pixel
+    J[:, 1, 2] = spec.metres_per_pixel
+    J[:, 2, 0] = -1.0
+    return J
 
 
 def _rotate(angle: Tensor, v: Tensor) -> Tensor:
@@ -73,16 +91,13 @@ def registration_from_vehicle_motion(motion: Tensor, spec: BevSpec) -> tuple[Ten
 def motion_jacobian(angle: Tensor, spec: BevSpec) -> Tensor:
     """``d(dx, dy, dyaw) / d(angle, d_row, d_col)``. ``angle (B,)`` -> ``(B, 3, 3)``."""
     B = angle.shape[0]
-    C = _centre(spec, angle)
+    _, cx, cy = _centre_of(spec, angle.dtype, angle.device)
     dyaw = -angle
     c, s = torch.cos(dyaw), torch.sin(dyaw)
     # d/d(angle) of -R(dyaw) C = +dR/d(dyaw) C
-    dR_C = torch.stack([-s * C[0] - c * C[1], c * C[0] - s * C[1]], dim=-1)  # (B, 2)
-    J = torch.zeros(B, 3, 3, dtype=angle.dtype, device=angle.device)
+    dR_C = torch.stack([-s * cx - c * cy, c * cx - s * cy], dim=-1)  # (B, 2)
+    J = _jacobian_constants(spec, angle.dtype, angle.device).repeat(B, 1, 1)
     J[:, :2, 0] = dR_C
-    J[:, 0, 1] = spec.metres_per_pixel
-    J[:, 1, 2] = spec.metres_per_pixel
-    J[:, 2, 0] = -1.0
     return J
 
 

@@ -429,8 +429,8 @@ class BevoOdometry:
         if image.dtype != torch.uint8:
             image = image.to(self.dtype)
         road, state, yaw_cum = self._attitude_at(stamp)
-        pr_road = torch.tensor([road], dtype=self.dtype, device=self.device)
-        bev, mask = project_to_bev(image[None, None], self.camera, pr_road[:, 0], pr_road[:, 1], self.spec)
+        pitch_t, roll_t = (torch.tensor([v], dtype=self.dtype, device=self.device) for v in road)
+        bev, mask = project_to_bev(image[None, None], self.camera, pitch_t, roll_t, self.spec)
         curr = prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
         first = self._prev is None
         dt = 0.0 if first else stamp - self._prev_stamp
@@ -441,12 +441,12 @@ class BevoOdometry:
             quality = float("nan")
         elif self.mode == "fused":
             reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, yaw_cum, state)
-            quality = float(reg.quality[0])
+            quality = reg.quality.item()
         else:
             reg = register_prepared(self._prev, curr, self.dpc, envelope=self._envelope(curr))
-            motion = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
+            motion = self._vehicle_motion(reg)
             motion_cov = self._motion_covariance(reg, motion, state)
-            quality = float(reg.quality[0])
+            quality = reg.quality.item()
         motion_t, motion_cov_t = torch.from_numpy(motion), torch.from_numpy(motion_cov)
         self._pose_cov = propagate_covariance_se2(self._pose, self._pose_cov, motion_t, motion_cov_t)
         self._pose = compose_se2(self._pose, motion_t)
@@ -475,12 +475,13 @@ class BevoOdometry:
             lin, ang = np.zeros(3), np.zeros(3)
             twist_cov[0, 0] = twist_cov[1, 1] = twist_cov[5, 5] = Z_VARIANCE  # first frame: velocity unknown
         twist_cov[2, 2] = twist_cov[3, 3] = twist_cov[4, 4] = Z_VARIANCE
+        x, y, yaw = self._pose.tolist()
         return OdometryStep(
             stamp=stamp,
             motion=motion,
             dt=dt,
-            position=np.array([float(self._pose[0]), float(self._pose[1]), 0.0]),
-            rpy=np.array([roll, pitch, float(self._pose[2])]),
+            position=np.array([x, y, 0.0]),
+            rpy=np.array([roll, pitch, yaw]),
             pose_covariance=pose_cov,
             twist_linear=lin,
             twist_angular=ang,
@@ -509,12 +510,13 @@ class BevoOdometry:
         reg = register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
                                 angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev),
                                 envelope=self._envelope(curr))
-        measured = vehicle_motion_from_registration(reg.angle, reg.shift, self.spec)[0].double().cpu().numpy()
+        measured = self._vehicle_motion(reg)
         cov = self._motion_covariance(reg, measured, state)
-        rot = -float(reg.rotation_estimate[0])
+        rot = -reg.rotation_estimate.item()
+        quality = reg.quality.item()
         # The image rotation's spread plus what the correlation spread does not see (an attitude
         # error shears the BEV into a rotation): image_rotation_std.
-        rot_var = float(reg.rotation_estimate_std[0]) ** 2 + n.image_rotation_std**2
+        rot_var = reg.rotation_estimate_std.item() ** 2 + n.image_rotation_std**2
         imu_accel = imu_var = None
         if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
             imu_accel = self._fwd_sum / self._fwd_time
@@ -522,12 +524,12 @@ class BevoOdometry:
         self._fwd_sum = self._fwd_time = 0.0
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
-                      quality=float(reg.quality[0]), imu_accel=imu_accel, imu_accel_var=imu_var)
+                      quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var)
         frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
         self._last_filter_inputs = inputs
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
-        if float(reg.quality[0]) < n.min_quality:
+        if quality < n.min_quality:
             self._count("rejected_textureless", stamp)
         else:
             for kind, accepted in (("rejected_translation", acc_t), ("rejected_rotation", acc_r)):
@@ -563,6 +565,10 @@ class BevoOdometry:
             yaw += (yaw1 - yaw) * (stamp - t0) / (t1 - t0)
         return pr_road, state, yaw
 
+    def _vehicle_motion(self, reg) -> np.ndarray:
+        """The registration's (dx, dy, dyaw), float64 ``(3,)`` (the engine's batch of one)."""
+        return vehicle_motion_from_registration(reg.angle, reg.shift, self.spec).cpu().numpy()[0].astype(np.float64)
+
     def _motion_covariance(self, reg, motion: np.ndarray, state: tuple) -> np.ndarray:
         """(dx, dy, dyaw) covariance: the correlation distributions' spread (first order) plus what
         the attitude uncertainty does to the BEV, the dominant error on a car, ``G P G^T`` with
@@ -574,7 +580,7 @@ class BevoOdometry:
         unsure of the absolute attitude, but that error is a constant the road-tilt high-pass
         removes.
         """
-        cov = motion_covariance_from_registration(reg, self.spec)[0].double().cpu().numpy()
+        cov = motion_covariance_from_registration(reg, self.spec).cpu().numpy()[0].astype(np.float64)
         (c00, c01, c11) = state[1]
         dt = max(self._imu_dt, 1e-4)
         (o_p, o_r), (q_p, q_r) = self._noise

@@ -230,6 +230,12 @@ def _shift_bins(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     return torch.stack([rr, cc], dim=-1)
 
 
+@constant_cache(32)
+def _shift_axis(size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(1, S)`` the row (= column) offsets of :func:`shift_bins`, ``i - S // 2``."""
+    return (torch.arange(size, dtype=dtype, device=device) - size // 2)[None, :]
+
+
 def angle_bins(config: DpcConfig, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
     """``(A,)`` bin centres in radians, ``[-pi/2, pi/2)``: ``(i - A/2) pi / A``. Do not modify in place."""
     return _angle_bins(config.angle_bins, dtype, torch.device(device or "cpu"))
@@ -541,17 +547,20 @@ def _quadratic_peak_window(win: Tensor, with_height: bool = True) -> tuple[Tenso
     peak = win[:, 1, 1].abs().clamp_min(1e-12)
     L = torch.log(torch.clamp(win.reshape(B, 9) / peak[:, None], min=1e-6))
     # Elementwise, not a matmul: BLAS sums in a batch-size dependent order (online == batched).
-    a0, b, c, dd, ee, ff = (L[:, :, None] * _quadratic_fit_3x3(L.dtype, L.device)).sum(dim=1).unbind(-1)
-    # Vertex: [2d f; f 2e] [r; k] = -[b; c]; the Hessian must be negative definite.
-    h11 = (2.0 * dd).clamp_max(-1e-6)
-    h22 = (2.0 * ee).clamp_max(-1e-6)
-    det = h11 * h22 - ff**2
+    coef = (L[:, :, None] * _quadratic_fit_3x3(L.dtype, L.device)).sum(dim=1)
+    a0, b, c, dd, ee, ff = coef.unbind(-1)
+    # Vertex: [2d f; f 2e] [r; k] = -[b; c]; the Hessian must be negative definite. Row and
+    # column together as (B, 2) pairs: (b, c), (c, b), (h11, h22), (h22, h11).
+    bc = coef[:, 1:3]
+    h = (2.0 * coef[:, 3:5]).clamp_max(-1e-6)
+    det = h[:, 0] * h[:, 1] - ff**2
     ok = det > 1e-9
     det = torch.where(ok, det, torch.ones_like(det))
-    orow = torch.where(ok, (c * ff - b * h22) / det, -b / h11).clamp(-1.0, 1.0)
-    ocol = torch.where(ok, (b * ff - c * h11) / det, -c / h22).clamp(-1.0, 1.0)
+    offset = torch.where(ok[:, None], (bc.flip(-1) * ff[:, None] - bc * h.flip(-1)) / det[:, None],
+                         -bc / h).clamp(-1.0, 1.0)
     if not with_height:
-        return torch.stack([orow, ocol], dim=-1), None
+        return offset, None
+    orow, ocol = offset.unbind(-1)
     log_height = (a0 + b * orow + c * ocol + dd * (orow**2 - 2.0 / 3.0) + ee * (ocol**2 - 2.0 / 3.0)
                   + ff * orow * ocol + torch.log(peak))
     return torch.stack([orow, ocol], dim=-1), log_height
@@ -562,15 +571,16 @@ def _wrapped_spread(log_prob_a: Tensor, bins_a: Tensor, angle: Tensor) -> Tensor
     return (log_prob_a.exp() * diff**2).sum(dim=-1).sqrt()
 
 
-def _shift_cov(log_prob_t: Tensor, bins_t: Tensor, shift: Tensor) -> Tensor:
+def _shift_cov(log_prob_t: Tensor, shift: Tensor) -> Tensor:
     """Second moment ``(B, 2, 2)`` of the translation distribution about ``shift`` (cyclic).
 
     The grid is separable (row offset by row, column offset by column), so the moments are
     ``dr^T P dr``-type forms of the marginals: no ``(S, S)`` offset tensors."""
     S = log_prob_t.shape[-1]
     p = log_prob_t.exp()  # (B, S, S)
-    dr = torch.remainder(bins_t[None, :, 0, 0] - shift[:, 0, None] + S / 2, S) - S / 2  # (B, S)
-    dc = torch.remainder(bins_t[None, 0, :, 1] - shift[:, 1, None] + S / 2, S) - S / 2  # (B, S)
+    axis = _shift_axis(S, log_prob_t.dtype, log_prob_t.device)  # the rows' and the columns' bins
+    dr = torch.remainder(axis - shift[:, 0, None] + S / 2, S) - S / 2  # (B, S)
+    dc = torch.remainder(axis - shift[:, 1, None] + S / 2, S) - S / 2  # (B, S)
     rr = (p.sum(dim=2) * dr**2).sum(dim=1)
     cc = (p.sum(dim=1) * dc**2).sum(dim=1)
     rc = (dr[:, None, :] @ p @ dc[:, :, None])[:, 0, 0]
@@ -613,7 +623,7 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
         quality=tcorr.amax(dim=(-1, -2)).clamp(0.0, 1.0),
         rotation_quality=rcorr.amax(dim=-1).clamp(0.0, 1.0),
         angle_std=angle_std.to(dtype) if given and angle_std is not None else spread,
-        shift_cov=_shift_cov(tlog, tbins, shift),
+        shift_cov=_shift_cov(tlog, shift),
         rotation_estimate=estimate if given else None,
         rotation_estimate_std=spread if given else None,
     )
