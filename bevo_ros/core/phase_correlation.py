@@ -178,6 +178,14 @@ def _polar_sampler(size: int, angle_bins: int, radial_range: tuple[float, float]
 
 
 @constant_cache(32)
+def _polar_weights(size: int, angle_bins: int, radial_range: tuple[float, float], radial_samples: int,
+                   dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """:func:`_polar_sampler` with the weights in ``dtype``."""
+    idx, w = _polar_sampler(size, angle_bins, radial_range, radial_samples, device)
+    return idx, w.to(dtype)
+
+
+@constant_cache(32)
 def _rotation_band(angle_bins: int, sigma: float, lowcut: float, dtype: torch.dtype,
                    device: torch.device) -> tuple[Tensor, float]:
     """Weights ``(A // 2 + 1,)`` on the angular frequencies and the normaliser of ``irfft``.
@@ -308,11 +316,14 @@ def _polar_spectrum(spectrum: Tensor, config: DpcConfig) -> Tensor:
     """Compressed magnitude in polar coordinates, zero mean and unit RMS per radius. -> ``(B, R, A)``."""
     B, S, W = spectrum.shape  # S here is the padded size; rfft2 layout
     mag = _magnitude(spectrum).reshape(B, S * W)
-    mag = mag / (mag.mean(dim=1, keepdim=True) + 1e-12)  # brightness/contrast invariant
-    mag = torch.log1p(mag)
-    idx, w = _polar_sampler(S, config.angle_bins, config.radial_range, config.radial_samples, spectrum.device)
-    w = w.to(mag.dtype)
-    polar = (mag.index_select(1, idx).reshape(B, 4, -1) * w).sum(dim=1)
+    idx, w = _polar_weights(S, config.angle_bins, config.radial_range, config.radial_samples, mag.dtype,
+                            spectrum.device)
+    if mag.requires_grad and torch.is_grad_enabled():
+        mag = mag / (mag.mean(dim=1, keepdim=True) + 1e-12)  # brightness/contrast invariant
+        polar = (torch.log1p(mag).index_select(1, idx).reshape(B, 4, -1) * w).sum(dim=1)
+    else:  # the same operations in place (the engine: no gradient, fewer large temporaries)
+        mag = mag.div_(mag.mean(dim=1, keepdim=True) + 1e-12).log1p_()
+        polar = mag.index_select(1, idx).reshape(B, 4, -1).mul_(w).sum(dim=1)
     polar = polar.reshape(B, config.radial_samples, config.angle_bins)
     polar = polar - polar.mean(dim=-1, keepdim=True)
     return polar / (polar.pow(2).mean(dim=-1, keepdim=True).sqrt() + 1e-12)
