@@ -121,8 +121,9 @@ def bev_sampling_grid(
     gw = (by_row[:, :, :, None, :, None] + by_col[:, :, None, :, None, :]).reshape(B, 3, n * n * S, S)
     w = gw[:, 2]
     g = gw[:, :2] / w.clamp_min(_MIN_DEPTH)[:, None]  # finite everywhere, also behind the camera
-    out = (g.detach() - mid).abs_().sub_(half)  # <= 0 inside the 1-pixel margin (a test: no gradient)
-    valid = (torch.maximum(out[:, 0], out[:, 1]) <= 0) & (w > _MIN_DEPTH)
+    # Inside the 1-pixel margin: |g - mid| <= half on both axes (a test: no gradient).
+    inside = (g.detach() - mid).abs_() <= half
+    valid = inside[:, 0] & inside[:, 1] & (w > _MIN_DEPTH)
     return g.permute(0, 2, 3, 1), valid
 
 
