@@ -67,7 +67,11 @@ def vehicle_motion_from_registration(angle: Tensor, shift: Tensor, spec: BevSpec
         raise ValueError(f"need angle (B,) and shift (B, 2), got {tuple(angle.shape)} and {tuple(shift.shape)}")
     dyaw = -angle
     C = _centre(spec, shift)
-    d = C - _rotate(dyaw, C) + spec.metres_per_pixel * shift
+    dtype = torch.promote_types(angle.dtype, shift.dtype)  # as _rotate(dyaw, C) computes
+    _, cx, cy = _centre_of(spec, dtype, shift.device)
+    c, s = torch.cos(dyaw).to(dtype), torch.sin(dyaw).to(dtype)
+    rotated = torch.stack([c * cx - s * cy, s * cx + c * cy], dim=-1)  # _rotate(dyaw, C), its entries cached
+    d = C - rotated + spec.metres_per_pixel * shift
     return torch.cat([d, dyaw[:, None]], dim=-1)
 
 

@@ -36,6 +36,7 @@ MODES = ("fused", "paper")
 ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceleration stays the same
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
+_PLANAR = np.ix_([0, 1, 5], [0, 1, 5])  # (x, y, yaw) in a 6x6 ROS covariance
 
 
 class InvalidInputError(ValueError):
@@ -459,7 +460,7 @@ class BevoOdometry:
         (pitch, roll), (c00, c01, c11) = state
         att_cov = np.array([[c00, c01], [c01, c11]])  # [pitch, roll]
         pose_cov = np.zeros((6, 6))
-        pose_cov[np.ix_([0, 1, 5], [0, 1, 5])] = self._pose_cov.numpy()
+        pose_cov[_PLANAR] = self._pose_cov.numpy()
         pose_cov[2, 2] = Z_VARIANCE
         pose_cov[3, 3], pose_cov[4, 4] = att_cov[1, 1], att_cov[0, 0]
         pose_cov[3, 4] = pose_cov[4, 3] = att_cov[0, 1]
@@ -468,7 +469,7 @@ class BevoOdometry:
             # nav_msgs/Odometry's twist is in child_frame_id at t: rotate the step (base at t-1) by -dyaw.
             c, s_ = math.cos(motion[2]), math.sin(motion[2])
             rot = np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]])
-            twist_cov[np.ix_([0, 1, 5], [0, 1, 5])] = rot @ motion_cov @ rot.T / dt**2
+            twist_cov[_PLANAR] = rot @ motion_cov @ rot.T / dt**2
             lin = np.array([c * motion[0] + s_ * motion[1], -s_ * motion[0] + c * motion[1], 0.0]) / dt
             ang = np.array([0.0, 0.0, motion[2] / dt])
         else:
