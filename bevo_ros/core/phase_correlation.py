@@ -227,6 +227,13 @@ def _normalised_axis(size: int, dtype: torch.dtype, device: torch.device) -> Ten
 
 
 @constant_cache(32)
+def _normalised_axes(size: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """:func:`_normalised_axis` as a column axis ``(1, 1, S)`` and a row axis ``(1, S, 1)``."""
+    lin = _normalised_axis(size, dtype, device)
+    return lin[None, None, :], lin[None, :, None]
+
+
+@constant_cache(32)
 def _angle_bins(A: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     return (torch.arange(A, dtype=torch.float64) - A // 2).mul(math.pi / A).to(dtype=dtype, device=device)
 
@@ -398,10 +405,9 @@ def rotate_about_centre(image: Tensor, angle: Tensor) -> Tensor:
     # In grid_sample's normalised (x = col, y = row) coordinates the centre is 0 and both axes
     # share one scale (square image), so R(-angle) on (row, col) is [[c, -s], [s, c]] on (x, y):
     # an outer sum of two axes, built on planar (B, S, S) tensors (cheaper than affine_grid's matmul).
-    lin = _normalised_axis(H, image.dtype, image.device)  # (S,)
+    x, y = _normalised_axes(H, image.dtype, image.device)  # (1, 1, S), (1, S, 1)
     a = angle.to(image.dtype)[:, None, None]
     c, s = torch.cos(a), torch.sin(a)
-    x, y = lin[None, None, :], lin[None, :, None]
     grid = torch.stack([c * x - s * y, s * x + c * y], dim=-1)  # (B, S, S, 2)
     return F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
 
@@ -468,11 +474,13 @@ def translation_correlation(prev_spectrum: Tensor, curr_image: Tensor, config: D
                                    curr_image.device)
     mag = _magnitude(cross)
     gain = _whitening_gain(mag, config.whitening_floor, dims=(-2, -1)) * band
-    cross = cross * gain
     # Normalise so that a perfect match peaks at exactly 1 whatever the whitening (sum over the
     # full spectrum = half plane with the mirrored columns counted twice).
     norm = ((mag * gain * mult).sum(dim=(-2, -1)) / S**2)[:, None, None].clamp_min(1e-12)
-    corr = torch.fft.irfft2(cross, s=(S, S)) / norm  # index n <-> shift n (mod S)
+    if cross.requires_grad and torch.is_grad_enabled():
+        corr = torch.fft.irfft2(cross * gain, s=(S, S)) / norm  # index n <-> shift n (mod S)
+    else:  # the same operations in place (the engine)
+        corr = torch.fft.irfft2(cross.mul_(gain), s=(S, S)).div_(norm)
     return torch.fft.fftshift(corr, dim=(-2, -1))  # index i <-> shift i - S//2
 
 
