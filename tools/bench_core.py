@@ -44,6 +44,12 @@ STAGES = {
     "prepare": "DPC prepare (weight + FFTs)",
     "register_prepared": "DPC register (rotation + translation)",
 }
+# Called only on frames whose BEV mask changed (the engine reuses the weight and the envelope
+# otherwise): 0 ms on the others.
+OPTIONAL_STAGES = {
+    "mask_weight": "DPC mask weight (mask changed)",
+    "overlap_envelope": "DPC overlap envelope (mask changed)",
+}
 
 
 class StageTimer:
@@ -51,7 +57,7 @@ class StageTimer:
 
     def __init__(self, sync) -> None:
         self.last: dict[str, float] = {}
-        for name in STAGES:
+        for name in list(STAGES) + [n for n in OPTIONAL_STAGES if hasattr(engine_module, n)]:
             setattr(engine_module, name, self._wrap(name, getattr(engine_module, name), sync))
 
     def _wrap(self, name, fn, sync):
@@ -115,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     per_frame: list[float] = []
     imu_part: list[float] = []  # the frame's IMU messages
     stage_ms: dict[str, list[float]] = {name: [] for name in STAGES}
+    optional_ms: dict[str, list[float]] = {name: [] for name in OPTIONAL_STAGES}
     pass_medians: list[float] = []
     warmup = 5
     for _ in range(max(1, args.passes)):
@@ -131,12 +138,14 @@ def main(argv: list[str] | None = None) -> int:
             t_imu = time.perf_counter()
             odo.add_image(float(stamp), images[f])
             sync()
-            if f >= warmup and len(timer.last) == len(STAGES):
+            if f >= warmup and all(name in timer.last for name in STAGES):
                 this_pass.append((time.perf_counter() - t) * 1e3)
                 cpu_frame.append((time.thread_time() - c) * 1e3)
                 imu_part.append((t_imu - t) * 1e3)
                 for name in STAGES:
                     stage_ms[name].append(timer.last[name])
+                for name in OPTIONAL_STAGES:
+                    optional_ms[name].append(timer.last.get(name, 0.0))
         per_frame += this_pass
         pass_medians.append(statistics.median(this_pass))
         # ---- the OpenCV reference, same frames, right after (a busy minute hits both)
@@ -199,7 +208,13 @@ def main(argv: list[str] | None = None) -> int:
           f"   (one add_imu alone: {med(add_imu_ms) * 1e3:.1f} us)")
     for name, label in STAGES.items():
         print(f"    {label:38s}: {med(stage_ms[name]):6.2f} ms")
-    rest = [f - i - sum(stage_ms[n][k] for n in STAGES) for k, (f, i) in enumerate(zip(per_frame, imu_part))]
+    for name, label in OPTIONAL_STAGES.items():
+        called = [ms for ms in optional_ms[name] if ms > 0]
+        if called:
+            print(f"    {label:38s}: {statistics.mean(optional_ms[name]):6.2f} ms per frame on average"
+                  f"   ({len(called) / len(optional_ms[name]):.0%} of the frames, median {med(called):.2f} ms there)")
+    rest = [f - i - sum(stage_ms[n][k] for n in STAGES) - sum(optional_ms[n][k] for n in OPTIONAL_STAGES)
+            for k, (f, i) in enumerate(zip(per_frame, imu_part))]
     print(f"    {'rest (to tensor, motion, covariance, pose)':38s}: {med(rest):6.2f} ms")
     print(f"  one DUKF step: float path (engine) {med(scalar_ms) * 1e3:.1f} us, tensor path (training) {med(dukf_ms) * 1e3:.1f} us")
     ref_med = med(ref_per_frame)
