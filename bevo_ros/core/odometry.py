@@ -201,7 +201,7 @@ class BevoOdometry:
         self._history: deque[tuple[float, tuple[float, float], tuple]] = deque(maxlen=4000)
         self._pending: list[tuple[float, np.ndarray, Any]] = []  # (stamp, image, tag) waiting for IMU
         self._prev = None  # prepared BEV of the previous frame
-        self._weight_cache: MaskWeight | None = None  # the latest BEV mask's weight (_mask_weight)
+        self._weight_cache: tuple = (None, None)  # (dpc, MaskWeight) of the latest BEV mask (_mask_weight)
         self._envelope_cache = None  # ((prev, curr) weight spectra, their overlap envelope)
         self._prev_stamp: float | None = None
         self._speed = 0.0  # forward speed of the latest VO step, m/s
@@ -543,9 +543,11 @@ class BevoOdometry:
     def _mask_weight(self, mask: torch.Tensor, dtype: torch.dtype) -> MaskWeight:
         """The BEV mask's correlation weight, reused while the mask stays the same (the ground
         patch inside the image: most frames), as is the weights' overlap envelope."""
-        cached = self._weight_cache
-        if cached is None or cached.weight.dtype != dtype or not torch.equal(cached.mask, mask):
-            self._weight_cache = cached = mask_weight(mask, self.dpc, dtype)
+        dpc, cached = self._weight_cache
+        if (cached is None or dpc is not self.dpc or cached.weight.dtype != dtype
+                or not torch.equal(cached.mask, mask)):
+            cached = mask_weight(mask, self.dpc, dtype)
+            self._weight_cache = (self.dpc, cached)
         return cached
 
     def _envelope(self, curr) -> torch.Tensor:
