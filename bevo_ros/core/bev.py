@@ -18,12 +18,10 @@ first reduced by ``downsample`` (area average) to cut the number of samples need
 """
 from __future__ import annotations
 
-
 import torch
 import torch.nn.functional as F
 
 from .device import constant_cache
-
 from .geometry import BevSpec, CameraModel, camera_pose_on_road
 
 Tensor = torch.Tensor

@@ -541,8 +541,9 @@ class BevoOdometry:
         return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v)
 
     def _mask_weight(self, mask: torch.Tensor, dtype: torch.dtype) -> MaskWeight:
-        """The BEV mask's correlation weight, reused while the mask stays the same (the ground
-        patch inside the image: most frames), as is the weights' overlap envelope."""
+        """The BEV mask's correlation weight, reused while the mask (and ``self.dpc``) stays the
+        same, as is the weights' overlap envelope (:meth:`_envelope`): about half the frames of the
+        bench's bumpy drive keep the mask of the frame before."""
         dpc, cached = self._weight_cache
         if (cached is None or dpc is not self.dpc or cached.weight.dtype != dtype
                 or not torch.equal(cached.mask, mask)):

@@ -51,7 +51,6 @@ import torch
 import torch.nn.functional as F
 
 from .device import constant_cache
-
 from .dpc_config import DpcConfig
 
 Tensor = torch.Tensor
