@@ -100,6 +100,10 @@ class OdometrySettings:
     gate: float = 5.0
     # Fused mode: the DUKF starts at the mounting attitude with this standard deviation (rad).
     initial_attitude_std: float = 0.0524
+    # Fused mode: remove from each frame's forward motion the shift that the engine's own change of
+    # the BEV pitch between the two frames (road-tilt low-pass, suspension model) puts into it
+    # (core/motion.pitch_change_shift).
+    pitch_change_correction: bool = True
 
 
 @dataclass
@@ -449,6 +453,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         vehicle_noise=vehicle,
         suspension_gradients=learned.suspension_gradients,
         initial_attitude_std=config.odometry.initial_attitude_std,
+        pitch_change_correction=config.odometry.pitch_change_correction,
     )
     odometry.imu_limits = limits
     return odometry

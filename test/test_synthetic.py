@@ -367,7 +367,7 @@ def _rel_t(d: syn.SyntheticDrive) -> np.ndarray:
 
 
 def test_presets_listed_deterministic_and_checked():
-    assert set(syn.PRESETS) == {"curve", "braking", "bend_start", "stop_and_go", "bumpy"}
+    assert set(syn.PRESETS) == {"curve", "braking", "bend_start", "stop_and_go", "bumpy", "on_ramp", "urban"}
     assert all(isinstance(v, str) and len(v) > 20 for v in syn.PRESETS.values())
     a = syn.make_drive(seed=3, preset="curve", duration=3.0, render=False)
     b = syn.preset_drive("curve", seed=3, duration=3.0, render=False)
@@ -468,3 +468,28 @@ def test_preset_bumpy():
     assert np.all(sd > 1.5 * sr)
     assert np.all(vib > 1.5 * vib_ref)
     assert 6.5 < d.speed.min() and d.speed.max() < 10.5 and np.abs(d.gyro_true[:, 2]).max() < 0.12
+
+
+def test_preset_on_ramp():
+    """A highway on-ramp: 20 deg/s and 3.7 m/s^2 in a 30 m radius, 98 deg of turn, then speeding up."""
+    d = syn.make_drive(seed=6, preset="on_ramp", noise=False, render=False)
+    _, lat = _kinematic_accel(d)
+    turn = np.degrees(np.unwrap(d.poses_xy_yaw[:, 2])[-1] - d.poses_xy_yaw[0, 2])
+    k = (_rel_t(d) > 1.2) & (_rel_t(d) < 5.2)
+    print(f"\non-ramp: turn {turn:.1f} deg, yaw rate {d.gyro_true[k, 2].mean():.3f} rad/s, lateral {lat[k].mean():.2f} "
+          f"m/s^2, speed {d.speed[0]:.1f} -> {d.speed[-1]:.1f} m/s")
+    assert turn == pytest.approx(98.0, abs=2.0)
+    assert d.gyro_true[k, 2].mean() == pytest.approx(0.35, rel=0.02) and lat[k].mean() == pytest.approx(3.7, rel=0.03)
+    assert d.speed[0] == pytest.approx(10.5) and d.speed[-1] == pytest.approx(15.0)
+
+
+def test_preset_urban():
+    """Two 90 deg turns (right, then left), braking for both, the second from 0.1 m per frame."""
+    d = syn.make_drive(seed=7, preset="urban", noise=False, render=False)
+    yaw = np.degrees(np.unwrap(d.poses_xy_yaw[:, 2]) - d.poses_xy_yaw[0, 2])
+    step = np.linalg.norm(d.relative_motion[:, :2], axis=1)
+    t = d.frame_stamps - d.frame_stamps[0]
+    print(f"\nurban: yaw after the first turn {yaw[np.argmin(np.abs(t - 12.0))]:.1f} deg, at the end {yaw[-1]:.1f} deg, min step "
+          f"{step.min():.3f} m/frame, distance {step.sum():.0f} m")
+    assert yaw[np.argmin(np.abs(t - 12.0))] == pytest.approx(-90.0, abs=1.0) and yaw[-1] == pytest.approx(0.0, abs=1.0)
+    assert step.min() == pytest.approx(0.1, abs=0.002) and np.all(d.relative_motion[:, 0] > 0)

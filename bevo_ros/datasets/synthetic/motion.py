@@ -490,6 +490,15 @@ _PRESETS: dict[str, _Preset] = {
         20.0, _levels(8.0, [(4.0, 4.0, 10.0), (12.0, 4.0, 7.0), (17.0, 3.0, 8.0)]),
         _levels(0.0, [(2.0, 3.0, 0.06), (7.0, 3.0, -0.05), (13.0, 3.0, 0.04), (17.0, 3.0, 0.0)]),
         bumps_gain=2.5, vibration_gain=2.0, bump_rate=1.0),
+    "on_ramp": _Preset(
+        "highway on-ramp: 10.5 m/s into a 30 m radius bend at t = 0.5 s (0.35 rad/s = 20 deg/s, 3.7 m/s^2 "
+        "centripetal) for 98 deg of turn, out of it at t = 5.9 s while speeding up to 15 m/s by t = 9 s; 12 s",
+        12.0, _levels(10.5, [(6.0, 3.0, 15.0)]), _levels(0.0, [(0.5, 1.0, 0.35), (5.4, 1.0, 0.0)])),
+    "urban": _Preset(
+        "urban: 8 m/s, braking to 3 m/s for a 90 deg right turn (0.3 rad/s), on at 8 m/s, braking to "
+        "1 m/s (0.1 m per 10 Hz frame) and a 90 deg left turn while pulling away to 6 m/s; 26 s",
+        26.0, _levels(8.0, [(1.0, 3.0, 3.0), (9.5, 3.0, 8.0), (13.0, 3.0, 1.0), (17.0, 3.0, 6.0)]),
+        _levels(0.0, [(3.5, 1.0, -0.3), (8.736, 1.0, 0.0), (16.0, 1.0, 0.25), (22.283, 1.0, 0.0)])),
 }
 
 PRESETS: dict[str, str] = {name: p.description for name, p in _PRESETS.items()}
