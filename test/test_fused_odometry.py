@@ -168,6 +168,33 @@ def test_pitch_change_shifts_the_forward_motion(camera):
     assert abs(common - truth) > 0.05
 
 
+def test_pitch_change_correction_skips_a_dukf_restart(camera):
+    """Across an IMU gap the DUKF restarts from the mounting attitude: that jump of the BEV pitch is
+    no change the correction may take off (it would be metres); elsewhere it acts."""
+    d = preset_drive("curve", seed=3, duration=7.0, render="lazy", camera=camera)  # 100 Hz: settled after ~3 s
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+    t = d.imu_stamps - d.imu_stamps[0]
+    gap = (4.55, 5.35)
+    keep = (t < gap[0]) | (t > gap[1])  # a 0.8 s gap (> filter.max_imu_gap)
+    runs = {}
+    for on in (True, False):
+        config = BevoConfig()
+        config.odometry.pitch_change_correction = on
+        odo = build_odometry(config, FUSED, camera=camera)
+        steps = feed_engine(odo, d.imu_stamps[keep], d.gyro[keep], d.accel[keep], d.frame_stamps,
+                            lambda k: images[k], trailing=False)
+        assert odo.counters.imu_gaps == 1
+        runs[on] = {round(s.stamp, 3): s.pitch_shift for s in steps}
+    first_after = min(s for s in runs[True] if s > d.imu_stamps[0] + gap[1])
+    assert not any(runs[False].values())  # off: nothing taken off
+    diff = runs[True]
+    print(f"\nshift taken off per frame (cm): {[round(float(v) * 100, 2) for v in diff.values()]}; first frame after the gap at "
+          f"{first_after - d.imu_stamps[0]:.1f} s: {diff[first_after] * 100:.3f} cm")
+    assert diff[first_after] == 0.0
+    assert max(abs(v) for v in diff.values()) < 0.1  # never a jump's worth (1 deg would be 1.4 m)
+    assert sum(abs(v) > 1e-6 for v in diff.values()) >= 5  # and it does act (once the DUKF has settled)
+
+
 @pytest.mark.slow
 def test_pitch_change_correction_on_an_urban_drive(camera):
     """The 10 Hz urban preset (a KITTI-like 10 Hz IMU; braking into a 90 deg turn, down to 0.1 m

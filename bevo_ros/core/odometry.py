@@ -83,6 +83,7 @@ class OdometryStep:
     speed: float = float("nan")  # fused mode: the motion filter's forward speed, m/s
     filter_inputs: dict | None = None  # fused mode: VehicleFilter.step's arguments this frame (training replays them)
     tag: Any = None  # the caller's tag given to add_image with this image
+    pitch_shift: float = 0.0  # fused: forward shift (m) taken off the correlation by the pitch-change correction
 
 
 @dataclass(frozen=True)
@@ -219,8 +220,8 @@ class BevoOdometry:
         self._yaw_cum = 0.0  # fused: gyro yaw about the vertical integrated since the start, rad
         self._yaw_rate = None  # its latest rate (trapezoid)
         self._prev_yaw_cum = 0.0
-        self._imu_restarts = 0  # DUKF (re)starts: the attitude jumps there
-        self._prev_pitch = None  # fused, previous frame: (BEV pitch, DUKF pitch, DUKF restarts)
+        self._imu_restarts = 0  # DUKF (re)starts: the attitude jumps there (kept with each history entry)
+        self._prev_pitch = None  # fused, previous frame: (BEV pitch, DUKF pitch, DUKF start count)
         self._ext_speed = None  # (stamp, VehicleState) from add_speed
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
         self._gyro_prev = None  # fused: the previous IMU sample's rates
@@ -297,7 +298,7 @@ class BevoOdometry:
         self._last_imu = stamp
         pitch, roll = self._road_tilt.update(stamp, *self._state[0])
         road = (pitch + self._mounting[0], roll + self._mounting[1])
-        self._history.append((stamp, road, self._state, 0.0))
+        self._history.append((stamp, road, self._state, 0.0, 0))
         out += self._release(lambda s: s <= stamp)
         return out
 
@@ -380,7 +381,7 @@ class BevoOdometry:
         dyn_p, dyn_r = suspension_attitude(self._acc_fx or 0.0, speed * g[2], *self.suspension_gradients)
         rp, rr = self._road_tilt.update(stamp, pitch - dyn_p, roll - dyn_r)
         road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])
-        self._history.append((stamp, road, self._state, self._yaw_cum))
+        self._history.append((stamp, road, self._state, self._yaw_cum, self._imu_restarts))
 
     def add_image(self, stamp: float, image, tag: Any = None) -> list[OdometryStep]:
         """Queue or process one image ``(H, W)`` uint8 or float in [0, 1]; ``tag`` comes back as
@@ -441,19 +442,19 @@ class BevoOdometry:
         image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
         if image.dtype != torch.uint8:
             image = image.to(self.dtype)
-        road, state, yaw_cum = self._attitude_at(stamp)
+        road, state, yaw_cum, epoch = self._attitude_at(stamp)
         pitch_t, roll_t = (torch.tensor([v], dtype=self.dtype, device=self.device) for v in road)
         bev, mask = project_to_bev(image[None, None], self.camera, pitch_t, roll_t, self.spec)
         curr = prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
         first = self._prev is None
         dt = 0.0 if first else stamp - self._prev_stamp
-        measured, accepted, speed = None, (True, True), float("nan")
+        measured, accepted, speed, shift = None, (True, True), float("nan"), 0.0
         if first:
             motion = np.zeros(3)
             motion_cov = np.zeros((3, 3))
             quality = float("nan")
         elif self.mode == "fused":
-            shift = self._pitch_change_shift(road[0], state)
+            shift = self._pitch_change_shift(road[0], state, epoch)
             reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, yaw_cum, state, shift)
             quality = reg.quality.item()
         else:
@@ -466,7 +467,7 @@ class BevoOdometry:
         self._pose = compose_se2(self._pose, motion_t)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
         self._prev_yaw_cum = yaw_cum
-        self._prev_pitch = (road[0], state[0][0], self._imu_restarts)
+        self._prev_pitch = (road[0], state[0][0], epoch)
         if dt > 0:
             self._speed = float(motion[0] / dt)
         self.counters.frames_out += 1
@@ -512,9 +513,10 @@ class BevoOdometry:
             speed=speed,
             filter_inputs=None if first or self.mode != "fused" else self._last_filter_inputs,
             tag=tag,
+            pitch_shift=shift,
         )
 
-    def _pitch_change_shift(self, bev_pitch: float, state: tuple) -> float:
+    def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int) -> float:
         """Fused mode: the forward shift (m) this frame's correlation reads from the engine's own
         change of the BEV pitch since the previous frame.
 
@@ -529,7 +531,7 @@ class BevoOdometry:
         from a real pitch change needs the pitch gyro's bias, which the DUKF does not estimate.
         """
         prev = self._prev_pitch
-        if not self.pitch_change_correction or prev is None or prev[2] != self._imu_restarts:
+        if not self.pitch_change_correction or prev is None or prev[2] != epoch:
             return 0.0
         (o_p, _), (q_p, _) = self._noise
         if state[1][0] > SETTLED_VARIANCE_FACTOR * steady_state_variance(o_p, q_p, max(self._imu_dt, 1e-4)):
@@ -597,15 +599,16 @@ class BevoOdometry:
             self._envelope_cache = (key, overlap_envelope(*key))
         return self._envelope_cache[1]
 
-    def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple, float]:
-        """Road-relative attitude, DUKF state and integrated gyro yaw at ``stamp``: the last IMU
-        sample at or before it (the yaw interpolated linearly to the stamp between samples)."""
+    def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple, float, int]:
+        """Road-relative attitude, DUKF state, integrated gyro yaw and the DUKF's start count at
+        ``stamp``: the last IMU sample at or before it (the yaw interpolated linearly to the stamp
+        between samples)."""
         i = bisect.bisect_right(self._history, stamp, key=lambda h: h[0]) - 1
-        t0, pr_road, state, yaw = self._history[max(i, 0)]  # older than the whole history: its oldest entry
+        t0, pr_road, state, yaw, epoch = self._history[max(i, 0)]  # older than the whole history: its oldest entry
         if 0 <= i < len(self._history) - 1:
-            t1, _, _, yaw1 = self._history[i + 1]
+            t1, _, _, yaw1, _ = self._history[i + 1]
             yaw += (yaw1 - yaw) * (stamp - t0) / (t1 - t0)
-        return pr_road, state, yaw
+        return pr_road, state, yaw, epoch
 
     def _vehicle_motion(self, reg) -> np.ndarray:
         """The registration's (dx, dy, dyaw), float64 ``(3,)`` (the engine's batch of one)."""
