@@ -204,10 +204,10 @@ class BevoOdometry:
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
         self._mounting = self.mounting_attitude if self._road_tilt.enabled else (0.0, 0.0)
-        # (stamp, road-relative (pitch, roll), DUKF belief) per fused IMU sample: an image is
-        # projected with the attitude of the last IMU sample at or before its stamp, however late
-        # it arrives.
-        self._history: deque[tuple[float, tuple[float, float], tuple]] = deque(maxlen=4000)
+        # (stamp, road-relative (pitch, roll), DUKF belief, gyro yaw integral, DUKF start count) per
+        # IMU sample: an image is projected with the attitude of the last IMU sample at or before
+        # its stamp, however late it arrives.
+        self._history: deque[tuple[float, tuple[float, float], tuple, float, int]] = deque(maxlen=4000)
         self._pending: list[tuple[float, np.ndarray, Any]] = []  # (stamp, image, tag) waiting for IMU
         self._prev = None  # prepared BEV of the previous frame
         self._weight_cache: tuple = (None, None)  # (dpc, MaskWeight) of the latest BEV mask (_mask_weight)
@@ -525,8 +525,8 @@ class BevoOdometry:
         moves the whole current BEV by :func:`~bevo_ros.core.motion.pitch_change_shift` per radian
         (0.01 deg: 1.4 cm on KITTI), read as forward motion. Zero across a DUKF restart (the
         attitude jumps), while the DUKF first converges (the low-pass's running mean follows it)
-        and with the correction off. Measured: KITTI sample 6.90 -> 6.38 cm per frame; 10 Hz
-        presets 14.4 -> 13.1 %, drift 8.1 -> 7.2 %; 100 Hz presets 4.3 -> 4.1 %.
+        and with the correction off. Measured: KITTI sample 7.0 -> 6.5 cm per frame (`bevo
+        evaluate`); 10 Hz presets 14.4 -> 13.1 %, drift 8.1 -> 7.2 %; 100 Hz presets 4.3 -> 4.1 %.
         The DUKF's own accelerometer updates also move the BEV without motion, but telling them
         from a real pitch change needs the pitch gyro's bias, which the DUKF does not estimate.
         """
