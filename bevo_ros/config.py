@@ -104,6 +104,9 @@ class OdometrySettings:
     # the BEV pitch between the two frames (road-tilt low-pass, suspension model) puts into it
     # (core/motion.pitch_change_shift).
     pitch_change_correction: bool = True
+    # Fused mode: frames in the running mean frame period that replaces jittered stamp intervals in
+    # the motion filter (core/frame_clock.py); 0 takes the stamps as they are.
+    frame_clock_window: int = 20
 
 
 @dataclass
@@ -454,6 +457,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         suspension_gradients=learned.suspension_gradients,
         initial_attitude_std=config.odometry.initial_attitude_std,
         pitch_change_correction=config.odometry.pitch_change_correction,
+        frame_clock_window=config.odometry.frame_clock_window,
     )
     odometry.imu_limits = limits
     return odometry

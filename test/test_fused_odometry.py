@@ -195,6 +195,52 @@ def test_pitch_change_correction_skips_a_dukf_restart(camera):
     assert sum(abs(v) > 1e-6 for v in diff.values()) >= 5  # and it does act (once the DUKF has settled)
 
 
+def test_frame_clock_reads_jitter_as_jitter():
+    """Stamps of a 0.1036 s camera quantised to 10 ms (KITTI frames timed by the OXTS clock): the
+    clock gives the period back to < 2 ms, a dropped frame as two periods, a real rate change at
+    once; exact stamps stay exact; window 0 passes the stamps through."""
+    from bevo_ros.core.frame_clock import FrameClock
+
+    period = 0.1036
+    true = 1000.0 + period * np.arange(60)
+    stamps = np.round(true / 0.01) * 0.01
+    clock = FrameClock(20)
+    raw = np.diff(stamps)
+    out = np.array([clock.interval(float(dt)) for dt in raw])
+    print(f"\nstamped intervals {raw.min():.3f}..{raw.max():.3f} s; clock after 10 frames "
+          f"{out[10:].min():.4f}..{out[10:].max():.4f} s")
+    assert raw.max() - raw.min() > 0.009  # +-5 % of the period
+    assert np.abs(out[10:] - period).max() < 0.002
+    assert clock.interval(float(2 * period)) == pytest.approx(2 * period, abs=0.004)  # a dropped frame
+    assert clock.interval(0.05) == 0.05 and clock.period == 0.05  # the camera now runs at 20 Hz
+    exact = FrameClock(20)
+    assert all(exact.interval(0.1) == pytest.approx(0.1, abs=1e-12) for _ in range(30))
+    assert FrameClock(0).interval(0.093) == 0.093
+
+
+def test_frame_clock_keeps_stamp_jitter_out_of_the_motion(camera):
+    """KITTI-like synced data: a 10 Hz IMU and the frames share one clock whose stamps jitter by
+    +-10 ms (the OXTS clock), while images and IMU were taken on the true 10 Hz grid. With the
+    frame clock the per-frame error stays near that of exact stamps."""
+    d = preset_drive("curve", seed=4, duration=5.0, render="lazy", camera=camera, imu_rate=10.0)
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+    assert np.array_equal(d.imu_stamps, d.frame_stamps)  # synced, one record per frame
+    jittered = d.frame_stamps + 0.01 * np.random.default_rng(0).integers(-1, 2, len(d.frame_stamps))
+    rows = {}
+    for window, stamps in ((20, d.frame_stamps), (20, jittered), (0, jittered)):
+        config = BevoConfig()
+        config.odometry.frame_clock_window = window
+        odo = build_odometry(config, FUSED, camera=camera)
+        steps = feed_engine(odo, stamps, d.gyro, d.accel, stamps, lambda k: images[k], trailing=False)
+        est = np.array([s.motion for s in steps[1:]])
+        assert len(est) == len(d.relative_motion)
+        rows[window, stamps is jittered] = float(np.sqrt(np.mean((est[:, 0] - d.relative_motion[:, 0]) ** 2)))
+    print(f"\nforward RMSE: exact stamps {rows[20, False] * 100:.2f} cm; jittered stamps with the clock "
+          f"{rows[20, True] * 100:.2f} cm, without {rows[0, True] * 100:.2f} cm")
+    assert rows[20, True] < 0.6 * rows[0, True]
+    assert rows[20, True] < 1.5 * rows[20, False] + 0.01
+
+
 @pytest.mark.slow
 def test_pitch_change_correction_on_an_urban_drive(camera):
     """The 10 Hz urban preset (a KITTI-like 10 Hz IMU; braking into a 90 deg turn, down to 0.1 m

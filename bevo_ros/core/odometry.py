@@ -21,6 +21,7 @@ import torch
 
 from .bev import project_to_bev
 from .dukf import DUKF, steady_state_variance
+from .frame_clock import FrameClock
 from .geometry import BevSpec, CameraModel
 from .motion import (motion_covariance_from_registration, pitch_change_shift, pitch_scale_sensitivity, roll_yaw_sensitivity,
                      vehicle_motion_from_registration)
@@ -144,6 +145,9 @@ class BevoOdometry:
         pitch_change_correction: fused mode: each frame's forward motion loses the shift that the
             engine's own change of the BEV pitch between its two frames (road-tilt low-pass,
             suspension model) puts into it (:meth:`_pitch_change_shift`).
+        frame_clock_window: fused mode: the motion filter's frame interval is the mean period over
+            this many frames times the whole periods a stamped interval spans, so stamp jitter
+            is no speed change (:class:`~bevo_ros.core.frame_clock.FrameClock`); 0: as stamped.
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
@@ -165,6 +169,7 @@ class BevoOdometry:
         suspension_gradients: tuple[float, float] = (0.0, 0.0),
         initial_attitude_std: float = math.radians(3.0),
         pitch_change_correction: bool = True,
+        frame_clock_window: int = 20,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -173,6 +178,7 @@ class BevoOdometry:
         self.suspension_gradients = (float(suspension_gradients[0]), float(suspension_gradients[1]))
         self.initial_attitude_std = float(initial_attitude_std)
         self.pitch_change_correction = bool(pitch_change_correction)
+        self._frame_clock = FrameClock(frame_clock_window)
         self.max_speed_age = 0.5  # s: an external speed older than this is not used
         self.device = torch.device(device)
         self.dtype = torch.float32
@@ -222,6 +228,7 @@ class BevoOdometry:
         self._prev_yaw_cum = 0.0
         self._imu_restarts = 0  # DUKF (re)starts: the attitude jumps there (kept with each history entry)
         self._prev_pitch = None  # fused, previous frame: (BEV pitch, DUKF pitch, DUKF start count)
+        self._frame_clock.reset()
         self._ext_speed = None  # (stamp, VehicleState) from add_speed
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
         self._gyro_prev = None  # fused: the previous IMU sample's rates
@@ -448,6 +455,8 @@ class BevoOdometry:
         curr = prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
         first = self._prev is None
         dt = 0.0 if first else stamp - self._prev_stamp
+        if self.mode == "fused" and not first:
+            dt = self._frame_clock.interval(dt)  # stamp jitter is no speed change
         measured, accepted, speed, shift = None, (True, True), float("nan"), 0.0
         if first:
             motion = np.zeros(3)
