@@ -241,6 +241,25 @@ def test_frame_clock_keeps_stamp_jitter_out_of_the_motion(camera):
     assert rows[20, True] < 1.5 * rows[20, False] + 0.01
 
 
+def test_attitude_is_interpolated_to_the_frame_stamp(camera):
+    """A 10 Hz IMU whose stamps jitter by +-10 ms against exact frame stamps (KITTI: OXTS stamps
+    beside times.txt): the last IMU sample before a frame is often the previous frame's. With the
+    attitude interpolated to the frame stamp the error stays near that of exact stamps (measured
+    16.1 cm exact, 15.9 jittered; 20.5 cm when the previous sample's attitude was used)."""
+    d = preset_drive("curve", seed=4, duration=8.0, render="lazy", camera=camera, imu_rate=10.0)
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+    jittered = d.imu_stamps + 0.01 * np.random.default_rng(0).integers(-1, 2, len(d.imu_stamps))
+    rmse = {}
+    for label, stamps in (("exact", d.imu_stamps), ("jittered", jittered)):
+        odo = engine(camera, "fused")
+        steps = feed_engine(odo, stamps, d.gyro, d.accel, d.frame_stamps, lambda k: images[k], trailing=True)
+        est = np.array([s.motion for s in steps[1:]])
+        assert len(est) == len(d.relative_motion)
+        rmse[label] = float(np.sqrt(np.mean((est[:, 0] - d.relative_motion[:, 0]) ** 2)))
+    print(f"\nforward RMSE: IMU stamps exact {rmse['exact'] * 100:.2f} cm, jittered {rmse['jittered'] * 100:.2f} cm")
+    assert rmse["jittered"] < 1.1 * rmse["exact"]
+
+
 @pytest.mark.slow
 def test_pitch_change_correction_on_an_urban_drive(camera):
     """The 10 Hz urban preset (a KITTI-like 10 Hz IMU; braking into a 90 deg turn, down to 0.1 m
