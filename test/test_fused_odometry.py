@@ -226,7 +226,7 @@ def test_frame_clock_keeps_stamp_jitter_out_of_the_motion(camera):
     images = [d.image(k) for k in range(len(d.frame_stamps))]
     assert np.array_equal(d.imu_stamps, d.frame_stamps)  # synced, one record per frame
     jittered = d.frame_stamps + 0.01 * np.random.default_rng(0).integers(-1, 2, len(d.frame_stamps))
-    rows = {}
+    rows, yaws = {}, {}
     for window, stamps in ((20, d.frame_stamps), (20, jittered), (0, jittered)):
         config = BevoConfig()
         config.odometry.frame_clock_window = window
@@ -235,10 +235,14 @@ def test_frame_clock_keeps_stamp_jitter_out_of_the_motion(camera):
         est = np.array([s.motion for s in steps[1:]])
         assert len(est) == len(d.relative_motion)
         rows[window, stamps is jittered] = float(np.sqrt(np.mean((est[:, 0] - d.relative_motion[:, 0]) ** 2)))
+        yaws[window, stamps is jittered] = float(np.degrees(np.sqrt(np.mean((est[:, 2] - d.relative_motion[:, 2]) ** 2))))
     print(f"\nforward RMSE: exact stamps {rows[20, False] * 100:.2f} cm; jittered stamps with the clock "
-          f"{rows[20, True] * 100:.2f} cm, without {rows[0, True] * 100:.2f} cm")
+          f"{rows[20, True] * 100:.2f} cm, without {rows[0, True] * 100:.2f} cm; yaw RMSE {yaws[20, False]:.3f} / "
+          f"{yaws[20, True]:.3f} / {yaws[0, True]:.3f} deg")
     assert rows[20, True] < 0.6 * rows[0, True]
     assert rows[20, True] < 1.5 * rows[20, False] + 0.01
+    # the gyro's yaw over the frame's interval, not the stamped one
+    assert yaws[20, True] < 1.3 * yaws[20, False] and yaws[20, True] < 0.6 * yaws[0, True]
 
 
 def test_attitude_is_interpolated_to_the_frame_stamp(camera):

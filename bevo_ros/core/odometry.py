@@ -455,6 +455,7 @@ class BevoOdometry:
         curr = prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
         first = self._prev is None
         dt = 0.0 if first else stamp - self._prev_stamp
+        stamped_dt = dt
         if self.mode == "fused" and not first:
             dt = self._frame_clock.interval(dt)  # stamp jitter is no speed change
         measured, accepted, speed, shift = None, (True, True), float("nan"), 0.0
@@ -464,7 +465,11 @@ class BevoOdometry:
             quality = float("nan")
         elif self.mode == "fused":
             shift = self._pitch_change_shift(road[0], state, epoch)
-            reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, yaw_cum, state, shift)
+            # The gyro's yaw was integrated over the stamped interval: over the frame's, it is that
+            # much more or less (frames and a 10 Hz IMU sharing jittered stamps: 10 Hz on-ramp
+            # preset with +-10 ms stamps, yaw 0.131 -> 0.027 deg per frame, as with exact stamps).
+            frame_yaw = self._prev_yaw_cum + (yaw_cum - self._prev_yaw_cum) * dt / stamped_dt
+            reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, frame_yaw, state, shift)
             quality = reg.quality.item()
         else:
             reg = register_prepared(self._prev, curr, self.dpc, envelope=self._envelope(curr))
