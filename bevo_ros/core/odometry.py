@@ -547,8 +547,7 @@ class BevoOdometry:
         prev = self._prev_pitch
         if not self.pitch_change_correction or prev is None or prev[2] != epoch:
             return 0.0
-        (o_p, _), (q_p, _) = self._noise
-        if state[1][0] > SETTLED_VARIANCE_FACTOR * steady_state_variance(o_p, q_p, max(self._imu_dt, 1e-4)):
+        if state[1][0] > SETTLED_VARIANCE_FACTOR * self._steady_state_variances()[0]:
             return 0.0
         return self._shift_per_pitch_change * ((bev_pitch - prev[0]) - (state[0][0] - prev[1]))
 
@@ -637,6 +636,12 @@ class BevoOdometry:
         """The registration's (dx, dy, dyaw), float64 ``(3,)`` (the engine's batch of one)."""
         return vehicle_motion_from_registration(reg.angle, reg.shift, self.spec).cpu().numpy()[0].astype(np.float64)
 
+    def _steady_state_variances(self) -> tuple[float, float]:
+        """The DUKF's (pitch, roll) steady-state variances at the latest IMU period."""
+        dt = max(self._imu_dt, 1e-4)
+        (o_p, o_r), (q_p, q_r) = self._noise
+        return steady_state_variance(o_p, q_p, dt), steady_state_variance(o_r, q_r, dt)
+
     def _motion_covariance(self, reg, motion: np.ndarray, state: tuple) -> np.ndarray:
         """(dx, dy, dyaw) covariance: the correlation distributions' spread (first order) plus what
         the attitude uncertainty does to the BEV, the dominant error on a car, ``G P G^T`` with
@@ -650,10 +655,9 @@ class BevoOdometry:
         """
         cov = motion_covariance_from_registration(reg, self.spec).cpu().numpy()[0].astype(np.float64)
         (c00, c01, c11) = state[1]
-        dt = max(self._imu_dt, 1e-4)
-        (o_p, o_r), (q_p, q_r) = self._noise
-        s_p = math.sqrt(min(1.0, steady_state_variance(o_p, q_p, dt) / c00))
-        s_r = math.sqrt(min(1.0, steady_state_variance(o_r, q_r, dt) / c11))
+        ss_p, ss_r = self._steady_state_variances()
+        s_p = math.sqrt(min(1.0, ss_p / c00))
+        s_r = math.sqrt(min(1.0, ss_r / c11))
         att = np.array([[c00 * s_p * s_p, c01 * s_p * s_r], [c01 * s_p * s_r, c11 * s_r * s_r]])
         dx, k_r = motion[0], self._yaw_per_roll
         G = dx * np.array([[-self._scale_per_pitch, 0.0], [0.0, self.spec.centre[0] * k_r], [0.0, -k_r]])
