@@ -69,7 +69,7 @@ class FilterSettings:
     # "euler": exact Euler-angle kinematics (default); "additive": the paper's rates-added model.
     motion_model: str = "euler"
     # Low-pass time constant (s) separating road camber/slope from vehicle attitude; 0 disables.
-    road_tilt_time_constant: float = 2.0
+    road_tilt_time_constant: float = 1.0
     # Longest IMU gap (s) the filter predicts across; longer gaps re-initialise from the accelerometer.
     max_imu_gap: float = 0.5
     # Static attitude of the base frame relative to the road when the vehicle rests on a level road

@@ -163,7 +163,7 @@ class BevoOdometry:
         spec: BevSpec,
         dukf: DUKF,
         dpc: DpcConfig | None = None,
-        road_tilt_time_constant: float = 2.0,
+        road_tilt_time_constant: float = 1.0,
         mounting_attitude: tuple[float, float] = (0.0, 0.0),
         max_imu_gap: float = 0.5,
         turn_compensation: bool = False,
@@ -259,6 +259,15 @@ class BevoOdometry:
         return None if self._state is None else np.array(self._state[0])
 
     @property
+    def road_pitch_roll(self) -> np.ndarray | None:
+        """The latest IMU sample's road-relative (pitch, roll) the BEV would use, radians, less the
+        mounting attitude (the rig's static tilt on the road)."""
+        if not self._history:
+            return None
+        road = self._history[-1][1]
+        return np.array([road[0] - self._mounting[0], road[1] - self._mounting[1]])
+
+    @property
     def pending_images(self) -> int:
         return len(self._pending)
 
@@ -340,6 +349,14 @@ class BevoOdometry:
         vs = self._vstate
         elapsed = 0.0 if self._prev_stamp is None else max(stamp - self._prev_stamp, 0.0)
         speed, speed_var = vs.speed_at(elapsed)
+        # The forward acceleration from the accelerometer's forward reading at the predicted pitch,
+        # low-passed over ACCEL_CORRELATION_TIME: the suspension model's input (below) whatever the
+        # speed source, and the size of the uncompensated dv/dt with the visual speed alone.
+        tc = ACCEL_CORRELATION_TIME
+        if self._state is not None:
+            forward = a[0] + GRAVITY * math.sin(self._state[0][0])
+            alpha = min(1.0, max(self._imu_dt, 1e-4) / tc)
+            self._acc_fx = forward if self._acc_fx is None else self._acc_fx + alpha * (forward - self._acc_fx)
         ext = self._ext_speed
         if ext is not None and 0.0 <= stamp - ext[0] <= self.max_speed_age:
             # A speed that does not come from the images (wheel odometry): v and dv/dt both removed.
@@ -356,11 +373,6 @@ class BevoOdometry:
             # a wrong mean only widens the variance), counted once per sample of that time, as the
             # error is the same for every sample while the acceleration lasts (10 Hz presets:
             # 18.5 -> 13.6 % per frame against the accelerometer's norm as the cue).
-            tc = ACCEL_CORRELATION_TIME
-            if self._state is not None:
-                forward = a[0] + GRAVITY * math.sin(self._state[0][0])
-                alpha = min(1.0, max(self._imu_dt, 1e-4) / tc)
-                self._acc_fx = forward if self._acc_fx is None else self._acc_fx + alpha * (forward - self._acc_fx)
             per_second = max(1.0, tc / max(self._imu_dt, 1e-4))
             a_var = ((self._acc_fx or 0.0) ** 2 + vs.a * vs.a) * per_second
             f, extra = compensate_floats(a, g, speed, 0.0, speed_var, a_var)
