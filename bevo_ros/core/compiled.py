@@ -1,20 +1,23 @@
 """The engine's vision kernels, optionally through ``torch.compile`` (inference only).
 
-:class:`BevoOdometry` calls the BEV projection, the mask weight and the registration through one
-:class:`EngineKernels`. With ``compile="off"`` (the default) they are the plain functions, so the
-engine's numbers are the pinned ones. With ``"compiled"`` (or ``"auto"``: compiled when a C++
-compiler is found) the three are compiled by TorchInductor on their first call (seconds), which fuses the
-~250 small tensor operations of these stages into a few loops. The FFT preparation stays eager:
-inductor's FFT and complex-magnitude path measured slower than eager on the CPU.
+:class:`~bevo_ros.core.odometry.BevoOdometry` calls the BEV projection, the mask weight, the
+registration and the registration's motion and covariance through one :class:`EngineKernels`.
+With ``mode="eager"`` (the default) they are the plain functions, so the engine's numbers are the
+pinned ones. With ``"compiled"`` (or ``"auto"``: compiled when a C++ compiler is found) each is
+compiled by TorchInductor on its second call (seconds, once per process; inductor's on-disk cache
+makes later starts faster), which fuses their ~250 small tensor operations per frame into a few
+loops. The FFT preparation stays eager: inductor's FFT and complex-magnitude path measured slower
+than eager on the CPU.
 
-Compiled results equal the eager ones to float32 rounding (~1e-5 on the BEV, test_compiled.py),
-not bit for bit: the fused motion filter's gates can then decide a borderline frame differently,
-so a long compiled run drifts apart from an eager one by what such a decision moves.
+Compiled results equal the eager ones to float32 rounding (~1e-6 on the BEV and the correlation;
+the whitening makes a weak frequency's rounding count, test_compiled.py), not bit for bit, so the
+fused motion filter's gates can decide a borderline frame differently: a long compiled run drifts
+apart from an eager one by what such a decision moves (10 s synthetic drive: 0.1 m of 72 m).
 
-Never a crash: a compilation or compiled-call failure of the compiler's own (no compiler, an
-unsupported operation) logs one warning and that kernel runs eagerly from then on; errors of the
-functions themselves (e.g. ``InvalidBevError``) propagate as they do eagerly. Gradients are not
-supported through compiled kernels: training calls the functions directly, never these.
+Never a crash: a failure of the compiler's own (no compiler, an unsupported operation) logs one
+warning and that kernel runs eagerly from then on; errors of the functions themselves (e.g.
+``InvalidBevError``) propagate as they do eagerly. No gradients through compiled kernels: training
+calls the functions directly, never these.
 """
 from __future__ import annotations
 
@@ -25,10 +28,12 @@ from typing import Callable
 import torch
 
 from .bev import project_to_bev
+from .motion import motion_covariance_from_registration, vehicle_motion_from_registration
 from .phase_correlation import mask_weight, overlap_envelope, prepare, register_prepared
 
 KERNEL_MODES = ("eager", "compiled", "auto")
-KERNELS = ("project_to_bev", "mask_weight", "register_prepared")  # compiled with "compiled"
+KERNELS = ("project_to_bev", "mask_weight", "register_prepared", "vehicle_motion_from_registration",
+           "motion_covariance_from_registration")  # compiled with "compiled"
 EAGER_KERNELS = ("prepare", "overlap_envelope")  # always eager (measured slower compiled)
 
 
@@ -95,9 +100,11 @@ class EngineKernels:
         self.compiled = mode == "compiled" or (mode == "auto" and compiler_available())
         self.prepare = prepare
         self.overlap_envelope = overlap_envelope
-        for name, fn in (("project_to_bev", project_to_bev), ("mask_weight", mask_weight),
-                         ("register_prepared", register_prepared)):
-            setattr(self, name, _CompiledKernel(fn, log) if self.compiled else fn)
+        functions = dict(project_to_bev=project_to_bev, mask_weight=mask_weight, register_prepared=register_prepared,
+                         vehicle_motion_from_registration=vehicle_motion_from_registration,
+                         motion_covariance_from_registration=motion_covariance_from_registration)
+        for name in KERNELS:
+            setattr(self, name, _CompiledKernel(functions[name], log) if self.compiled else functions[name])
 
     @property
     def fallbacks(self) -> dict[str, str]:

@@ -23,8 +23,7 @@ from .compiled import EngineKernels
 from .dukf import DUKF, steady_state_variance
 from .frame_clock import FrameClock
 from .geometry import BevSpec, CameraModel
-from .motion import (motion_covariance_from_registration, pitch_change_shift, pitch_scale_sensitivity, roll_yaw_sensitivity,
-                     vehicle_motion_from_registration)
+from .motion import pitch_change_shift, pitch_scale_sensitivity, roll_yaw_sensitivity
 from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
 from .pose import compose_se2_floats, propagate_covariance_se2_floats
 from .road_tilt import RoadTiltFilter
@@ -637,7 +636,7 @@ class BevoOdometry:
 
     def _vehicle_motion(self, reg) -> np.ndarray:
         """The registration's (dx, dy, dyaw), float64 ``(3,)`` (the engine's batch of one)."""
-        return vehicle_motion_from_registration(reg.angle, reg.shift, self.spec).cpu().numpy()[0].astype(np.float64)
+        return self.kernels.vehicle_motion_from_registration(reg.angle, reg.shift, self.spec).cpu().numpy()[0].astype(np.float64)
 
     def _steady_state_variances(self) -> tuple[float, float]:
         """The DUKF's (pitch, roll) steady-state variances at the latest IMU period."""
@@ -656,7 +655,7 @@ class BevoOdometry:
         unsure of the absolute attitude, but that error is a constant the road-tilt high-pass
         removes.
         """
-        cov = motion_covariance_from_registration(reg, self.spec).cpu().numpy()[0].astype(np.float64)
+        cov = self.kernels.motion_covariance_from_registration(reg, self.spec).cpu().numpy()[0].astype(np.float64)
         (c00, c01, c11) = state[1]
         ss_p, ss_r = self._steady_state_variances()
         s_p = math.sqrt(min(1.0, ss_p / c00))
