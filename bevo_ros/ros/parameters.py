@@ -51,6 +51,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "image_transport": ("raw", "compressed"),
     "filter.motion_model": ("euler", "additive"),
     "odometry.mode": ("fused", "paper"),  # bevo_ros.core.odometry.MODES
+    "kernels": ("eager", "compiled", "auto"),  # bevo_ros.core.compiled.KERNEL_MODES
 }
 
 
