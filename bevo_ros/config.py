@@ -69,7 +69,7 @@ class FilterSettings:
     # "euler": exact Euler-angle kinematics (default); "additive": the paper's rates-added model.
     motion_model: str = "euler"
     # Low-pass time constant (s) separating road camber/slope from vehicle attitude; 0 disables.
-    road_tilt_time_constant: float = 2.0
+    road_tilt_time_constant: float = 1.0
     # Longest IMU gap (s) the filter predicts across; longer gaps re-initialise from the accelerometer.
     max_imu_gap: float = 0.5
     # Static attitude of the base frame relative to the road when the vehicle rests on a level road
@@ -86,6 +86,11 @@ class FilterSettings:
     # with the reason. Specific-force norm (m/s^2, 8 g) and any gyro axis (rad/s, ~2000 deg/s).
     max_acceleration: float = 78.45
     max_angular_rate: float = 35.0
+    # Fused mode: what a gyro sample is. "interval_mean": the mean rate over the interval since the
+    # previous sample (KITTI's OXTS: its pitch change over an interval is the end sample times the
+    # interval to 0.02 deg, the trapezoid misses by 0.05-0.07 deg; IMUs reporting delta angles).
+    # "instantaneous": the rate at the stamp (integrated by the quadratic rule). core/rate_integration.
+    gyro_sampling: str = "interval_mean"
 
 
 @dataclass
@@ -445,6 +450,11 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
 
     if config.odometry.mode not in MODES:
         raise ConfigError(f"odometry.mode must be one of {', '.join(MODES)}, got {config.odometry.mode!r}")
+    from bevo_ros.core.rate_integration import GYRO_SAMPLING
+
+    if config.filter.gyro_sampling not in GYRO_SAMPLING:
+        raise ConfigError(f"filter.gyro_sampling must be one of {', '.join(GYRO_SAMPLING)}, "
+                          f"got {config.filter.gyro_sampling!r}")
     dukf = DUKF(process_var=learned.process_noise_density, measurement_var=learned.measurement_noise_variance,
                 motion_model=config.filter.motion_model).double()
     vehicle = VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate)
@@ -466,6 +476,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         initial_attitude_std=config.odometry.initial_attitude_std,
         pitch_change_correction=config.odometry.pitch_change_correction,
         frame_clock_window=config.odometry.frame_clock_window,
+        gyro_sampling=config.filter.gyro_sampling,
         kernels=config.kernels,
     )
     odometry.imu_limits = limits

@@ -93,29 +93,51 @@ def test_deterministic_by_seed():
     assert torch.equal(t1, t2) and (t1 - t3).abs().mean() > 0.02
 
 
+def _integration_error(w: np.ndarray, rot: np.ndarray, dt: np.ndarray, rule: str) -> float:
+    """Largest attitude error (rad) integrating body rates ``w`` from ``rot[0]``: "end" takes each
+    sample as its interval's rate, "trapezoid" is second order (with the commutator)."""
+    r, err = rot[0].copy(), 0.0
+    for k in range(len(w) - 1):
+        if rule == "end":
+            v = w[k + 1] * dt[k]
+        else:
+            v = 0.5 * (w[k] + w[k + 1]) * dt[k] + dt[k] ** 2 / 12 * np.cross(w[k], w[k + 1])
+        r = r @ _so3_exp(v)
+        err = max(err, _rot_angle(r, rot[k + 1]))
+    return err
+
+
 def test_gyro_integrates_to_attitude(any_drive):
-    """Noise-free gyro = body rate of R_grav_base: integrating it reproduces the attitude."""
+    """Noise-free gyro = the mean body rate of R_grav_base over each sample interval (what a
+    delta-angle IMU reports, the default ``gyro_sampling``): composing the samples reproduces the
+    attitude to rounding."""
     drive = any_drive
     w, rot, dt = drive.gyro_true, drive.imu_rotation_gravity, np.diff(drive.imu_stamps)
-    r = rot[0].copy()
-    err = 0.0
-    for k in range(len(w) - 1):
-        # Second-order (trapezoid + commutator) integration of the sampled rate.
-        r = r @ _so3_exp(0.5 * (w[k] + w[k + 1]) * dt[k] + dt[k] ** 2 / 12 * np.cross(w[k], w[k + 1]))
-        err = max(err, _rot_angle(r, rot[k + 1]))
+    err = _integration_error(w, rot, dt, "end")
     # A rate expressed in the wrong frame (world instead of body) must not pass.
-    wrong = np.einsum("nij,nj->ni", rot, w)
-    r_w = rot[0].copy()
-    err_w = 0.0
-    for k in range(len(w) - 1):
-        r_w = r_w @ _so3_exp(0.5 * (wrong[k] + wrong[k + 1]) * dt[k])
-        err_w = max(err_w, _rot_angle(r_w, rot[k + 1]))
+    err_w = _integration_error(np.einsum("nij,nj->ni", rot, w), rot, dt, "end")
     print(f"\ngyro integration over {drive.imu_stamps[-1] - drive.imu_stamps[0]:.0f} s: max attitude error {err:.2e} rad (world-frame rate: {err_w:.2e} rad)")
-    assert err < 3e-4
-    assert err_w > 10 * err
+    assert err < 1e-6  # rounding (arccos near 1); the trapezoid on these rates: 2e-3 to 7e-3 rad
+    assert err_w > 1e-2
     # The stored angles are the Euler angles of the stored rotation.
     r_, p_, _ = syn_motion._rpy(rot)
     assert np.allclose(np.stack([p_, r_], 1), drive.imu_pitch_roll_gravity, atol=1e-12)
+
+
+@pytest.mark.parametrize("preset", ["bumpy", None])
+def test_instantaneous_gyro_is_the_rate_at_the_stamp(preset):
+    """``gyro_sampling="instantaneous"``: the body rate at each stamp, which a second-order rule
+    integrates to the attitude (and which the interval-mean rule gets wrong on suspension motion)."""
+    drive = syn.make_drive(seed=0, preset=preset, duration=10.0, noise=False, render=False, gyro_sampling="instantaneous")
+    w, rot, dt = drive.gyro_true, drive.imu_rotation_gravity, np.diff(drive.imu_stamps)
+    mean = syn.make_drive(seed=0, preset=preset, duration=10.0, noise=False, render=False).gyro_true
+    err = _integration_error(w, rot, dt, "trapezoid")
+    print(f"\ninstantaneous rates, trapezoid: max attitude error {err:.2e} rad; rates differ from the interval means by "
+          f"up to {np.abs(w - mean).max():.2e} rad/s")
+    assert err < 3e-4
+    assert np.abs(w - mean).max() > 1e-4  # the two samplings are different signals
+    with pytest.raises(ValueError, match="gyro_sampling"):
+        syn.make_drive(seed=0, duration=1.0, render=False, gyro_sampling="averaged")
 
 
 def test_accel_is_specific_force(any_drive):

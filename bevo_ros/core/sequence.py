@@ -154,7 +154,7 @@ def run_sequence(
     accel: Tensor,
     frame_stamps: Tensor,
     images: Tensor,
-    road_tilt_time_constant: float = 2.0,
+    road_tilt_time_constant: float = 1.0,
     source: str = "dukf",
     given_pitch_roll_road: Tensor | None = None,
     mounting_attitude: tuple[float, float] = (0.0, 0.0),

@@ -117,6 +117,8 @@ DESCRIPTIONS = {
     "bev.forward_offset": "distance from the base origin to the BEV near edge (m)",
     "filter.motion_model": "'euler' (exact Euler-angle kinematics) or 'additive' (the paper's)",
     "filter.road_tilt_time_constant": "low-pass time constant (s) separating road tilt from vehicle attitude; 0 disables",
+    "filter.gyro_sampling": "fused mode: 'interval_mean' (each gyro sample is the mean rate since the previous one: "
+                            "KITTI's OXTS, delta-angle IMUs) or 'instantaneous' (the rate at its stamp)",
     "filter.turn_compensation": "subtract speed x yaw rate (centripetal) from the accelerometer before the DUKF update",
     "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
     "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from bevo_ros.core.geometry import CameraModel
+from bevo_ros.core.rate_integration import GYRO_SAMPLING
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
 from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_motion, _rpy, _rx, _ry, _rz,
@@ -169,6 +170,7 @@ def make_drive(
     render_options: RenderOptions | None = None,
     ground_seed: int | None = None,
     preset: str | None = None,
+    gyro_sampling: str = "interval_mean",
 ) -> SyntheticDrive:
     """Simulate a drive: trajectory, IMU at ``imu_rate`` and camera frames at ``frame_rate``.
 
@@ -192,6 +194,10 @@ def make_drive(
             ``speed_variation``, ``curvature``, ``max_yaw_rate``, ``max_lateral_accel`` are then unused);
             suspension, bumps, road tilt, start pose and noise still follow ``seed`` and the other
             arguments. None = the seeded random drive.
+        gyro_sampling: what each gyro sample is: ``"interval_mean"`` (default) the mean rate over
+            the interval since the previous sample, as a delta-angle IMU reports it and as the
+            KITTI OXTS rates behave (see ``filter.gyro_sampling``); ``"instantaneous"`` the rate
+            at the stamp.
 
     Returns:
         a :class:`SyntheticDrive`.
@@ -216,6 +222,8 @@ def make_drive(
     for name, v in (("bumps", bumps), ("speed_variation", speed_variation), ("curvature", curvature)):
         if not (math.isfinite(v) and v >= 0):
             raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+    if gyro_sampling not in GYRO_SAMPLING:
+        raise ValueError(f"gyro_sampling must be one of {GYRO_SAMPLING}, got {gyro_sampling!r}")
     if render not in (True, False, "lazy"):
         raise ValueError(f"render must be True, False or 'lazy', got {render!r}")
     if not (road_tilt is True or road_tilt is False or (isinstance(road_tilt, (tuple, list)) and len(road_tilt) == 2)):
@@ -271,7 +279,10 @@ def make_drive(
     roll_g, pitch_g, _ = _rpy(r_grav)
     pr_road = np.stack([motion.pitch_rel(t_imu), motion.roll_rel(t_imu)], -1)
     tilt = np.stack([motion.slope(t_imu), motion.camber(t_imu)], -1)
-    gyro_true = motion.gyro(t_imu)
+    if gyro_sampling == "interval_mean":
+        gyro_true = motion.gyro_interval_mean(t_imu, 1.0 / imu_rate)
+    else:
+        gyro_true = motion.gyro(t_imu)
     accel_true = motion.specific_force(t_imu)
     vel = motion.vel_grav(t_imu)
 

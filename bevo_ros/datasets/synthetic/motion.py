@@ -61,6 +61,14 @@ def _rpy(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.arctan2(r[..., 1, 0], r[..., 0, 0]))
 
 
+def _rotation_vector(r: np.ndarray) -> np.ndarray:
+    """Axis times angle of rotations ``(..., 3, 3)`` with angles below pi -> ``(..., 3)``."""
+    w = 0.5 * np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
+    sin = np.linalg.norm(w, axis=-1)
+    angle = np.arctan2(sin, 0.5 * (np.trace(r, axis1=-2, axis2=-1) - 1.0))
+    return w * np.where(sin > 1e-12, angle / np.maximum(sin, 1e-300), 1.0)[..., None]
+
+
 def _d5(f, t: np.ndarray, h: float = 1e-3) -> np.ndarray:
     """5-point central derivative of a vectorised ``f(t) -> (N, ...)`` (truncation ~h^4)."""
     return (f(t - 2 * h) - 8 * f(t - h) + 8 * f(t + h) - f(t + 2 * h)) / (12 * h)
@@ -368,6 +376,13 @@ class _Motion:
         omega = np.swapaxes(r, -1, -2) @ _d5(self.r_grav_base, t)
         return 0.5 * np.stack([omega[..., 2, 1] - omega[..., 1, 2], omega[..., 0, 2] - omega[..., 2, 0],
                                omega[..., 1, 0] - omega[..., 0, 1]], -1)
+
+    def gyro_interval_mean(self, t, dt: float):
+        """Mean body angular velocity over ``(t - dt, t]``, ``(N, 3)`` rad/s: the rotation between
+        the two attitudes as a rotation vector over ``dt``, what an IMU reporting its integrated
+        rate (delta angle) over each sample interval gives."""
+        rel = np.swapaxes(self.r_grav_base(t - dt), -1, -2) @ self.r_grav_base(t)
+        return _rotation_vector(rel) / dt
 
     def specific_force(self, t):
         """Accelerometer reading without noise, ``(N, 3)`` m/s^2 in the base frame."""
