@@ -96,8 +96,8 @@ def test_compiled_kernels_agree_with_eager():
 
 
 def test_compiler_failure_falls_back_to_eager_with_one_warning(monkeypatch):
-    """A compiler that fails (here every compiled call raises inductor's own error) costs one
-    warning per kernel; the engine's numbers are then exactly the eager ones."""
+    """A compiler that fails (here every compiled call raises inductor's own error, as without a
+    C++ compiler) costs one warning; the engine's numbers are then exactly the eager ones."""
     def broken_compile(fn, **kwargs):
         def call(*args, **kw):
             raise torch._inductor.exc.InductorError(RuntimeError("no C++ compiler"), None)
@@ -112,8 +112,8 @@ def test_compiler_failure_falls_back_to_eager_with_one_warning(monkeypatch):
     fallbacks = [w for w in caught if "torch.compile of" in str(w.message)]
     assert set(odo.kernels.fallbacks) >= {"project_to_bev", "register_prepared", "vehicle_motion_from_registration",
                                           "motion_covariance_from_registration"}
-    assert len(fallbacks) == len(odo.kernels.fallbacks), [str(w.message) for w in fallbacks]
-    assert "InductorError" in str(fallbacks[0].message)
+    assert len(fallbacks) == 1, [str(w.message) for w in fallbacks]
+    assert "InductorError" in str(fallbacks[0].message) and fallbacks[0].category is RuntimeWarning
     for a, b in zip(_run(eager_odo, drive, 6), steps, strict=True):
         np.testing.assert_array_equal(b.position, a.position)
 

@@ -14,8 +14,8 @@ the whitening makes a weak frequency's rounding count, test_compiled.py), not bi
 fused motion filter's gates can decide a borderline frame differently: a long compiled run drifts
 apart from an eager one by what such a decision moves (10 s synthetic drive: 0.1 m of 72 m).
 
-Never a crash: a failure of the compiler's own (no compiler, an unsupported operation) logs one
-warning and that kernel runs eagerly from then on; errors of the functions themselves (e.g.
+Never a crash: a failure of the compiler's own (no compiler, an unsupported operation) costs one
+``RuntimeWarning`` (one per distinct reason) and the failing kernels run eagerly from then on; errors of the functions themselves (e.g.
 ``InvalidBevError``) propagate as they do eagerly. No gradients through compiled kernels: training
 calls the functions directly, never these.
 """
@@ -54,16 +54,16 @@ def _is_compiler_error(exc: BaseException) -> bool:
 
 class _CompiledKernel:
     """``fn`` eager on its first call, compiled from the second on; eager for good after a compiler
-    failure (one warning).
+    failure (``warn(name, reason)``).
 
     The eager first call fills the constant caches (:func:`~bevo_ros.core.device.constant_cache`):
     traced with them filled, the graph takes the cached tensors as inputs instead of rebuilding them,
     and no cache changes under it later (which would recompile it)."""
 
-    def __init__(self, fn: Callable, log: Callable[[str], None] | None) -> None:
+    def __init__(self, fn: Callable, warn: Callable[[str, str], None]) -> None:
         self.fn = fn
         self.name = fn.__name__
-        self._log = log
+        self._warn = warn
         self._compiled = torch.compile(fn, dynamic=False)
         self._calls = 0
         self.failed: str | None = None
@@ -77,11 +77,8 @@ class _CompiledKernel:
         except Exception as exc:  # noqa: BLE001 - sorted below: the compiler's or the function's
             if not _is_compiler_error(exc):
                 raise
-            self.failed = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-            msg = f"torch.compile of {self.name} failed ({self.failed[:300]}): running it eagerly"
-            warnings.warn(msg, RuntimeWarning, stacklevel=2)
-            if self._log is not None:
-                self._log(msg)
+            self.failed = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"[:300]
+            self._warn(self.name, self.failed)
             return self.fn(*args, **kwargs)
 
 
@@ -90,7 +87,10 @@ class EngineKernels:
 
     Args:
         mode: ``"eager"``, ``"compiled"`` or ``"auto"`` (compiled when :func:`compiler_available`).
-        log: called with the one warning of a fallback (e.g. a ROS logger's ``warning``).
+        log: also called with each fallback warning (e.g. a ROS logger's ``warning``).
+
+    A compiler failure is warned once per reason (``RuntimeWarning``): without a compiler every
+    kernel fails the same way, and that is one warning.
     """
 
     def __init__(self, mode: str = "eager", log: Callable[[str], None] | None = None) -> None:
@@ -98,13 +98,24 @@ class EngineKernels:
             raise ValueError(f"kernels must be one of {KERNEL_MODES}, got {mode!r}")
         self.mode = mode
         self.compiled = mode == "compiled" or (mode == "auto" and compiler_available())
+        self._log = log
+        self._warned: set[str] = set()
         self.prepare = prepare
         self.overlap_envelope = overlap_envelope
         functions = dict(project_to_bev=project_to_bev, mask_weight=mask_weight, register_prepared=register_prepared,
                          vehicle_motion_from_registration=vehicle_motion_from_registration,
                          motion_covariance_from_registration=motion_covariance_from_registration)
         for name in KERNELS:
-            setattr(self, name, _CompiledKernel(functions[name], log) if self.compiled else functions[name])
+            setattr(self, name, _CompiledKernel(functions[name], self._fallback) if self.compiled else functions[name])
+
+    def _fallback(self, name: str, reason: str) -> None:
+        if reason in self._warned:
+            return
+        self._warned.add(reason)
+        msg = f"torch.compile of the engine's kernels failed ({reason}; first in {name}): running them eagerly"
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
+        if self._log is not None:
+            self._log(msg)
 
     @property
     def fallbacks(self) -> dict[str, str]:
