@@ -63,26 +63,28 @@ def test_compiled_kernels_agree_with_eager():
             torch.testing.assert_close(weight.weight, weight0.weight, rtol=0, atol=1e-5)
             prepared.append(k.prepare(bev0, mask0, dpc, weight0))
             bevs.append(bev0)
-        for given in (None, torch.tensor([0.01])):
-            for prev, curr in ((prepared[0], prepared[1]), (prepared[1], prepared[2])):
-                kw = {} if given is None else dict(angle=given, angle_std=torch.tensor([0.002]))
-                reg = k.register_prepared(prev, curr, dpc, **kw)
-                reg = k.register_prepared(prev, curr, dpc, **kw)
-                reg0 = eager_odo.kernels.register_prepared(prev, curr, dpc, **kw)
-                # The whitening divides by each bin's magnitude: a weak bin's rounding counts more
-                # (measured: shift 1e-4 px, quality 1.3e-3 of 0.63 on a pair derotated 0.002 rad off).
-                torch.testing.assert_close(reg.angle, reg0.angle, rtol=0, atol=1e-5)
-                torch.testing.assert_close(reg.shift, reg0.shift, rtol=0, atol=2e-3)
-                torch.testing.assert_close(reg.quality, reg0.quality, rtol=0, atol=5e-3)
-                torch.testing.assert_close(reg.shift_cov, reg0.shift_cov, rtol=1e-2, atol=1e-6)
-                torch.testing.assert_close(reg.angle_std, reg0.angle_std, rtol=1e-2, atol=1e-7)
-                for _ in range(2):
-                    motion = k.vehicle_motion_from_registration(reg0.angle, reg0.shift, spec)
-                    cov = k.motion_covariance_from_registration(reg0, spec)
-                torch.testing.assert_close(motion, eager_odo.kernels.vehicle_motion_from_registration(
-                    reg0.angle, reg0.shift, spec), rtol=0, atol=1e-6)
-                torch.testing.assert_close(cov, eager_odo.kernels.motion_covariance_from_registration(reg0, spec),
-                                           rtol=1e-5, atol=1e-10)
+        # As the fused engine calls it (the gyro's angle, the cached envelope): one compiled graph,
+        # which the drive below reuses (each other argument pattern is a compilation of its own).
+        for prev, curr, angle in ((prepared[0], prepared[1], 0.01), (prepared[1], prepared[2], -0.004)):
+            kw = dict(angle=torch.tensor([angle]), angle_std=torch.tensor([0.002]),
+                      envelope=k.overlap_envelope(prev.weight_spectrum, curr.weight_spectrum))
+            reg = k.register_prepared(prev, curr, dpc, **kw)
+            reg = k.register_prepared(prev, curr, dpc, **kw)
+            reg0 = eager_odo.kernels.register_prepared(prev, curr, dpc, **kw)
+            # The whitening divides by each bin's magnitude: a weak bin's rounding counts more
+            # (measured: shift 1e-4 px, quality 1.3e-3 of 0.63 on a pair derotated 0.002 rad off).
+            torch.testing.assert_close(reg.angle, reg0.angle, rtol=0, atol=1e-5)
+            torch.testing.assert_close(reg.shift, reg0.shift, rtol=0, atol=2e-3)
+            torch.testing.assert_close(reg.quality, reg0.quality, rtol=0, atol=5e-3)
+            torch.testing.assert_close(reg.shift_cov, reg0.shift_cov, rtol=1e-2, atol=1e-6)
+            torch.testing.assert_close(reg.angle_std, reg0.angle_std, rtol=1e-2, atol=1e-7)
+            for _ in range(2):
+                motion = k.vehicle_motion_from_registration(reg0.angle, reg0.shift, spec)
+                cov = k.motion_covariance_from_registration(reg0, spec)
+            torch.testing.assert_close(motion, eager_odo.kernels.vehicle_motion_from_registration(
+                reg0.angle, reg0.shift, spec), rtol=0, atol=1e-6)
+            torch.testing.assert_close(cov, eager_odo.kernels.motion_covariance_from_registration(reg0, spec),
+                                       rtol=1e-5, atol=1e-10)
         # The function's own errors come through the compiled kernel as they are, no fallback.
         with pytest.raises(InvalidBevError):
             k.mask_weight(torch.zeros_like(bevs[0]), dpc, bevs[0].dtype)
