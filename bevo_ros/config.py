@@ -127,6 +127,10 @@ class BevoConfig:
     learned_params_file: str = "params/learned_default.yaml"
     # "cpu" or "cuda" ("cuda" falls back to CPU with a warning when unavailable).
     device: str = "cpu"
+    # The engine's vision kernels (core/compiled.py): "eager" (default: the pinned, bit-reproducible
+    # numbers), "compiled" (torch.compile; equal to float32 rounding, the first two frames pay the
+    # compilation, seconds) or "auto" (compiled when a C++ compiler is found). README: Benchmarks.
+    kernels: str = "eager"
 
     # ---- flat "a.b" views, the shape ROS parameters take
     def to_flat(self) -> dict[str, Any]:
@@ -437,8 +441,12 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         device = str(resolve_device(config.device))
     except ValueError as exc:
         raise ConfigError(f"device: {exc}") from None
+    from bevo_ros.core.compiled import KERNEL_MODES
     from bevo_ros.core.odometry import MODES
     from bevo_ros.core.vehicle_filter import VehicleNoise
+
+    if config.kernels not in KERNEL_MODES:
+        raise ConfigError(f"kernels must be one of {', '.join(KERNEL_MODES)}, got {config.kernels!r}")
 
     if config.odometry.mode not in MODES:
         raise ConfigError(f"odometry.mode must be one of {', '.join(MODES)}, got {config.odometry.mode!r}")
@@ -469,6 +477,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         pitch_change_correction=config.odometry.pitch_change_correction,
         frame_clock_window=config.odometry.frame_clock_window,
         gyro_sampling=config.filter.gyro_sampling,
+        kernels=config.kernels,
     )
     odometry.imu_limits = limits
     return odometry

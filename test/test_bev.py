@@ -197,3 +197,24 @@ def test_grids_cached_in_inference_mode_serve_autograd():
     pitch = torch.tensor([0.01, 0.012], requires_grad=True)
     step(pitch).backward()
     assert pitch.grad is not None and torch.isfinite(pitch.grad).all()
+
+
+def test_projection_mask_is_every_sub_sample_valid():
+    """project_to_bev reduces the inside test as max(|g - mid| - half) <= 0 (cheaper than boolean
+    tensors): the same mask as bev_sampling_grid's per-sample test, over attitudes that cut the
+    ground patch at the image border, and the sign rule holds on exact ties."""
+    cam = half_res_camera(torch.float32)
+    spec = BevSpec(size=40, metres_per_pixel=0.25, forward_offset=2.0)  # near rows leave the image
+    image = torch.rand(1, 1, cam.height_px, cam.width, generator=torch.Generator().manual_seed(1))
+    partial = 0
+    for pitch, roll in [(0.0, 0.0), (0.05, 0.02), (-0.08, -0.05), (0.2, 0.1), (-0.3, 0.2)]:
+        p, r = torch.tensor([pitch]), torch.tensor([roll])
+        _, mask = project_to_bev(image, cam, p, r, spec)
+        _, valid = bev_sampling_grid(cam, p, r, spec, supersample=2)
+        expected = valid.reshape(1, 1, 4, spec.size, spec.size).all(dim=2).to(mask.dtype)
+        assert torch.equal(mask, expected)
+        partial += 0 < int(expected.sum()) < spec.size**2
+    assert partial >= 3  # the masks were cut, not all-in or all-out
+    a = torch.tensor([1.0, 0.5, 1e-38, 3e-39, 1.0000001])
+    b = torch.tensor([1.0, 0.50000006, 1e-38, 2e-39, 1.0])
+    assert torch.equal((a - b) <= 0, a <= b)  # ties, neighbours, subnormals

@@ -215,8 +215,10 @@ def test_license_and_every_runtime_import_is_declared():
 
 
 def test_parameter_choices_match_the_engine():
+    from bevo_ros.core.compiled import KERNEL_MODES
     from bevo_ros.core.odometry import MODES
     from bevo_ros.ros.camera import UNDISTORT_MODES
     from bevo_ros.ros.parameters import CHOICES
 
     assert CHOICES["odometry.mode"] == MODES and CHOICES["undistort"] == UNDISTORT_MODES
+    assert CHOICES["kernels"] == KERNEL_MODES

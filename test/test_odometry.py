@@ -247,15 +247,13 @@ def test_a_frame_whose_bev_is_invalid_is_dropped_not_raised(drive):
 def test_a_bug_while_processing_a_frame_is_raised_not_counted_as_a_drop(drive, monkeypatch, error):
     """Only InvalidBevError is bad input (a drop); any other exception in the frame's processing is
     a bug and must reach the caller."""
-    import bevo_ros.core.odometry as odometry
-
     d, images = drive
     odo = engine(d)
 
     def broken(*args, **kwargs):
         raise error("a bug in the registration")
 
-    monkeypatch.setattr(odometry, "register_prepared", broken)
+    monkeypatch.setattr(odo.kernels, "register_prepared", broken)  # the engine's vision functions
     with pytest.raises(error, match="a bug in the registration"):
         feed(odo, d, images[:3])
     assert odo.counters.dropped_invalid_bev == 0

@@ -10,6 +10,8 @@ In the same run, on the same frames, it times a plain OpenCV implementation of t
 projection and both phase correlations (tools/opencv_reference.py: cv2.remap, cv2.dft,
 cv2.warpPolar, cv2.phaseCorrelate), single-threaded like the engine, and prints
 engine full step / reference: absolute times differ ~2x between machines, the ratio much less.
+``--kernels compiled`` runs the engine's vision kernels through torch.compile (config `kernels`;
+bevo_ros/core/compiled.py); the first frames then show the compilation ("startup").
 """
 from __future__ import annotations
 
@@ -31,14 +33,13 @@ import torch
 
 from bevo_ros.config import BevoConfig, build_odometry
 from bevo_ros.io.learned_params import LearnedParams
-from bevo_ros.core import odometry as engine_module
 from bevo_ros.datasets.synthetic import make_drive
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from opencv_reference import OpenCvReference  # noqa: E402
 
 # Engine stages timed where they run (inside BevoOdometry, on a new image each frame: cold caches,
-# as in the node), by wrapping the functions the engine module calls.
+# as in the node), by wrapping the functions the engine calls (its ``kernels``, eager or compiled).
 STAGES = {
     "project_to_bev": "BEV projection (image -> 100x100)",
     "prepare": "DPC prepare (weight + FFTs)",
@@ -53,12 +54,12 @@ OPTIONAL_STAGES = {
 
 
 class StageTimer:
-    """Wrap ``engine_module.<name>`` so every call adds its duration (ms) to ``self.last[name]``."""
+    """Wrap ``kernels.<name>`` so every call adds its duration (ms) to ``self.last[name]``."""
 
-    def __init__(self, sync) -> None:
+    def __init__(self, kernels, sync) -> None:
         self.last: dict[str, float] = {}
-        for name in list(STAGES) + [n for n in OPTIONAL_STAGES if hasattr(engine_module, n)]:
-            setattr(engine_module, name, self._wrap(name, getattr(engine_module, name), sync))
+        for name in list(STAGES) + [n for n in OPTIONAL_STAGES if hasattr(kernels, n)]:
+            setattr(kernels, name, self._wrap(name, getattr(kernels, name), sync))
 
     def _wrap(self, name, fn, sync):
         def timed(*args, **kwargs):
@@ -91,6 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads (default 1, as bevo_node's torch_threads: tiny tensors lose to thread sync)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--kernels", default="eager", choices=("eager", "compiled", "auto"),
+                   help="the engine's vision kernels (config 'kernels'): eager (default) or through torch.compile")
     args = p.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -102,8 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     images = [np.asarray(drive.image(i)) for i in range(len(drive.frame_stamps))]
     config = BevoConfig()
     config.device = device
-    timer = StageTimer(sync)
+    config.kernels = args.kernels
     odo = build_odometry(config, LearnedParams(), camera=drive.camera)
+    timer = StageTimer(odo.kernels, sync)
     mode = getattr(getattr(config, "odometry", None), "mode", None)  # issue 9: "fused" or "paper"
     # The reference's fixed maps are built for the rig's mounting attitude on the road (the
     # attitude the engine's BEV uses at rest); the engine rebuilds its grid per frame.
@@ -124,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     optional_ms: dict[str, list[float]] = {name: [] for name in OPTIONAL_STAGES}
     pass_medians: list[float] = []
     warmup = 5
+    first_frames: list[float] = []  # the first pass's first frames: compilation with --kernels compiled
     for _ in range(max(1, args.passes)):
         odo.reset()
         this_pass: list[float] = []
@@ -138,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
             t_imu = time.perf_counter()
             odo.add_image(float(stamp), images[f])
             sync()
+            if len(first_frames) < warmup:
+                first_frames.append((time.perf_counter() - t) * 1e3)
             if f >= warmup and all(name in timer.last for name in STAGES):
                 this_pass.append((time.perf_counter() - t) * 1e3)
                 cpu_frame.append((time.thread_time() - c) * 1e3)
@@ -199,7 +206,11 @@ def main(argv: list[str] | None = None) -> int:
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"device {device}, torch threads {torch.get_num_threads()}, OpenCV {cv2.__version__} threads "
           f"{cv2.getNumThreads()}, {len(per_frame)} frames timed in {len(pass_medians)} passes")
-    print(f"engine mode: {mode if mode is not None else 'n/a (this config has no odometry.mode)'}")
+    print(f"engine mode: {mode if mode is not None else 'n/a (this config has no odometry.mode)'}, kernels "
+          f"{config.kernels} ({'compiled' if odo.kernels.compiled else 'eager'}"
+          f"{', fell back: ' + str(odo.kernels.fallbacks) if odo.kernels.fallbacks else ''})")
+    print(f"startup: first {len(first_frames)} frames {' / '.join(f'{ms:.1f}' for ms in first_frames)} ms"
+          f" (first frame: BEV + prepare; second: the first registration; compiled kernels compile there)")
     print(f"full step (10 DUKF + BEV + 2 PC) : median {statistics.median(per_frame):7.2f} ms   p90 {pct(per_frame, 90):7.2f} ms"
           f"   (pass medians {' / '.join(f'{m:.2f}' for m in pass_medians)} ms)")
     med = statistics.median

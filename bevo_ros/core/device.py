@@ -28,13 +28,27 @@ def resolve_device(device: str | torch.device, log: Callable[[str], None] | None
 
 
 def constant_cache(maxsize: int = 32):
-    """``functools.lru_cache`` for tensors that depend only on settings (grids, windows, bands):
-    built outside inference mode, so the engine (which runs in ``torch.inference_mode``) and
-    training (autograd, which cannot save an inference tensor) share them whoever asks first."""
+    """A cache for tensors that depend only on settings (grids, windows, bands): built outside
+    inference mode, so the engine (which runs in ``torch.inference_mode``) and training (autograd,
+    which cannot save an inference tensor) share them whoever asks first. Positional, hashable
+    arguments; the oldest entry goes beyond ``maxsize``.
+
+    A plain dict rather than ``functools.lru_cache``: ``torch.compile`` (the engine's optional
+    compiled kernels, :mod:`~bevo_ros.core.compiled`) traces through an ``lru_cache`` and would
+    rebuild every constant in each call, while a dict hit is a graph input it reuses."""
     def decorate(fn):
+        store: dict = {}
+
         @functools.wraps(fn)
-        def build(*args, **kwargs):
-            with torch.inference_mode(False):
-                return fn(*args, **kwargs)
-        return functools.lru_cache(maxsize=maxsize)(build)
+        def get(*args):
+            hit = store.get(args)
+            if hit is None:
+                with torch.inference_mode(False):
+                    hit = fn(*args)
+                if len(store) >= maxsize:
+                    store.pop(next(iter(store)))
+                store[args] = hit
+            return hit
+        get.cache_clear = store.clear
+        return get
     return decorate

@@ -19,15 +19,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from .bev import project_to_bev
+from .compiled import EngineKernels
 from .dukf import DUKF, steady_state_variance
 from .frame_clock import FrameClock
 from .geometry import BevSpec, CameraModel
-from .motion import (motion_covariance_from_registration, pitch_change_shift, pitch_scale_sensitivity, roll_yaw_sensitivity,
-                     vehicle_motion_from_registration)
-from .phase_correlation import (DpcConfig, InvalidBevError, MaskWeight, mask_weight, overlap_envelope, prepare,
-                                register_prepared)
-from .pose import compose_se2, propagate_covariance_se2
+from .motion import pitch_change_shift, pitch_scale_sensitivity, roll_yaw_sensitivity
+from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
+from .pose import compose_se2_floats, propagate_covariance_se2_floats
 from .rate_integration import GYRO_SAMPLING, interval_rate
 from .road_tilt import RoadTiltFilter
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
@@ -149,6 +147,9 @@ class BevoOdometry:
         frame_clock_window: fused mode: the motion filter's frame interval is the mean period over
             this many frames times the whole periods a stamped interval spans, so stamp jitter
             is no speed change (:class:`~bevo_ros.core.frame_clock.FrameClock`); 0: as stamped.
+        kernels: ``"eager"`` (default), ``"compiled"`` or ``"auto"``: the vision kernels through
+            ``torch.compile`` (:mod:`~bevo_ros.core.compiled`; numbers equal to float32 rounding,
+            not bit for bit; the first frames pay the compilation).
         gyro_sampling: fused mode: what a gyro sample is, ``"interval_mean"`` (the mean rate since
             the previous sample: KITTI's OXTS, delta-angle IMUs) or ``"instantaneous"`` (the rate
             at its stamp); it sets how the rates are integrated (:mod:`~bevo_ros.core.rate_integration`).
@@ -175,6 +176,7 @@ class BevoOdometry:
         initial_attitude_std: float = math.radians(3.0),
         pitch_change_correction: bool = True,
         frame_clock_window: int = 20,
+        kernels: str = "eager",
         gyro_sampling: str = "interval_mean",
     ) -> None:
         if mode not in MODES:
@@ -183,6 +185,7 @@ class BevoOdometry:
             raise ValueError(f"gyro_sampling must be one of {GYRO_SAMPLING}, got {gyro_sampling!r}")
         self.gyro_sampling = gyro_sampling
         self.mode = mode
+        self.kernels = EngineKernels(kernels)  # the vision functions, eager or compiled
         self.vehicle = VehicleFilter(vehicle_noise)
         self.suspension_gradients = (float(suspension_gradients[0]), float(suspension_gradients[1]))
         self.initial_attitude_std = float(initial_attitude_std)
@@ -229,8 +232,8 @@ class BevoOdometry:
         self._envelope_cache = None  # ((prev, curr) weight spectra, their overlap envelope)
         self._prev_stamp: float | None = None
         self._speed = 0.0  # forward speed of the latest VO step, m/s
-        self._pose = torch.zeros(3, dtype=torch.float64)
-        self._pose_cov = torch.zeros(3, 3, dtype=torch.float64)
+        self._pose = (0.0, 0.0, 0.0)  # x, y, yaw in odom (floats: core.pose's float twins)
+        self._pose_cov = np.zeros((3, 3))
         self._vstate = initial_vehicle_state()  # fused: [v, a, gyro yaw bias, accel bias], speed unknown
         self._yaw_cum = 0.0  # fused: gyro yaw about the vertical integrated since the start, rad
         self._yaw_rate = None  # its latest rate (trapezoid)
@@ -481,8 +484,8 @@ class BevoOdometry:
             image = image.to(self.dtype)
         road, state, yaw_cum, epoch = self._attitude_at(stamp)
         pitch_t, roll_t = (torch.tensor([v], dtype=self.dtype, device=self.device) for v in road)
-        bev, mask = project_to_bev(image[None, None], self.camera, pitch_t, roll_t, self.spec)
-        curr = prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
+        bev, mask = self.kernels.project_to_bev(image[None, None], self.camera, pitch_t, roll_t, self.spec)
+        curr = self.kernels.prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
         first = self._prev is None
         dt = 0.0 if first else stamp - self._prev_stamp
         stamped_dt = dt
@@ -502,13 +505,12 @@ class BevoOdometry:
             reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, frame_yaw, state, shift)
             quality = reg.quality.item()
         else:
-            reg = register_prepared(self._prev, curr, self.dpc, envelope=self._envelope(curr))
+            reg = self.kernels.register_prepared(self._prev, curr, self.dpc, envelope=self._envelope(curr))
             motion = self._vehicle_motion(reg)
             motion_cov = self._motion_covariance(reg, motion, state)
             quality = reg.quality.item()
-        motion_t, motion_cov_t = torch.from_numpy(motion), torch.from_numpy(motion_cov)
-        self._pose_cov = propagate_covariance_se2(self._pose, self._pose_cov, motion_t, motion_cov_t)
-        self._pose = compose_se2(self._pose, motion_t)
+        self._pose_cov = propagate_covariance_se2_floats(self._pose[2], self._pose_cov, motion, motion_cov)
+        self._pose = compose_se2_floats(self._pose, motion)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
         self._prev_yaw_cum = yaw_cum
         self._prev_pitch = (road[0], state[0][0], epoch)
@@ -519,7 +521,7 @@ class BevoOdometry:
         (pitch, roll), (c00, c01, c11) = state
         att_cov = np.array([[c00, c01], [c01, c11]])  # [pitch, roll]
         pose_cov = np.zeros((6, 6))
-        pose_cov[_PLANAR] = self._pose_cov.numpy()
+        pose_cov[_PLANAR] = self._pose_cov
         pose_cov[2, 2] = Z_VARIANCE
         pose_cov[3, 3], pose_cov[4, 4] = att_cov[1, 1], att_cov[0, 0]
         pose_cov[3, 4] = pose_cov[4, 3] = att_cov[0, 1]
@@ -535,7 +537,7 @@ class BevoOdometry:
             lin, ang = np.zeros(3), np.zeros(3)
             twist_cov[0, 0] = twist_cov[1, 1] = twist_cov[5, 5] = Z_VARIANCE  # first frame: velocity unknown
         twist_cov[2, 2] = twist_cov[3, 3] = twist_cov[4, 4] = Z_VARIANCE
-        x, y, yaw = self._pose.tolist()
+        x, y, yaw = self._pose
         return OdometryStep(
             stamp=stamp,
             motion=motion,
@@ -590,7 +592,7 @@ class BevoOdometry:
         dyaw = gyro_yaw - predicted_bias * dt
         dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.var(2) * dt * dt)
         dev, dt_ = self.device, self.dtype
-        reg = register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
+        reg = self.kernels.register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
                                 angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev),
                                 envelope=self._envelope(curr))
         measured = self._vehicle_motion(reg)
@@ -630,7 +632,7 @@ class BevoOdometry:
         dpc, cached = self._weight_cache
         if (cached is None or dpc is not self.dpc or cached.weight.dtype != dtype
                 or not torch.equal(cached.mask, mask)):
-            cached = mask_weight(mask, self.dpc, dtype)
+            cached = self.kernels.mask_weight(mask, self.dpc, dtype)
             self._weight_cache = (self.dpc, cached)
         return cached
 
@@ -639,7 +641,7 @@ class BevoOdometry:
         the same (cached) weights."""
         key = (self._prev.weight_spectrum, curr.weight_spectrum)
         if self._envelope_cache is None or any(a is not b for a, b in zip(self._envelope_cache[0], key)):
-            self._envelope_cache = (key, overlap_envelope(*key))
+            self._envelope_cache = (key, self.kernels.overlap_envelope(*key))
         return self._envelope_cache[1]
 
     def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple, float, int]:
@@ -664,7 +666,7 @@ class BevoOdometry:
 
     def _vehicle_motion(self, reg) -> np.ndarray:
         """The registration's (dx, dy, dyaw), float64 ``(3,)`` (the engine's batch of one)."""
-        return vehicle_motion_from_registration(reg.angle, reg.shift, self.spec).cpu().numpy()[0].astype(np.float64)
+        return self.kernels.vehicle_motion_from_registration(reg.angle, reg.shift, self.spec).cpu().numpy()[0].astype(np.float64)
 
     def _steady_state_variances(self) -> tuple[float, float]:
         """The DUKF's (pitch, roll) steady-state variances at the latest IMU period."""
@@ -683,7 +685,7 @@ class BevoOdometry:
         unsure of the absolute attitude, but that error is a constant the road-tilt high-pass
         removes.
         """
-        cov = motion_covariance_from_registration(reg, self.spec).cpu().numpy()[0].astype(np.float64)
+        cov = self.kernels.motion_covariance_from_registration(reg, self.spec).cpu().numpy()[0].astype(np.float64)
         (c00, c01, c11) = state[1]
         ss_p, ss_r = self._steady_state_variances()
         s_p = math.sqrt(min(1.0, ss_p / c00))

@@ -1,6 +1,9 @@
 """SE(2) odometry composition and 6-DoF pose matrices (z held constant)."""
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 
 from .geometry import rotation_from_rpy, wrap_angle
@@ -38,6 +41,26 @@ def propagate_covariance_se2(pose: Tensor, cov: Tensor, motion: Tensor, motion_c
     j_motion = j_motion.reshape(*yaw.shape, 3, 3)
     out = j_pose @ cov @ j_pose.transpose(-1, -2) + j_motion @ motion_cov @ j_motion.transpose(-1, -2)
     return 0.5 * (out + out.transpose(-1, -2))
+
+
+def compose_se2_floats(pose: tuple[float, float, float], motion) -> tuple[float, float, float]:
+    """:func:`compose_se2` on plain floats (the engine's per-frame pose: ~30 tensor operations on
+    3 numbers are most of its cost); equal to float64 rounding."""
+    x, y, yaw = pose
+    dx, dy, dyaw = (float(v) for v in motion)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return x + c * dx - s * dy, y + s * dx + c * dy, (yaw + dyaw + math.pi) % (2 * math.pi) - math.pi
+
+
+def propagate_covariance_se2_floats(yaw: float, cov: np.ndarray, motion, motion_cov: np.ndarray) -> np.ndarray:
+    """:func:`propagate_covariance_se2` for one pose in float64 numpy: the pose's ``yaw``, ``(3, 3)``
+    covariance, ``(3,)`` motion and its ``(3, 3)`` covariance -> ``(3, 3)``."""
+    dx, dy = float(motion[0]), float(motion[1])
+    c, s = math.cos(yaw), math.sin(yaw)
+    j_pose = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+    j_motion = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = j_pose @ cov @ j_pose.T + j_motion @ motion_cov @ j_motion.T
+    return 0.5 * (out + out.T)
 
 
 def pose_matrix(position: Tensor, rpy: Tensor) -> Tensor:

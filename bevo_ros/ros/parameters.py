@@ -52,6 +52,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "filter.motion_model": ("euler", "additive"),
     "filter.gyro_sampling": ("interval_mean", "instantaneous"),  # bevo_ros.core.rate_integration.GYRO_SAMPLING
     "odometry.mode": ("fused", "paper"),  # bevo_ros.core.odometry.MODES
+    "kernels": ("eager", "compiled", "auto"),  # bevo_ros.core.compiled.KERNEL_MODES
 }
 
 

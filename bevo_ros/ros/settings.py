@@ -128,6 +128,8 @@ DESCRIPTIONS = {
     "learned_params_file": "learned O/Q YAML; a relative path resolves beside the parameters file that set it, "
                            "then the package share",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
+    "kernels": "'eager' (default), 'compiled' (torch.compile; first frames compile) or 'auto' (compiled when a C++ "
+               "compiler is found)",
 }
 
 
