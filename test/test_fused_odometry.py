@@ -119,9 +119,9 @@ def camera():
     return small_camera()
 
 
-# Limits at half resolution, 100 Hz IMU, short drives (measured: curve 0.10 / 0.21 deg road
-# attitude, 3.3 %, 0.023 deg, 1.6 % drift; braking 0.30 / 0.17, 5.1 %, 0.026, 2.0 %; bend_start
-# 0.11 / 0.34, 4.0 %, 0.027, 2.1 %; paper mode 20-50 %, 0.33-0.61 deg, 16-27 %). Issue 9 asks
+# Limits at half resolution, 100 Hz IMU, short drives (measured: curve 0.12 / 0.19 deg road
+# attitude, 3.8 %, 0.024 deg, 1.2 % drift; braking 0.17 / 0.17, 4.9 %, 0.027, 0.4 %; bend_start
+# 0.09 / 0.30, 4.5 %, 0.028, 1.3 %; paper mode 13-57 %, 0.29-0.56 deg, 11-30 %). Issue 9 asks
 # 0.3 deg, 3 %, 0.05 deg and 1 %: see the README for what is reached.
 PRESET_LIMITS = {  # name: (duration s, road attitude RMS deg, translation %, yaw deg, drift %)
     "curve": (10.0, 0.3, 5.0, 0.04, 3.0),
