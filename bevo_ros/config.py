@@ -89,7 +89,9 @@ class FilterSettings:
     # Fused mode: what a gyro sample is. "interval_mean": the mean rate over the interval since the
     # previous sample (KITTI's OXTS: its pitch change over an interval is the end sample times the
     # interval to 0.02 deg, the trapezoid misses by 0.05-0.07 deg; IMUs reporting delta angles).
-    # "instantaneous": the rate at the stamp (integrated by the quadratic rule). core/rate_integration.
+    # "instantaneous": the rate at the stamp (integrated by the quadratic rule), what many ROS IMU
+    # drivers publish (a filtered angular_velocity): set it for those, it matters at 10-50 Hz.
+    # core/rate_integration.
     gyro_sampling: str = "interval_mean"
 
 

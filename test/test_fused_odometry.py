@@ -343,6 +343,34 @@ def test_interval_rate_rules():
 
 
 @pytest.mark.parametrize("sampling", ["interval_mean", "instantaneous"])
+def test_engine_integrates_the_gyro_by_its_sampling(sampling):
+    """The engine's own bookkeeping of the last samples (a start, unequal steps, a gap that
+    restarts the DUKF, a step 10x shorter than the one before): a quadratic yaw rate integrates
+    exactly, the trapezoid only right after a (re)start and across the uneven step."""
+    rate = lambda t: 0.1 + 0.5 * t - 0.3 * t * t  # noqa: E731
+    integral = lambda t: 0.1 * t + 0.25 * t * t - 0.1 * t**3  # noqa: E731
+    config = BevoConfig()
+    config.filter.gyro_sampling = sampling
+    odo = build_odometry(config, FUSED, camera=kitti_like_camera())
+    stamps = [0.0, 0.1, 0.17, 0.3, 0.38, 0.5, 1.2, 1.3, 1.37, 1.5, 1.6, 1.61, 1.7]
+    expected, trapezoid_steps = 0.0, {1, 7, 11, 12}  # after the start, after the gap, 10x shorter, 9x longer
+    for i, t in enumerate(stamps):
+        h = t - stamps[i - 1] if i else None
+        if sampling == "interval_mean":
+            sample = (integral(t) - integral(stamps[i - 1])) / h if i else rate(t)
+        else:
+            sample = rate(t)
+        odo.add_imu(t, [0.0, 0.0, sample], [0.0, 0.0, 9.80665])
+        if i and h <= config.filter.max_imu_gap:
+            if sampling == "instantaneous" and i in trapezoid_steps:
+                expected += 0.5 * (rate(t) + rate(stamps[i - 1])) * h
+            else:
+                expected += integral(t) - integral(stamps[i - 1])
+        assert odo._yaw_cum == pytest.approx(expected, abs=1e-12), (sampling, t)
+    assert odo.counters.imu_gaps == 1
+
+
+@pytest.mark.parametrize("sampling", ["interval_mean", "instantaneous"])
 def test_gyro_sampling_setting_matches_the_imu(sampling):
     """The DUKF's pitch change per 10 Hz IMU interval on the bumpy preset (noise-free IMU) follows
     the truth several times closer with the setting that matches the gyro than with the other."""

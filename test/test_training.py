@@ -145,6 +145,9 @@ def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path):
     assert info["training_bags"] == ["bumpy_bag"] and info["split"] == "3/4" and info["epochs_run"] == 1
     assert info["init"]["mode"].startswith("given")
     assert "date" in info and "code_version" in info and "validation_before" in info
+    # what O/Q training does not learn is kept from the configuration's learned file
+    base = load_learned_params(load_config(SYNTH_PARAMS)[0].learned_params_file)
+    assert learned.suspension_gradients == base.suspension_gradients != (0.0, 0.0)
     ckpt_path = tmp_path / "learned.yaml.ckpt.yaml"
     text = ckpt_path.read_text()
     assert "!!python" not in text and "&id" not in text  # plain YAML

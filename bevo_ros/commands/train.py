@@ -102,7 +102,7 @@ def _checkpoint(args: argparse.Namespace) -> Path:
 
 def _train(args: argparse.Namespace) -> int:
     from bevo_ros.datasets.rosbag import load_sequence
-    from bevo_ros.io.learned_params import save_learned_params
+    from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, train
     from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
@@ -127,6 +127,12 @@ def _train(args: argparse.Namespace) -> int:
     result = train(seqs, config, options, checkpoint=checkpoint, resume=args.resume, progress=not args.quiet,
                    extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
                                "params_file": str(Path(args.params).resolve())})
+    # What O/Q training does not learn comes from the configuration's learned file: the suspension
+    # gradients as they are, the vehicle noise as the start of its own fit (else a trained file
+    # would silently drop the suspension model the engine uses).
+    base = load_learned_params(config.learned_params_file)
+    result.learned.suspension_gradients = base.suspension_gradients
+    result.learned.vehicle = dict(base.vehicle)
     if config.odometry.mode == "fused" and args.vehicle_steps > 0:
         fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps)
     save_learned_params(result.learned, out)
