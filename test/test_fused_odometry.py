@@ -147,7 +147,7 @@ def test_pitch_change_shifts_the_forward_motion(camera):
     def forward(common: float, change: float) -> float:
         bevs = []
         for i, extra in ((k - 1, common), (k, common + change)):
-            pr = torch.tensor([d.pitch_roll_road[i]], dtype=torch.float32)
+            pr = torch.tensor(d.pitch_roll_road[i:i + 1], dtype=torch.float32)
             img = torch.as_tensor(np.asarray(d.image(i)))[None, None]
             bevs.append(prepare(*project_to_bev(img, odo.camera, pr[:, 0] + extra, pr[:, 1], spec), dpc))
         reg = register_prepared(bevs[0], bevs[1], dpc)
