@@ -115,6 +115,11 @@ def _train(args: argparse.Namespace) -> int:
         init=tuple(args.init) if args.init else None, init_search=args.init_search, device=args.device)
     options.check()
     config, _ = load_config(args.params)
+    # What O/Q training does not learn comes from the configuration's learned file: the suspension
+    # gradients as they are, the vehicle noise as the start of its own fit (else a trained file
+    # would silently drop the suspension model the engine uses). Read before training, so a bad
+    # path fails before the epochs, not after them.
+    base = load_learned_params(config.learned_params_file)
     t0 = time.perf_counter()
     seqs = []
     for b in args.bags:
@@ -127,10 +132,6 @@ def _train(args: argparse.Namespace) -> int:
     result = train(seqs, config, options, checkpoint=checkpoint, resume=args.resume, progress=not args.quiet,
                    extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
                                "params_file": str(Path(args.params).resolve())})
-    # What O/Q training does not learn comes from the configuration's learned file: the suspension
-    # gradients as they are, the vehicle noise as the start of its own fit (else a trained file
-    # would silently drop the suspension model the engine uses).
-    base = load_learned_params(config.learned_params_file)
     result.learned.suspension_gradients = base.suspension_gradients
     result.learned.vehicle = dict(base.vehicle)
     if config.odometry.mode == "fused" and args.vehicle_steps > 0:

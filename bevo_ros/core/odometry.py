@@ -570,9 +570,9 @@ class BevoOdometry:
         """Fused mode: the forward shift (m) this frame's correlation reads from the engine's own
         change of the BEV pitch since the previous frame.
 
-        The BEV pitch is the DUKF's pitch minus the road-tilt low-pass plus the suspension model.
-        What the low-pass and the model change between two frames is no motion of the car, yet it
-        moves the whole current BEV by :func:`~bevo_ros.core.motion.pitch_change_shift` per radian
+        The BEV pitch is the DUKF's pitch minus the road-tilt low-pass (whose input has the
+        suspension model's lean taken out). What the low-pass changes between two frames is no
+        motion of the car, yet it moves the whole current BEV by :func:`~bevo_ros.core.motion.pitch_change_shift` per radian
         (0.01 deg: 1.4 cm on KITTI), read as forward motion. Zero across a DUKF restart (the
         attitude jumps), while the DUKF first converges (the low-pass's running mean follows it)
         and with the correction off. Measured: KITTI sample 7.0 -> 6.5 cm per frame (`bevo
