@@ -328,6 +328,33 @@ def test_bad_inputs_are_dropped_counted_and_logged(harness_factory, drive):
     assert values.get("event.imu_gap") == "1"
 
 
+def test_a_car_at_rest_stands_still_and_says_so(harness_factory, drive):
+    """A car standing 3 s (the same view with fresh sensor noise each frame, an IMU reading gravity
+    and a 0.11 deg/s yaw gyro bias): the published pose stays put, the twist is zero and
+    /diagnostics counts the frames at rest."""
+    h = harness_factory(base_overrides(drive), subscribe_outputs=True)
+    rng = np.random.default_rng(0)
+    view = drive.images[5].astype(np.float64)
+    t0 = 100.0
+    for i in range(301):
+        t = t0 + 0.01 * i
+        h.send("imu", imu_msg(t, [0.0, 0.0, 0.002 + rng.normal(0, 1e-4)], [0.0, 0.0, 9.81] + rng.normal(0, 0.02, 3)))
+        if i % 10 == 5:
+            img = np.clip(view + rng.normal(0.0, 2.0, view.shape), 0, 255).astype(np.uint8)
+            h.send("image", image_msg(t, img))
+    h.settle()
+    assert len(h.odom) == 30
+    for msg in h.odom:
+        pos, rpy, _, lin, ang, _ = _odom_arrays(msg)
+        assert np.abs(pos).max() < 1e-3 and abs(np.degrees(rpy[2])) < 0.05, (pos, np.degrees(rpy))
+    assert np.abs(_odom_arrays(h.odom[-1])[3]).max() == 0.0 and np.abs(_odom_arrays(h.odom[-1])[4]).max() == 0.0
+    assert h.node.events["standstill"] >= 25
+    h.diag.clear()
+    assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
+    values = {kv.key: kv.value for kv in h.diag[-1].status[0].values}
+    assert int(values.get("event.standstill", 0)) >= 25, values
+
+
 def test_an_engine_bug_is_a_callback_error_not_a_bad_input(harness_factory, drive, monkeypatch):
     """Only what the engine refuses as input (InvalidInputError, ImplausibleImuError) is dropped as
     that input; a plain ValueError out of the engine is a bug: counted and logged as callback_error."""

@@ -389,7 +389,8 @@ def _rel_t(d: syn.SyntheticDrive) -> np.ndarray:
 
 
 def test_presets_listed_deterministic_and_checked():
-    assert set(syn.PRESETS) == {"curve", "braking", "bend_start", "stop_and_go", "bumpy", "on_ramp", "urban"}
+    assert set(syn.PRESETS) == {"curve", "braking", "bend_start", "stop_and_go", "bumpy", "on_ramp", "urban",
+                                "traffic_light", "highway"}
     assert all(isinstance(v, str) and len(v) > 20 for v in syn.PRESETS.values())
     a = syn.make_drive(seed=3, preset="curve", duration=3.0, render=False)
     b = syn.preset_drive("curve", seed=3, duration=3.0, render=False)

@@ -28,6 +28,7 @@ from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
 from .pose import compose_se2_floats, propagate_covariance_se2_floats
 from .rate_integration import GYRO_SAMPLING, interval_rate
 from .road_tilt import RoadTiltFilter
+from .standstill import CHECK_BELOW as STANDSTILL_CHECK_BELOW, StandstillDetector
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
 from .vehicle_dynamics import GRAVITY, compensate_floats, suspension_attitude
 from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
@@ -84,6 +85,7 @@ class OdometryStep:
     filter_inputs: dict | None = None  # fused mode: VehicleFilter.step's arguments this frame (training replays them)
     tag: Any = None  # the caller's tag given to add_image with this image
     pitch_shift: float = 0.0  # fused: forward shift (m) taken off the correlation by the pitch-change correction
+    standstill: bool = False  # fused: the images say the vehicle stood still since the previous frame
 
 
 @dataclass(frozen=True)
@@ -110,6 +112,7 @@ class Counters:
     rejected_textureless: int = 0  # fused: a frame whose correlation carries no information
     rejected_translation: int = 0  # fused: the translation failed the Mahalanobis gate
     rejected_rotation: int = 0  # fused: the image rotation disagreed with the gyro beyond the gate
+    standstill: int = 0  # fused: frames at rest (zero motion, the yaw gyro's bias observed)
 
 
 class BevoOdometry:
@@ -154,6 +157,10 @@ class BevoOdometry:
             the previous sample: KITTI's OXTS, delta-angle IMUs) or ``"instantaneous"`` (the rate
             at its stamp); it sets how the rates are integrated (:mod:`~bevo_ros.core.rate_integration`).
             Paper mode takes each sample as its interval's rate, as the paper does.
+        standstill_max_motion: fused mode: a frame whose correlation reads less than
+            :data:`~bevo_ros.core.standstill.CHECK_BELOW` forward is checked for standstill on the
+            raw images (:mod:`~bevo_ros.core.standstill`); below this small motion (m per frame)
+            the vehicle is at rest: zero motion, the yaw gyro's bias observed. 0 disables it.
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
@@ -178,6 +185,7 @@ class BevoOdometry:
         frame_clock_window: int = 20,
         kernels: str = "eager",
         gyro_sampling: str = "interval_mean",
+        standstill_max_motion: float = 0.01,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -195,11 +203,12 @@ class BevoOdometry:
         self.device = torch.device(device)
         self.dtype = torch.float32
         self.spec = spec
+        self.mounting_attitude = (float(mounting_attitude[0]), float(mounting_attitude[1]))
+        self._standstill = StandstillDetector(camera, self.mounting_attitude, standstill_max_motion)
         self.set_camera(camera)
         self.dukf = dukf
         self.dpc = dpc or DpcConfig()
         self.road_tilt_time_constant = road_tilt_time_constant
-        self.mounting_attitude = (float(mounting_attitude[0]), float(mounting_attitude[1]))
         self.max_imu_gap = max_imu_gap
         self.turn_compensation = turn_compensation
         self.max_pending_images = max_pending_images
@@ -247,6 +256,7 @@ class BevoOdometry:
         self._gyro_prev2 = None  # fused: the sample before that, (rates, yaw rate about the vertical); its interval is the previous _imu_dt
         self._fwd_sum = 0.0  # integral of the accelerometer's forward acceleration since the last frame, m/s
         self._fwd_time = 0.0  # the time it covers, s
+        self._standstill.reset()
         self.counters.resets += 1
 
     def set_camera(self, camera: CameraModel) -> None:
@@ -255,6 +265,7 @@ class BevoOdometry:
         self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
         self._shift_per_pitch_change = pitch_change_shift(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
         self._yaw_per_roll = roll_yaw_sensitivity(camera.mount_height)
+        self._standstill.set_camera(self.camera)
 
     @property
     def pitch_roll(self) -> np.ndarray | None:
@@ -495,7 +506,7 @@ class BevoOdometry:
         stamped_dt = dt
         if self.mode == "fused" and not first:
             dt = self._frame_clock.interval(dt)  # stamp jitter is no speed change
-        measured, accepted, speed, shift = None, (True, True), float("nan"), 0.0
+        measured, accepted, speed, shift, still = None, (True, True), float("nan"), 0.0, False
         if first:
             motion = np.zeros(3)
             motion_cov = np.zeros((3, 3))
@@ -506,7 +517,8 @@ class BevoOdometry:
             # much more or less (frames and a 10 Hz IMU sharing jittered stamps: 10 Hz on-ramp
             # preset with +-10 ms stamps, yaw 0.131 -> 0.027 deg per frame, as with exact stamps).
             frame_yaw = self._prev_yaw_cum + (yaw_cum - self._prev_yaw_cum) * dt / stamped_dt
-            reg, motion, motion_cov, measured, accepted, speed = self._fused_motion(curr, stamp, dt, frame_yaw, state, shift)
+            reg, motion, motion_cov, measured, accepted, speed, still = self._fused_motion(
+                curr, stamp, dt, frame_yaw, state, shift, image)
             quality = reg.quality.item()
         else:
             reg = self.kernels.register_prepared(self._prev, curr, self.dpc, envelope=self._envelope(curr))
@@ -516,6 +528,8 @@ class BevoOdometry:
         self._pose_cov = propagate_covariance_se2_floats(self._pose[2], self._pose_cov, motion, motion_cov)
         self._pose = compose_se2_floats(self._pose, motion)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
+        if self.mode == "fused":
+            self._standstill.remember(image)
         self._prev_yaw_cum = yaw_cum
         self._prev_pitch = (road[0], state[0][0], epoch)
         if dt > 0:
@@ -564,6 +578,7 @@ class BevoOdometry:
             filter_inputs=None if first or self.mode != "fused" else self._last_filter_inputs,
             tag=tag,
             pitch_shift=shift,
+            standstill=still,
         )
 
     def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int) -> float:
@@ -587,9 +602,11 @@ class BevoOdometry:
             return 0.0
         return self._shift_per_pitch_change * ((bev_pitch - prev[0]) - (state[0][0] - prev[1]))
 
-    def _fused_motion(self, curr, stamp: float, dt: float, yaw_cum: float, state: tuple, pitch_shift: float = 0.0):
+    def _fused_motion(self, curr, stamp: float, dt: float, yaw_cum: float, state: tuple, pitch_shift: float = 0.0,
+                      image: torch.Tensor | None = None):
         """Fused mode, one frame: derotate by the gyro's yaw, correlate, take ``pitch_shift``
-        (:meth:`_pitch_change_shift`) off the forward motion, filter, gate."""
+        (:meth:`_pitch_change_shift`) off the forward motion, check for standstill on the raw
+        ``image`` when the correlation reads little motion, filter, gate."""
         gyro_yaw = yaw_cum - self._prev_yaw_cum
         n = self.vehicle.noise
         predicted_bias = self._vstate.b
@@ -612,14 +629,22 @@ class BevoOdometry:
             imu_accel = self._fwd_sum / self._fwd_time
             imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
         self._fwd_sum = self._fwd_time = 0.0
+        # At rest the BEVs still move: the engine's attitude keeps changing (the DUKF on an idling
+        # engine's vibration, the road-tilt low-pass), and each 0.01 deg of BEV pitch change reads as
+        # 1.4 cm. The raw images say whether the car moved (core/standstill).
+        still = False
+        if image is not None and self._standstill.enabled and abs(float(measured[0])) < STANDSTILL_CHECK_BELOW:
+            still = self._standstill.at_rest(self._standstill.measure(image))
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
-                      quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var)
+                      quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, standstill=still)
         frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
         self._last_filter_inputs = inputs
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
-        if quality < n.min_quality:
+        if still:
+            self._count("standstill", stamp)
+        elif quality < n.min_quality:
             self._count("rejected_textureless", stamp)
         else:
             for kind, accepted in (("rejected_translation", acc_t), ("rejected_rotation", acc_r)):
@@ -627,7 +652,7 @@ class BevoOdometry:
                     self._count(kind, stamp)
         motion = np.array([float(v) for v in frame.motion])
         motion_cov = np.diag([float(v) for v in frame.variance])
-        return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v)
+        return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v), still
 
     def _mask_weight(self, mask: torch.Tensor, dtype: torch.dtype) -> MaskWeight:
         """The BEV mask's correlation weight, reused while the mask (and ``self.dpc``) stays the

@@ -282,6 +282,8 @@ class EngineFeed:
             if d[kind] > 0:
                 self.report.events[kind] += d[kind]
                 self.report.log(kind, f"{d[kind]} frame(s) with {why}: carried by the motion filter's prediction")
+        if d["standstill"] > 0:  # not a fault: the car stood still (zero motion, yaw gyro bias observed)
+            self.report.events["standstill"] += d["standstill"]
         if d["imu_gaps"] > 0:
             self.report.events["imu_gap"] += d["imu_gaps"]
             self.report.log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.max_imu_gap} s (last gap "

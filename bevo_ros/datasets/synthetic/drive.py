@@ -190,7 +190,8 @@ def make_drive(
         curvature: scale of the curves' yaw rates; 0 = straight line.
         start_pose: world ``(x, y, yaw)`` at the first frame; default random.
         preset: a named, deterministic manoeuvre (:data:`PRESETS`: ``curve``, ``braking``,
-            ``bend_start``, ``stop_and_go``, ``bumpy``): it fixes speed and yaw rate (``speed_range``,
+            ``bend_start``, ``stop_and_go``, ``bumpy``, ``on_ramp``, ``urban``, ``traffic_light``,
+            ``highway``): it fixes speed and yaw rate (``speed_range``,
             ``speed_variation``, ``curvature``, ``max_yaw_rate``, ``max_lateral_accel`` are then unused);
             suspension, bumps, road tilt, start pose and noise still follow ``seed`` and the other
             arguments. None = the seeded random drive.

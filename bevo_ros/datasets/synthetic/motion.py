@@ -5,7 +5,8 @@ Model of the drive (all signals are smooth analytic functions of time, so the IM
 
 * the base (IMU) origin moves on the road with speed ``v(t)`` and heading ``yaw(t)``;
   its road-relative attitude is ``R_road_base = Ry(pitch_rel) @ Rx(roll_rel)`` (suspension:
-  sinusoids, bump events, and load transfer from the longitudinal/lateral acceleration) and its
+  sinusoids and bump events driven by the road, so fading out below ~3 m/s and gone at rest, and
+  load transfer from the longitudinal/lateral acceleration) and its
   height follows from the fixed camera height (the geometry module's constant-elevation model);
 * the road is tilted against gravity by a slowly varying slope and camber, defined relative to
   the heading (a banked, graded road the car follows):
@@ -15,8 +16,9 @@ Model of the drive (all signals are smooth analytic functions of time, so the IM
   acceleration of the accelerometer model (rotating the whole world plane by the tilt instead would
   create huge spurious accelerations far from the origin);
 * speed and yaw rate are seeded random (sines, curve events) or a named preset (:data:`PRESETS`:
-  sustained curve, hard braking, start inside a bend, stop-and-go, bumpy road) built from C4 smooth
-  steps with closed-form integrals; the suspension, road tilt and noise stay seeded either way;
+  sustained curve, hard braking, start inside a bend, stop-and-go, bumpy road, on-ramp, urban,
+  traffic light, highway) built from C4 smooth steps with closed-form integrals; the suspension,
+  road tilt and noise stay seeded either way;
 * gyro = body angular velocity of ``R_grav_base`` (5-point central differences of the analytic
   rotation, error ~1e-9 rad/s), accel = specific force ``R_grav_base^T (a_grav + [0, 0, g])``
   (error ~3e-8 m/s^2).
@@ -329,6 +331,14 @@ class _Motion:
     camber_sines: _Sines
     t_base_cam: np.ndarray  # (3,)
     cam_height: float
+    # The road drives the body's oscillation and bumps: full above this speed (m/s), fading to
+    # nothing at rest (a car standing at a light does not pitch by a degree between frames).
+    excitation_speed: float = 3.0
+
+    def excitation(self, t):
+        """Road excitation of the suspension in [0, 1]: a C2 smoothstep of ``speed / excitation_speed``."""
+        u = np.clip(self.speed(t) / self.excitation_speed, 0.0, 1.0)
+        return u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
 
     def speed(self, t):
         return self.speed_profile(t)
@@ -343,10 +353,11 @@ class _Motion:
         return self.yaw_rate_profile.integral(t, self.yaw0)
 
     def pitch_rel(self, t):
-        return self.pitch_sines(t) + self.pitch_bumps(t) - self.load_pitch * self.speed_dot(t)
+        return self.excitation(t) * (self.pitch_sines(t) + self.pitch_bumps(t)) - self.load_pitch * self.speed_dot(t)
 
     def roll_rel(self, t):
-        return self.roll_sines(t) + self.roll_bumps(t) + self.load_roll * self.speed(t) * self.yaw_rate(t)
+        return (self.excitation(t) * (self.roll_sines(t) + self.roll_bumps(t))
+                + self.load_roll * self.speed(t) * self.yaw_rate(t))
 
     def slope(self, t):
         return self.slope0 + self.slope_sines(t)
@@ -514,6 +525,16 @@ _PRESETS: dict[str, _Preset] = {
         "1 m/s (0.1 m per 10 Hz frame) and a 90 deg left turn while pulling away to 6 m/s; 26 s",
         26.0, _levels(8.0, [(1.0, 3.0, 3.0), (9.5, 3.0, 8.0), (13.0, 3.0, 1.0), (17.0, 3.0, 6.0)]),
         _levels(0.0, [(3.5, 1.0, -0.3), (8.736, 1.0, 0.0), (16.0, 1.0, 0.25), (22.283, 1.0, 0.0)])),
+    "traffic_light": _Preset(
+        "traffic light: 10 m/s with a gentle curve, braking (<= 3.1 m/s^2) to a full stop at t = 9 s, 15 s at rest, "
+        "pulling away to 8 m/s by t = 30 s and turning right; 32 s",
+        32.0, _levels(10.0, [(1.0, 8.0, 0.0), (24.0, 6.0, 8.0)]),
+        _levels(0.0, [(2.0, 2.0, 0.03), (5.0, 2.0, 0.0), (27.0, 2.0, -0.08), (30.0, 2.0, 0.0)])),
+    "highway": _Preset(
+        "highway: 28 m/s (100 km/h) into a 1000 m radius left curve (0.028 rad/s) at t = 2 s, a gentle right one "
+        "at t = 7 s, slowing to 25 m/s over t = 6..10 s; 12 s",
+        12.0, _levels(28.0, [(6.0, 4.0, 25.0)]),
+        _levels(0.0, [(2.0, 2.0, 0.028), (7.0, 2.0, -0.02), (10.0, 1.5, 0.0)])),
 }
 
 PRESETS: dict[str, str] = {name: p.description for name, p in _PRESETS.items()}

@@ -1,0 +1,224 @@
+"""Standstill: the small motion between raw images (core/standstill.py) and the engine at rest.
+
+At a red light the BEVs still move (the engine's attitude keeps changing, 1.4 cm per 0.01 deg of
+BEV pitch change on KITTI) and the yaw gyro's bias keeps turning the heading; the images say
+whether the car moved, and then the motion is zero and the bias observed.
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from bevo_ros.config import BevoConfig, build_odometry
+from bevo_ros.core.geometry import CameraModel, camera_pose_on_road
+from bevo_ros.core.standstill import (StandstillDetector, downsample, ground_flow_basis, small_motion,
+                                      working_factor)
+from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
+from bevo_ros.datasets.kitti import camera_model_from_kitti
+from bevo_ros.datasets.rosbag import feed_engine
+from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive
+from bevo_ros.datasets.synthetic.render import render_view
+from bevo_ros.io.learned_params import load_learned_params
+from bevo_ros.config import REPO_ROOT
+
+FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
+KITTI_MOUNTING = (0.0270, -0.0177)  # params/kitti.yaml
+
+
+def half_camera() -> CameraModel:
+    cam = kitti_like_camera()
+    K = cam.K.clone()
+    K[:2] *= 0.5
+    return CameraModel(K, 620, 188, cam.T_base_cam, cam.mount_height)
+
+
+def _small(img: np.ndarray, factor: int) -> torch.Tensor:
+    return downsample(torch.as_tensor(img), factor)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    cam = half_camera()
+    d = preset_drive("curve", seed=1, duration=2.0, render="lazy", camera=cam, road_tilt=True)
+    f = working_factor(cam.width)
+    return cam, d, f, ground_flow_basis(cam, 0.0, 0.0, f)
+
+
+def test_small_motion_reads_forward_motion_on_rendered_frames(scene):
+    """Pairs rendered at known forward motions (the renderer's exact ground): the estimate is the
+    motion to 15 % + 1.5 mm inside the linear range, and the detector says at rest only below 1 cm
+    (``odometry.standstill_max_motion``)."""
+    cam, d, f, basis = scene
+    x, y, yaw = d.poses_xy_yaw[5]
+    det = StandstillDetector(cam, (0.0, 0.0), 0.01)
+    a = render_view(d.ground, cam, (x, y, yaw), (0.0, 0.0), noise_seed=1)
+    for k, dx in enumerate([0.0, 0.003, 0.02, 0.05, 0.1]):
+        b = render_view(d.ground, cam, (x + dx * math.cos(yaw), y + dx * math.sin(yaw), yaw), (0.0, 0.0),
+                        noise_seed=10 + k)
+        m = small_motion(_small(a, f), _small(b, f), basis)
+        print(f"dx {dx:.3f} m: {m.forward:+.4f} +- {m.forward_std:.4f} m, inliers {m.inliers:.2f}")
+        assert abs(m.forward - dx) < 0.15 * dx + 0.0015
+        assert det.at_rest(m) == (dx < 0.01)
+
+
+def test_small_motion_ignores_rotation_exposure_and_a_moving_object(scene):
+    """The car at rest, the camera pitching 0.05 deg, the exposure up 8 % and a bright object
+    crossing the road region: still at rest. The same object on a moving car does not hide the
+    motion."""
+    cam, d, f, basis = scene
+    x, y, yaw = d.poses_xy_yaw[5]
+    a = render_view(d.ground, cam, (x, y, yaw), (0.0, 0.0), noise_seed=1)
+    b = render_view(d.ground, cam, (x, y, yaw), (math.radians(0.05), 0.0), noise_seed=2).astype(np.float64)
+    b = np.clip(1.08 * b + 3.0, 0, 255)
+    a2, b2 = a.astype(np.float64).copy(), b.copy()
+    a2[120:150, 250:290] = 250.0  # a pedestrian-sized bright patch, moved 12 px between the frames
+    b2[120:150, 262:302] = 250.0
+    for img_a, img_b in ((a, b), (a2, b2)):
+        m = small_motion(_small(img_a, f), _small(img_b.astype(np.uint8), f), basis)
+        print(f"at rest: {m.forward:+.5f} +- {m.forward_std:.5f} m, inliers {m.inliers:.2f}")
+        assert abs(m.forward) < 0.004 and m.forward_std < 0.002
+    moved = render_view(d.ground, cam, (x + 0.03 * math.cos(yaw), y + 0.03 * math.sin(yaw), yaw), (0.0, 0.0),
+                        noise_seed=3).astype(np.float64)
+    moved[120:150, 262:302] = 250.0
+    m = small_motion(_small(a2, f), _small(moved.astype(np.uint8), f), basis)
+    assert m.forward == pytest.approx(0.03, abs=0.006)
+
+
+def _forward_warp(img: np.ndarray, cam: CameraModel, attitude: tuple[float, float], dx: float) -> np.ndarray:
+    """What the camera sees after the base moved ``dx`` forward: every pixel's ray meets the road
+    plane from the moved camera, projected into the first (exact for the road)."""
+    H, W = img.shape
+    K = cam.K.double().numpy()
+    R, t = camera_pose_on_road(cam.to(dtype=torch.float64), torch.tensor([attitude[0]], dtype=torch.float64),
+                               torch.tensor([attitude[1]], dtype=torch.float64))
+    R, t = R[0].numpy(), t[0].numpy()
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays = (np.stack([uu, vv, np.ones_like(uu)], -1) @ np.linalg.inv(K).T) @ R.T
+    depth = -t[2] / np.minimum(rays[..., 2], -1e-3)
+    ground = t + np.array([dx, 0.0, 0.0]) + depth[..., None] * rays
+    p = ((ground - t) @ R) @ K.T
+    return cv2.remap(img, (p[..., 0] / p[..., 2]).astype(np.float32), (p[..., 1] / p[..., 2]).astype(np.float32),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def test_small_motion_on_real_kitti_texture(kitti_root):
+    """Real road texture (KITTI sequence 06): a frame against itself with sensor noise and a 10 %
+    exposure change is at rest; the same frame moved 3 mm / 2 cm / 5 cm over the road reads that
+    motion; two consecutive real frames (1.2 m apart) are far from at rest."""
+    seq = kitti_root / "odometry" / "sequences" / "06"
+    files = sorted((seq / "image_0").glob("*.png"))[:21:20]
+    imgs = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in files]
+    H, W = imgs[0].shape
+    cam = camera_model_from_kitti(seq / "calib.txt", kitti_root / "raw" / "2011_09_26", (W, H), mount_height=1.65)
+    f = working_factor(W)
+    basis = ground_flow_basis(cam, *KITTI_MOUNTING, f)
+    det = StandstillDetector(cam, KITTI_MOUNTING, 0.01)
+    rng = np.random.default_rng(0)
+
+    def noisy(img, gain=1.0):
+        return np.clip(img * gain + rng.normal(0.0, 1.5, img.shape), 0, 255).astype(np.uint8)
+
+    for img in imgs:
+        ref = _small(noisy(img.astype(np.float64)), f)
+        for gain in (1.0, 1.1):
+            m = small_motion(ref, _small(noisy(img.astype(np.float64), gain), f), basis)
+            assert abs(m.forward) < 0.001 and det.at_rest(m), m
+        for dx in (0.003, 0.02, 0.05):
+            m = small_motion(ref, _small(noisy(_forward_warp(img, cam, KITTI_MOUNTING, dx).astype(np.float64)), f),
+                             basis)
+            print(f"real texture, {dx * 100:.1f} cm: {m.forward * 100:+.3f} +- {m.forward_std * 100:.3f} cm")
+            assert m.forward == pytest.approx(dx, rel=0.15, abs=0.001)
+            assert det.at_rest(m) == (dx < 0.01)
+    m = small_motion(_small(imgs[0], f), _small(cv2.imread(str(sorted((seq / "image_0").glob("*.png"))[1]),
+                                                           cv2.IMREAD_GRAYSCALE), f), basis)
+    assert m.forward > 0.05 and not det.at_rest(m)
+
+
+def test_detector_copies_the_previous_image(scene):
+    """A caller refilling one buffer per frame: the remembered image is a copy, so the pair is not
+    read as identical (a false standstill)."""
+    cam, d, f, _ = scene
+    det = StandstillDetector(cam, (0.0, 0.0), 0.01)
+    x, y, yaw = d.poses_xy_yaw[5]
+    buf = torch.as_tensor(render_view(d.ground, cam, (x, y, yaw), (0.0, 0.0), noise_seed=1)).clone()
+    det.remember(buf)
+    buf.copy_(torch.as_tensor(render_view(d.ground, cam, (x + 0.03 * math.cos(yaw), y + 0.03 * math.sin(yaw), yaw),
+                                          (0.0, 0.0), noise_seed=2)))
+    m = det.measure(buf)
+    assert m.forward == pytest.approx(0.03, abs=0.006) and not det.at_rest(m)
+    assert StandstillDetector(cam, (0.0, 0.0), 0.0).measure(buf) is None  # disabled
+    det.reset()
+    assert det.measure(buf) is None  # nothing remembered
+
+
+def test_filter_at_rest_is_still_and_learns_the_yaw_bias():
+    """At rest the filter's motion is exactly zero whatever the correlation says, the gyro's yaw
+    increments are its bias, and the tensor form (training) is the same computation."""
+    f = VehicleFilter(VehicleNoise())
+    bias, dt = 0.002, 0.1  # rad/s: a MEMS gyro's bias, 0.11 deg/s
+    rng = np.random.default_rng(0)
+    sf, st = initial_vehicle_state(), initial_vehicle_state(like=torch.zeros(2, dtype=torch.float64))
+    for k in range(100):
+        gyro_yaw = bias * dt + rng.normal(0.0, 1e-4)
+        still = k >= 10
+        kw = dict(forward=0.03 * rng.normal(), forward_var=1e-3, lateral=0.0, lateral_var=1e-4, rotation=0.001,
+                  rotation_var=3e-4, quality=0.5)
+        a = f.step(sf, dt, gyro_yaw, standstill=still, **kw)
+        b = f.step(st, dt, torch.full((2,), gyro_yaw, dtype=torch.float64),
+                   standstill=torch.tensor([still, False]), **{k_: (torch.full((2,), v, dtype=torch.float64))
+                                                               for k_, v in kw.items()})
+        for x, y in zip(a.motion + a.variance, b.motion + b.variance):
+            assert float(y[0]) == pytest.approx(x, rel=1e-12, abs=1e-15)
+        if still:
+            assert a.motion == (0.0, 0.0, 0.0) and not a.accepted[0]
+            assert float(b.motion[2][1]) != 0.0  # the moving twin still turns on the gyro
+        sf, st = a.state, b.state
+    assert sf.b == pytest.approx(bias, rel=0.05) and abs(sf.v) < 0.01 and abs(sf.a) < 0.05
+
+
+@pytest.fixture(scope="module")
+def light_drive():
+    """The traffic_light preset cut at 16 s: braking to a stop at 9 s, 7 s at rest."""
+    cam = half_camera()
+    d = preset_drive("traffic_light", seed=1, duration=16.0, render="lazy", camera=cam, road_tilt=True,
+                     imu_rate=10.0)
+    return cam, d, [d.image(k) for k in range(d.num_frames)]
+
+
+def _run(cam, d, images, max_motion: float):
+    config = BevoConfig()
+    config.odometry.standstill_max_motion = max_motion
+    odo = build_odometry(config, FUSED, camera=cam)
+    steps = feed_engine(odo, d.imu_stamps, d.gyro, d.accel, d.frame_stamps, lambda k: images[k], trailing=False)
+    return odo, steps
+
+
+def test_engine_stands_still_at_a_light(light_drive):
+    """A 10 Hz drive stopping at a light: the frames at rest are found (none while moving more than
+    1.5 cm per frame), the pose neither creeps nor turns while the car stands, and without the
+    check it does (the test can fail)."""
+    cam, d, images = light_drive
+    gt = d.relative_motion
+    rest = gt[:, 0] < 1e-4
+    assert rest.sum() > 50
+    moves = {}
+    for max_motion in (0.01, 0.0):
+        odo, steps = _run(cam, d, images, max_motion)
+        est = np.array([s.motion for s in steps[1:]])
+        flagged = np.array([s.standstill for s in steps[1:]])
+        creep, turn = float(np.abs(est[rest, 0]).sum()), float(np.degrees(abs(est[rest, 2].sum())))
+        moves[max_motion] = (creep, turn)
+        print(f"standstill_max_motion {max_motion}: {flagged.sum()} frames at rest of {rest.sum()} true; "
+              f"creep {creep * 100:.1f} cm, turn {turn:.3f} deg while standing; counters {odo.counters.standstill}")
+        if max_motion > 0:
+            assert flagged[rest].mean() > 0.95 and not flagged[gt[:, 0] > 0.015].any()
+            assert odo.counters.standstill == flagged.sum()
+            assert creep < 0.01 and turn < 0.05
+            assert all(s.twist_linear[0] == 0.0 for s, r in zip(steps[1:], flagged) if r)
+        else:
+            assert not flagged.any() and odo.counters.standstill == 0
+    assert moves[0.0][0] > 0.05  # without it: centimetres per frame of BEV-pitch noise read as motion
