@@ -222,3 +222,17 @@ def test_engine_stands_still_at_a_light(light_drive):
         else:
             assert not flagged.any() and odo.counters.standstill == 0
     assert moves[0.0][0] > 0.05  # without it: centimetres per frame of BEV-pitch noise read as motion
+
+
+def test_a_frozen_camera_at_speed_is_no_standstill(light_drive):
+    """A camera driver repeating its last frame for three frames while the car does 9.5 m/s: the
+    pairs are identical, but a car cannot stop within a frame, so none is taken as a standstill
+    (the motion filter's own gate then decides, as for any disagreeing frame)."""
+    cam, d, images = light_drive
+    frozen = list(images)
+    for k in range(20, 23):
+        frozen[k] = images[19]
+    _, steps = _run(cam, d, frozen, 0.01)
+    gt = d.relative_motion
+    assert not any(s.standstill for s in steps[1:30])
+    assert steps[20].motion[0] > 0.8 * gt[19, 0] > 0.7  # the first frozen pair: the prediction carries it

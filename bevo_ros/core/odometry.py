@@ -632,8 +632,11 @@ class BevoOdometry:
         # At rest the BEVs still move: the engine's attitude keeps changing (the DUKF on an idling
         # engine's vibration, the road-tilt low-pass), and each 0.01 deg of BEV pitch change reads as
         # 1.4 cm. The raw images say whether the car moved (core/standstill).
+        # Only when a stop is within reach of the motion filter's speed (a car does not go from 15 m/s
+        # to rest in a frame): a frozen camera repeating its last frame at speed is not a standstill.
         still = False
-        if image is not None and self._standstill.enabled and abs(float(measured[0])) < STANDSTILL_CHECK_BELOW:
+        if (image is not None and self._standstill.enabled and abs(float(measured[0])) < STANDSTILL_CHECK_BELOW
+                and self._stop_is_plausible(dt)):
             still = self._standstill.at_rest(self._standstill.measure(image))
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
@@ -653,6 +656,14 @@ class BevoOdometry:
         motion = np.array([float(v) for v in frame.motion])
         motion_cov = np.diag([float(v) for v in frame.variance])
         return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v), still
+
+    def _stop_is_plausible(self, dt: float) -> bool:
+        """Fused mode: the motion filter's speed can reach zero within ``dt`` braking at 1 g (plus
+        0.5 m/s of slack). Its mean, not its variance: rejected frames widen the variance, and a
+        frozen camera is a lasting disagreement. A filter whose speed is wrong comes down through
+        the correlation's own readings first, as before."""
+        v, _ = self._vstate.speed_at(dt)
+        return abs(v) <= GRAVITY * dt + 0.5
 
     def _mask_weight(self, mask: torch.Tensor, dtype: torch.dtype) -> MaskWeight:
         """The BEV mask's correlation weight, reused while the mask (and ``self.dpc``) stays the

@@ -163,7 +163,7 @@ def small_motion(prev: Tensor, curr: Tensor, basis: FlowBasis, iterations: int =
     scale = A.abs().mean(0).clamp_min(1e-12)
     As = A / scale
     wts = torch.ones_like(y)
-    ridge = 1e-9 * torch.eye(As.shape[1], dtype=As.dtype)
+    ridge = 1e-9 * torch.eye(As.shape[1], dtype=As.dtype, device=As.device)
     for it in range(iterations + 1):
         Aw = As * wts[:, None]
         H = As.T @ Aw + ridge
