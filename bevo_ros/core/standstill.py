@@ -8,7 +8,9 @@ KITTI), which the correlation reads as motion: on the synthetic stop of 16 s the
 and turned 2.4 deg (the yaw gyro's bias) while the car stood still.
 
 What this measures instead: the small motion between two raw images, by brightness constancy
-over the road region of the image (a direct, linearised least squares, robust to outliers),
+over the road region of the image (a direct, linearised least squares, robust to outliers: its
+first weights come from the frame difference less the exposure change, so at rest an object
+moving through the region, such as the car ahead pulling away, is left out, not fitted),
 with the camera's own small rotations and a brightness gain and offset as nuisance parameters,
 so neither the attitude estimate nor the camera's exposure enters. For a forward translation
 ``dX`` of the base, a road point at depth ``Z`` flows by the projection's derivative
@@ -125,6 +127,13 @@ def _smooth(image: Tensor) -> Tensor:
     return F.conv2d(x, k.view(1, 1, 5, 1))[0, 0]
 
 
+def _tukey(r: Tensor, spread_of: Tensor) -> Tensor:
+    """Tukey biweights of residuals ``r`` at 4.685 robust sigmas (the MAD of ``spread_of``)."""
+    sigma = 1.4826 * (spread_of - spread_of.median()).abs().median().clamp_min(1e-6)
+    u = (r / (4.685 * sigma)).clamp(-1, 1)
+    return (1 - u * u) ** 2
+
+
 @dataclass(frozen=True)
 class SmallMotion:
     """``forward``: the base's forward motion between the images (m); ``forward_std``: its standard
@@ -140,7 +149,8 @@ def small_motion(prev: Tensor, curr: Tensor, basis: FlowBasis, iterations: int =
 
     Linearised brightness constancy, ``I_t = -sum_k (I_x u_k + I_y v_k) m_k + g I + o``, solved by
     iteratively reweighted least squares (Tukey weights at 4.7 robust sigmas: a pedestrian or a
-    passing car in the road region is an outlier, not a motion).
+    passing car in the road region is an outlier, not a motion). ``prev``, ``curr``: ``(h, w)``
+    on ``basis``'s grid. ``iterations``: reweighting passes after the first solve.
     """
     a = _smooth(prev.to(basis.flow.dtype))
     b = _smooth(curr.to(basis.flow.dtype))
@@ -162,17 +172,21 @@ def small_motion(prev: Tensor, curr: Tensor, basis: FlowBasis, iterations: int =
     # Column scaling keeps the normal equations well conditioned (metres vs radians vs grey levels).
     scale = A.abs().mean(0).clamp_min(1e-12)
     As = A / scale
-    wts = torch.ones_like(y)
+    # First weights from the frame difference less the exposure change alone: at rest it is sensor
+    # noise on the road, and an object moving in the region (the car ahead pulling away) stands out
+    # and is left out, not fitted as part of the motion; when the car moves, the whole road differs
+    # and all stay.
+    photometric = As[:, N_MOTION:]
+    r0 = y - photometric @ torch.linalg.lstsq(photometric, y[:, None]).solution[:, 0]
+    wts = _tukey(r0, r0)
     ridge = 1e-9 * torch.eye(As.shape[1], dtype=As.dtype, device=As.device)
     for it in range(iterations + 1):
         Aw = As * wts[:, None]
         H = As.T @ Aw + ridge
         theta = torch.linalg.solve(H, Aw.T @ y)
         r = y - As @ theta
-        sigma = 1.4826 * (r - r.median()).abs().median().clamp_min(1e-6)
         if it < iterations:
-            u = (r / (4.685 * sigma)).clamp(-1, 1)
-            wts = (1 - u * u) ** 2
+            wts = _tukey(r, r)
     dof = max(float(wts.sum()) - As.shape[1], 1.0)
     s2 = float((wts * r * r).sum()) / dof
     cov = torch.linalg.inv(H) * s2
