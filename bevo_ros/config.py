@@ -116,9 +116,9 @@ class OdometrySettings:
     frame_clock_window: int = 20
     # Fused mode: a frame whose correlation reads little forward motion is checked for standstill on
     # the raw images (core/standstill.py: the small motion over the road region by brightness
-    # constancy); below this motion (m per frame) the vehicle is at rest: zero motion, the yaw
-    # gyro's bias observed. 0 disables the check.
-    standstill_max_motion: float = 0.01
+    # constancy); below this speed (m/s) over the frame interval the vehicle is at rest: zero
+    # motion, the yaw gyro's bias observed. 0 disables the check.
+    standstill_max_speed: float = 0.1
 
 
 @dataclass
@@ -485,7 +485,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         frame_clock_window=config.odometry.frame_clock_window,
         gyro_sampling=config.filter.gyro_sampling,
         kernels=config.kernels,
-        standstill_max_motion=config.odometry.standstill_max_motion,
+        standstill_max_speed=config.odometry.standstill_max_speed,
     )
     odometry.imu_limits = limits
     return odometry

@@ -15,8 +15,9 @@ import torch
 
 from bevo_ros.config import BevoConfig, build_odometry
 from bevo_ros.core.geometry import CameraModel, camera_pose_on_road
-from bevo_ros.core.standstill import (StandstillDetector, downsample, ground_flow_basis, small_motion,
-                                      working_factor)
+from bevo_ros.core.odometry import InvalidInputError
+from bevo_ros.core.standstill import (MIN_TEXTURE_SNR, StandstillDetector, downsample, ground_flow_basis,
+                                      small_motion, working_factor)
 from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 from bevo_ros.datasets.kitti import camera_model_from_kitti
 from bevo_ros.datasets.rosbag import feed_engine
@@ -51,10 +52,10 @@ def scene():
 def test_small_motion_reads_forward_motion_on_rendered_frames(scene):
     """Pairs rendered at known forward motions (the renderer's exact ground): the estimate is the
     motion to 15 % + 1.5 mm inside the linear range, and the detector says at rest only below 1 cm
-    (``odometry.standstill_max_motion``)."""
+    per 10 Hz frame (``odometry.standstill_max_speed`` 0.1 m/s)."""
     cam, d, f, basis = scene
     x, y, yaw = d.poses_xy_yaw[5]
-    det = StandstillDetector(cam, (0.0, 0.0), 0.01)
+    det = StandstillDetector(cam, (0.0, 0.0), 0.1)
     a = render_view(d.ground, cam, (x, y, yaw), (0.0, 0.0), noise_seed=1)
     for k, dx in enumerate([0.0, 0.003, 0.02, 0.05, 0.1]):
         b = render_view(d.ground, cam, (x + dx * math.cos(yaw), y + dx * math.sin(yaw), yaw), (0.0, 0.0),
@@ -62,7 +63,8 @@ def test_small_motion_reads_forward_motion_on_rendered_frames(scene):
         m = small_motion(_small(a, f), _small(b, f), basis)
         print(f"dx {dx:.3f} m: {m.forward:+.4f} +- {m.forward_std:.4f} m, inliers {m.inliers:.2f}")
         assert abs(m.forward - dx) < 0.15 * dx + 0.0015
-        assert det.at_rest(m) == (dx < 0.01)
+        assert det.at_rest(m, 0.1) == (dx < 0.01)
+        assert m.texture_snr > 100 and abs(m.near - dx) < 0.2 * dx + 0.003 and abs(m.far - dx) < 0.2 * dx + 0.003
 
 
 def test_small_motion_ignores_rotation_exposure_and_a_moving_object(scene):
@@ -120,7 +122,7 @@ def test_small_motion_on_real_kitti_texture(kitti_root):
     cam = camera_model_from_kitti(seq / "calib.txt", kitti_root / "raw" / "2011_09_26", (W, H), mount_height=1.65)
     f = working_factor(W)
     basis = ground_flow_basis(cam, *KITTI_MOUNTING, f)
-    det = StandstillDetector(cam, KITTI_MOUNTING, 0.01)
+    det = StandstillDetector(cam, KITTI_MOUNTING, 0.1)
     rng = np.random.default_rng(0)
 
     def noisy(img, gain=1.0):
@@ -130,55 +132,122 @@ def test_small_motion_on_real_kitti_texture(kitti_root):
         ref = _small(noisy(img.astype(np.float64)), f)
         for gain in (1.0, 1.1):
             m = small_motion(ref, _small(noisy(img.astype(np.float64), gain), f), basis)
-            assert abs(m.forward) < 0.001 and det.at_rest(m), m
+            assert abs(m.forward) < 0.001 and det.at_rest(m, 0.1), m
         for dx in (0.003, 0.02, 0.05):
             m = small_motion(ref, _small(noisy(_forward_warp(img, cam, KITTI_MOUNTING, dx).astype(np.float64)), f),
                              basis)
             print(f"real texture, {dx * 100:.1f} cm: {m.forward * 100:+.3f} +- {m.forward_std * 100:.3f} cm")
             assert m.forward == pytest.approx(dx, rel=0.15, abs=0.001)
-            assert det.at_rest(m) == (dx < 0.01)
+            assert det.at_rest(m, 0.1) == (dx < 0.01)
     m = small_motion(_small(imgs[0], f), _small(cv2.imread(str(sorted((seq / "image_0").glob("*.png"))[1]),
                                                            cv2.IMREAD_GRAYSCALE), f), basis)
-    assert m.forward > 0.05 and not det.at_rest(m)
+    assert m.forward > 0.05 and not det.at_rest(m, 0.1)
 
 
-def test_detector_copies_the_previous_image(scene):
+def test_detector_copies_the_previous_image_and_skips_repeated_frames(scene):
     """A caller refilling one buffer per frame: the remembered image is a copy, so the pair is not
-    read as identical (a false standstill)."""
+    read as identical. A frame repeated bit for bit (a driver resending its last one) is no
+    measurement at all."""
     cam, d, f, _ = scene
-    det = StandstillDetector(cam, (0.0, 0.0), 0.01)
+    det = StandstillDetector(cam, (0.0, 0.0), 0.1)
     x, y, yaw = d.poses_xy_yaw[5]
     buf = torch.as_tensor(render_view(d.ground, cam, (x, y, yaw), (0.0, 0.0), noise_seed=1)).clone()
     det.remember(buf)
+    assert det.measure(buf) is None  # the same frame again
     buf.copy_(torch.as_tensor(render_view(d.ground, cam, (x + 0.03 * math.cos(yaw), y + 0.03 * math.sin(yaw), yaw),
                                           (0.0, 0.0), noise_seed=2)))
     m = det.measure(buf)
-    assert m.forward == pytest.approx(0.03, abs=0.006) and not det.at_rest(m)
+    assert m.forward == pytest.approx(0.03, abs=0.006) and not det.at_rest(m, 0.1)
     assert StandstillDetector(cam, (0.0, 0.0), 0.0).measure(buf) is None  # disabled
     det.reset()
     assert det.measure(buf) is None  # nothing remembered
 
 
+def test_no_texture_is_no_standstill(scene):
+    """Without road texture the images cannot tell 1 cm from 10 cm: flat grey under sensor noise,
+    and a night road whose texture is 20x weaker than its noise, moving 5 cm, are not at rest (the
+    texture's gradient energy over the noise's is below MIN_TEXTURE_SNR); non-finite images give
+    no estimate, and the engine refuses them."""
+    cam, d, f, basis = scene
+    rng = np.random.default_rng(0)
+    det = StandstillDetector(cam, (0.0, 0.0), 0.1)
+    flat = [np.clip(120 + rng.normal(0, 2.0, (cam.height_px, cam.width)), 0, 255) for _ in range(2)]
+    m = small_motion(_small(flat[0], f), _small(flat[1], f), basis)
+    print(f"flat: {m.forward * 100:+.2f} +- {m.forward_std * 100:.2f} cm, texture snr {m.texture_snr:.2f}")
+    assert m.texture_snr < MIN_TEXTURE_SNR and not det.at_rest(m, 0.1)
+    x, y, yaw = d.poses_xy_yaw[5]
+    for dx in (0.05, 0.1):
+        pair = [render_view(d.ground, cam, (x + s * math.cos(yaw), y + s * math.sin(yaw), yaw), (0.0, 0.0),
+                            noise_seed=k).astype(np.float64) for k, s in ((1, 0.0), (2, dx))]
+        night = [np.clip(60 + 0.05 * (p - p.mean()) + rng.normal(0, 4.0, p.shape), 0, 255) for p in pair]
+        m = small_motion(_small(night[0], f), _small(night[1], f), basis)
+        print(f"night road, {dx * 100:.0f} cm: {m.forward * 100:+.2f} cm, texture snr {m.texture_snr:.2f}")
+        assert not det.at_rest(m, 0.1)
+    nan = flat[1].copy()
+    nan[150, 300] = np.nan
+    assert math.isnan(small_motion(_small(flat[0], f), _small(nan, f), basis).forward)
+    config = BevoConfig()
+    odo = build_odometry(config, FUSED, camera=cam)
+    with pytest.raises(InvalidInputError, match="NaN"):
+        odo.add_image(1.0, (nan / 255.0).astype(np.float32))
+
+
+def test_an_object_moving_with_the_car_is_no_standstill(scene):
+    """Creeping 5 cm per frame behind a truck that keeps its distance: the truck covers 38 % of the
+    road region, all its far part, and pulls the whole region's estimate under 1 cm, but the near
+    half sees the road move, so the halves disagree and the frame is not taken as at rest."""
+    cam, d, f, basis = scene
+    x, y, yaw = d.poses_xy_yaw[5]
+    truck = np.kron(np.random.default_rng(7).uniform(40, 200, (29, 90)), np.ones((4, 4)))[:116, :360]
+    frames = []
+    for k, dx in enumerate((0.0, 0.05)):
+        img = render_view(d.ground, cam, (x + dx * math.cos(yaw), y + dx * math.sin(yaw), yaw), (0.0, 0.0),
+                          noise_seed=k).astype(np.float64)
+        img[40:156, 130:490] = truck  # its rear down to ~7 m ahead of the camera, fixed in the image
+        frames.append(img)
+    share = float(basis.road[40 // f:156 // f, 130 // f:490 // f].sum() / basis.road.sum())
+    m = small_motion(_small(frames[0], f), _small(frames[1], f), basis)
+    print(f"behind a truck ({share:.0%} of the region): {m.forward * 100:+.2f} cm (near {m.near * 100:+.2f}, "
+          f"far {m.far * 100:+.2f})")
+    assert share > 0.3 and abs(m.forward) < 0.01  # the whole region alone would say at rest
+    assert m.near > 0.02 and not StandstillDetector(cam, (0.0, 0.0), 0.1).at_rest(m, 0.1)
+
+
+def test_the_threshold_is_a_speed(scene):
+    """At 30 frames per second the same 0.1 m/s allows 3.3 mm per frame: 1 cm per frame (0.3 m/s)
+    is motion there, while it is at rest at 10 Hz."""
+    cam, d, f, basis = scene
+    x, y, yaw = d.poses_xy_yaw[5]
+    det = StandstillDetector(cam, (0.0, 0.0), 0.1)
+    a = render_view(d.ground, cam, (x, y, yaw), (0.0, 0.0), noise_seed=1)
+    for dx, at_10hz, at_30hz in ((0.001, True, True), (0.008, True, False)):
+        b = render_view(d.ground, cam, (x + dx * math.cos(yaw), y + dx * math.sin(yaw), yaw), (0.0, 0.0), noise_seed=2)
+        m = small_motion(_small(a, f), _small(b, f), basis)
+        assert (det.at_rest(m, 0.1), det.at_rest(m, 1 / 30)) == (at_10hz, at_30hz), m
+
+
 def test_filter_at_rest_is_still_and_learns_the_yaw_bias():
-    """At rest the filter's motion is exactly zero whatever the correlation says, the gyro's yaw
-    increments are its bias, and the tensor form (training) is the same computation."""
+    """At rest the filter's motion is exactly zero whatever the correlation says, with the variance
+    the threshold leaves, the gyro's yaw increments are its bias, and the tensor form (training)
+    is the same computation."""
     f = VehicleFilter(VehicleNoise())
-    bias, dt = 0.002, 0.1  # rad/s: a MEMS gyro's bias, 0.11 deg/s
+    bias, dt, rest_var = 0.002, 0.1, 0.005**2  # rad/s: a MEMS gyro's bias, 0.11 deg/s
     rng = np.random.default_rng(0)
     sf, st = initial_vehicle_state(), initial_vehicle_state(like=torch.zeros(2, dtype=torch.float64))
     for k in range(100):
         gyro_yaw = bias * dt + rng.normal(0.0, 1e-4)
-        still = k >= 10
+        rv = rest_var if k >= 10 else 0.0
         kw = dict(forward=0.03 * rng.normal(), forward_var=1e-3, lateral=0.0, lateral_var=1e-4, rotation=0.001,
                   rotation_var=3e-4, quality=0.5)
-        a = f.step(sf, dt, gyro_yaw, standstill=still, **kw)
+        a = f.step(sf, dt, gyro_yaw, rest_var=rv, **kw)
         b = f.step(st, dt, torch.full((2,), gyro_yaw, dtype=torch.float64),
-                   standstill=torch.tensor([still, False]), **{k_: (torch.full((2,), v, dtype=torch.float64))
-                                                               for k_, v in kw.items()})
+                   rest_var=torch.tensor([rv, 0.0], dtype=torch.float64),
+                   **{k_: (torch.full((2,), v, dtype=torch.float64)) for k_, v in kw.items()})
         for x, y in zip(a.motion + a.variance, b.motion + b.variance):
             assert float(y[0]) == pytest.approx(x, rel=1e-12, abs=1e-15)
-        if still:
+        if rv:
             assert a.motion == (0.0, 0.0, 0.0) and not a.accepted[0]
+            assert a.variance[0] == a.variance[1] == rest_var
             assert float(b.motion[2][1]) != 0.0  # the moving twin still turns on the gyro
         sf, st = a.state, b.state
     assert sf.b == pytest.approx(bias, rel=0.05) and abs(sf.v) < 0.01 and abs(sf.a) < 0.05
@@ -193,9 +262,9 @@ def light_drive():
     return cam, d, [d.image(k) for k in range(d.num_frames)]
 
 
-def _run(cam, d, images, max_motion: float):
+def _run(cam, d, images, max_speed: float):
     config = BevoConfig()
-    config.odometry.standstill_max_motion = max_motion
+    config.odometry.standstill_max_speed = max_speed
     odo = build_odometry(config, FUSED, camera=cam)
     steps = feed_engine(odo, d.imu_stamps, d.gyro, d.accel, d.frame_stamps, lambda k: images[k], trailing=False)
     return odo, steps
@@ -210,22 +279,37 @@ def test_engine_stands_still_at_a_light(light_drive):
     rest = gt[:, 0] < 1e-4
     assert rest.sum() > 50
     moves = {}
-    for max_motion in (0.01, 0.0):
-        odo, steps = _run(cam, d, images, max_motion)
+    for max_speed in (0.1, 0.0):
+        odo, steps = _run(cam, d, images, max_speed)
         est = np.array([s.motion for s in steps[1:]])
         flagged = np.array([s.standstill for s in steps[1:]])
         creep, turn = float(np.abs(est[rest, 0]).sum()), float(np.degrees(abs(est[rest, 2].sum())))
-        moves[max_motion] = (creep, turn)
-        print(f"standstill_max_motion {max_motion}: {flagged.sum()} frames at rest of {rest.sum()} true; "
+        moves[max_speed] = (creep, turn)
+        print(f"standstill_max_speed {max_speed}: {flagged.sum()} frames at rest of {rest.sum()} true; "
               f"creep {creep * 100:.1f} cm, turn {turn:.3f} deg while standing; counters {odo.counters.standstill}")
-        if max_motion > 0:
-            assert flagged[rest].mean() > 0.95 and not flagged[gt[:, 0] > 0.015].any()
+        if max_speed > 0:
+            assert flagged[rest].mean() > 0.95 and not flagged[gt[:, 0] > 0.012].any()
             assert odo.counters.standstill == flagged.sum()
             assert creep < 0.01 and turn < 0.05
             assert all(s.twist_linear[0] == 0.0 for s, r in zip(steps[1:], flagged) if r)
         else:
             assert not flagged.any() and odo.counters.standstill == 0
     assert moves[0.0][0] > 0.05  # without it: centimetres per frame of BEV-pitch noise read as motion
+
+
+def test_training_replays_the_stops(light_drive):
+    """Training replays the engine's filter inputs (OdometryStep.filter_inputs), the frames at rest
+    included, to the same motions and variances."""
+    from bevo_ros.training.vehicle import replay
+
+    cam, d, images = light_drive
+    _, steps = _run(cam, d, images, 0.1)
+    assert sum(s.standstill for s in steps) > 50
+    m, v = replay(VehicleNoise(**FUSED.vehicle), [s.filter_inputs for s in steps[1:]])
+    assert np.abs(m.numpy() - np.array([s.motion for s in steps[1:]])).max() < 1e-9
+    published = np.array([np.diag(s.twist_covariance)[[0, 1, 5]] * s.dt**2 for s in steps[1:]])
+    rest = np.array([s.standstill for s in steps[1:]])
+    assert np.allclose(v.numpy()[rest][:, :2], published[rest][:, :2], rtol=1e-6, atol=0)
 
 
 def test_a_frozen_camera_at_speed_is_no_standstill(light_drive):
@@ -236,7 +320,7 @@ def test_a_frozen_camera_at_speed_is_no_standstill(light_drive):
     frozen = list(images)
     for k in range(20, 23):
         frozen[k] = images[19]
-    _, steps = _run(cam, d, frozen, 0.01)
+    _, steps = _run(cam, d, frozen, 0.1)
     gt = d.relative_motion
     assert not any(s.standstill for s in steps[1:30])
     assert steps[20].motion[0] > 0.8 * gt[19, 0] > 0.7  # the first frozen pair: the prediction carries it

@@ -157,10 +157,10 @@ class BevoOdometry:
             the previous sample: KITTI's OXTS, delta-angle IMUs) or ``"instantaneous"`` (the rate
             at its stamp); it sets how the rates are integrated (:mod:`~bevo_ros.core.rate_integration`).
             Paper mode takes each sample as its interval's rate, as the paper does.
-        standstill_max_motion: fused mode: a frame whose correlation reads less than
+        standstill_max_speed: fused mode: a frame whose correlation reads less than
             :data:`~bevo_ros.core.standstill.CHECK_BELOW` forward is checked for standstill on the
-            raw images (:mod:`~bevo_ros.core.standstill`); below this small motion (m per frame)
-            the vehicle is at rest: zero motion, the yaw gyro's bias observed. 0 disables it.
+            raw images (:mod:`~bevo_ros.core.standstill`); below this speed (m/s) over the frame
+            interval the vehicle is at rest: zero motion, the yaw gyro's bias observed. 0 disables it.
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
@@ -185,7 +185,7 @@ class BevoOdometry:
         frame_clock_window: int = 20,
         kernels: str = "eager",
         gyro_sampling: str = "interval_mean",
-        standstill_max_motion: float = 0.01,
+        standstill_max_speed: float = 0.1,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -204,7 +204,7 @@ class BevoOdometry:
         self.dtype = torch.float32
         self.spec = spec
         self.mounting_attitude = (float(mounting_attitude[0]), float(mounting_attitude[1]))
-        self._standstill = StandstillDetector(camera, self.mounting_attitude, standstill_max_motion)
+        self._standstill = StandstillDetector(camera, self.mounting_attitude, standstill_max_speed)
         self.set_camera(camera)
         self.dukf = dukf
         self.dpc = dpc or DpcConfig()
@@ -454,6 +454,8 @@ class BevoOdometry:
             )
         if not math.isfinite(stamp):
             raise InvalidInputError("image stamp is not finite")
+        if img.dtype.kind == "f" and not np.isfinite(img).all():
+            raise InvalidInputError("image has NaN or inf pixels")
         last = max([s for s, _, _ in self._pending] + ([self._last_image] if self._last_image is not None else []),
                    default=None)
         if last is not None and stamp <= last:
@@ -632,15 +634,18 @@ class BevoOdometry:
         # At rest the BEVs still move: the engine's attitude keeps changing (the DUKF on an idling
         # engine's vibration, the road-tilt low-pass), and each 0.01 deg of BEV pitch change reads as
         # 1.4 cm. The raw images say whether the car moved (core/standstill).
-        # Only when a stop is within reach of the motion filter's speed (a car does not go from 15 m/s
-        # to rest in a frame): a frozen camera repeating its last frame at speed is not a standstill.
-        still = False
+        # Only with texture (the correlation's own quality) and when a stop is within reach of the
+        # motion filter's speed (a car does not go from 15 m/s to rest in a frame).
+        still, rest_var = False, 0.0
         if (image is not None and self._standstill.enabled and abs(float(measured[0])) < STANDSTILL_CHECK_BELOW
-                and self._stop_is_plausible(dt)):
-            still = self._standstill.at_rest(self._standstill.measure(image))
+                and quality >= n.min_quality and self._stop_is_plausible(dt)):
+            sm = self._standstill.measure(image)
+            still = self._standstill.at_rest(sm, dt)
+            if still:  # what the threshold leaves possible, and the estimate's own spread
+                rest_var = (0.5 * self._standstill.max_speed * dt) ** 2 + sm.forward_std**2
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
-                      quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, standstill=still)
+                      quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, rest_var=rest_var)
         frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
         self._last_filter_inputs = inputs

@@ -4,24 +4,30 @@ Why not the phase correlation: a BEV is projected with the filtered attitude, an
 attitude keeps moving while the car stands (the DUKF's accelerometer updates on an idling engine's
 vibration, the road-tilt low-pass). A change ``D`` of the BEV pitch moves the whole BEV by
 ``(X^2 + h^2) / h * D`` (:func:`~bevo_ros.core.motion.pitch_change_shift`, 1.4 cm per 0.01 deg on
-KITTI), which the correlation reads as motion: on the synthetic stop of 16 s the engine went 1.2 m
-and turned 2.4 deg (the yaw gyro's bias) while the car stood still.
+KITTI), which the correlation reads as motion: on a synthetic 16 s stop the engine went 0.6 m
+and turned 2.5 deg (the yaw gyro's bias) while the car stood still.
 
 What this measures instead: the small motion between two raw images, by brightness constancy
-over the road region of the image (a direct, linearised least squares, robust to outliers: its
-first weights come from the frame difference less the exposure change, so at rest an object
-moving through the region, such as the car ahead pulling away, is left out, not fitted),
-with the camera's own small rotations and a brightness gain and offset as nuisance parameters,
-so neither the attitude estimate nor the camera's exposure enters. For a forward translation
-``dX`` of the base, a road point at depth ``Z`` flows by the projection's derivative
-(:func:`ground_flow_basis`); rotations flow independently of depth.
+over the road region of the image (a direct, linearised least squares), with the camera's own
+small rotations, the body's heave and sideways motion and a brightness gain and offset as
+nuisance parameters, so neither the attitude estimate nor the camera's exposure enters. For a
+translation of the base, a road point at depth ``Z`` flows by the projection's derivative
+(:func:`ground_flow_basis`); rotations flow independently of depth. Robust to outliers: the first
+weights come from the frame difference less the exposure change, so at rest an object moving
+through the region (the car ahead pulling away) is left out, not fitted.
 
-Inside the linear range (a few pixels of flow at the working resolution) the estimate is the
-motion itself; beyond it, it saturates, so it is only used to decide standstill: ``|dX|``
-below ``max_motion`` with enough texture to know it (its standard deviation small too).
+Inside the linear range (a few pixels of flow at the working resolution, ~0.2 m on KITTI-like
+geometry) the estimate is the motion itself; beyond it, it falls back towards zero (1 m reads
+~0.15 m), so it only decides standstill, and only when the correlation itself reads little
+motion (:data:`CHECK_BELOW`). At rest means all of: the images differ (a repeated frame is no
+measurement), the road texture stands well above the sensor noise (:data:`MIN_TEXTURE_SNR`: a
+low-contrast night road would dilute the estimate towards zero), the motion below the threshold
+over the whole region and over its near and far halves alike (an object moving with the car,
+such as a truck ahead in a queue, fills the far half), known to half the threshold.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -32,12 +38,17 @@ from .geometry import CameraModel, camera_pose_on_road
 Tensor = torch.Tensor
 
 __all__ = ["FlowBasis", "ground_flow_basis", "downsample", "small_motion", "SmallMotion", "StandstillDetector",
-           "working_factor", "CHECK_BELOW"]
+           "working_factor", "CHECK_BELOW", "MIN_TEXTURE_SNR"]
 
 # The phase correlation's forward motion (m per frame) below which the engine asks whether the
 # vehicle is at rest: beyond it the car is moving whatever the images' fine flow says, and the
 # small-motion estimate leaves its linear range (~0.2 m on KITTI-like geometry).
 CHECK_BELOW = 0.15
+
+# The road texture's gradient energy over what the sensor noise alone would give it, below which
+# the images cannot tell 1 cm from 10 cm (noise in the gradients dilutes the estimate towards
+# zero: a night road of texture std 1.2 under noise 4 read 5-10 cm as 1 cm).
+MIN_TEXTURE_SNR = 10.0
 
 # Motion parameters of the basis, in this order: the base's forward, lateral and vertical
 # translation on the road (m) and the camera's rotations about its optical axes x, y, z (rad).
@@ -51,13 +62,16 @@ class FlowBasis:
 
     Attributes:
         flow: ``(N_MOTION, 2, h, w)`` (u, v) flow in downsampled pixels per unit of each motion
-            parameter (forward translation of the base in metres, camera rotations in radians).
+            parameter: the base's forward, lateral and vertical translation (m), the camera's
+            rotations about its x, y, z axes (rad).
         road: ``(h, w)`` 1 where the pixel sees the road between the near and far distances, else 0.
+        far: ``(h, w)`` 1 on the road pixels beyond the median road distance (the far half), else 0.
         factor: the downsampling factor of the grid (image pixels per grid pixel).
     """
 
     flow: Tensor
     road: Tensor
+    far: Tensor
     factor: int
 
 
@@ -107,7 +121,9 @@ def ground_flow_basis(camera: CameraModel, pitch: float, roll: float, factor: in
         e[axis] = 1.0
         flows.append(project_rate(-torch.cross(e.expand_as(P), P, dim=-1)))
     flow = torch.stack(flows, 0) * road
-    return FlowBasis(flow.to(dtype=dtype, device=device), road.to(dtype=dtype, device=device), factor)
+    far_half = road & (ahead > (ahead[road].median() if bool(road.any()) else 0.0))
+    return FlowBasis(flow.to(dtype=dtype, device=device), road.to(dtype=dtype, device=device),
+                     far_half.to(dtype=dtype, device=device), factor)
 
 
 def downsample(image: Tensor, factor: int) -> Tensor:
@@ -121,10 +137,17 @@ def downsample(image: Tensor, factor: int) -> Tensor:
 def _smooth(image: Tensor) -> Tensor:
     """Binomial 5x5 blur of ``(h, w)`` (replicated edges): gradients by central differences are
     then exact to a few per cent, and the linear range wider."""
-    k = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], dtype=image.dtype, device=image.device) / 16.0
+    k = _BINOMIAL.to(dtype=image.dtype, device=image.device)
     x = F.pad(image[None, None], (2, 2, 2, 2), mode="replicate")
     x = F.conv2d(x, k.view(1, 1, 1, 5))
     return F.conv2d(x, k.view(1, 1, 5, 1))[0, 0]
+
+
+_BINOMIAL = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], dtype=torch.float64) / 16.0
+_SMOOTH_GAIN = float((_BINOMIAL**2).sum()) ** 2  # variance of smoothed white noise, per unit variance
+# ... and of one axis' central difference of it (the gradient's noise)
+_GRADIENT_GAIN = float((_BINOMIAL**2).sum()) * float((torch.nn.functional.conv1d(
+    _BINOMIAL.view(1, 1, -1), torch.tensor([[[0.5, 0.0, -0.5]]], dtype=torch.float64), padding=2) ** 2).sum())
 
 
 def _tukey(r: Tensor, spread_of: Tensor) -> Tensor:
@@ -136,22 +159,46 @@ def _tukey(r: Tensor, spread_of: Tensor) -> Tensor:
 
 @dataclass(frozen=True)
 class SmallMotion:
-    """``forward``: the base's forward motion between the images (m); ``forward_std``: its standard
-    deviation from the residuals; ``inliers``: fraction of road pixels kept by the robust weights."""
+    """The small-motion estimate between two images.
+
+    Attributes:
+        forward: the base's forward motion (m) over the whole road region.
+        forward_std: its standard deviation from the residuals (m).
+        near, far: the same over the near and the far half of the region (m).
+        texture_snr: the road texture's gradient energy over the sensor noise's share of it.
+        inliers: fraction of road pixels kept by the robust weights.
+    """
 
     forward: float
     forward_std: float
-    inliers: float
+    near: float = float("nan")
+    far: float = float("nan")
+    texture_snr: float = 0.0
+    inliers: float = 0.0
+
+
+NO_MOTION = SmallMotion(float("nan"), float("inf"))  # too few road pixels, or non-finite images
+
+
+def _solve(A: Tensor, w: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """Weighted least squares ``A (N, P)``, ``w (N,)``, ``y (N,)`` by ridge-regularised normal
+    equations (a rank-deficient pair, such as a flat image, gives a finite answer on any device).
+    -> the solution ``(P,)`` and the normal matrix ``(P, P)``."""
+    Aw = A * w[:, None]
+    H = A.T @ Aw + 1e-9 * torch.eye(A.shape[1], dtype=A.dtype, device=A.device)
+    return torch.linalg.solve(H, Aw.T @ y), H
 
 
 def small_motion(prev: Tensor, curr: Tensor, basis: FlowBasis, iterations: int = 3) -> SmallMotion:
-    """The forward motion between two downsampled grey images ``(h, w)`` (:func:`downsample`).
+    """The forward motion between two downsampled grey images ``(h, w)`` on ``basis``'s grid
+    (:func:`downsample`).
 
     Linearised brightness constancy, ``I_t = -sum_k (I_x u_k + I_y v_k) m_k + g I + o``, solved by
-    iteratively reweighted least squares (Tukey weights at 4.7 robust sigmas: a pedestrian or a
-    passing car in the road region is an outlier, not a motion). ``prev``, ``curr``: ``(h, w)``
-    on ``basis``'s grid. ``iterations``: reweighting passes after the first solve.
+    iteratively reweighted least squares (Tukey weights at 4.7 robust sigmas; ``iterations``
+    reweighting passes after the first solve).
     """
+    if not (bool(torch.isfinite(prev).all()) and bool(torch.isfinite(curr).all())):
+        return NO_MOTION
     a = _smooth(prev.to(basis.flow.dtype))
     b = _smooth(curr.to(basis.flow.dtype))
     mean = 0.5 * (a + b)
@@ -163,12 +210,12 @@ def small_motion(prev: Tensor, curr: Tensor, basis: FlowBasis, iterations: int =
     valid[0] = valid[-1] = 0
     valid[:, 0] = valid[:, -1] = 0
     m = valid > 0
+    if int(m.sum()) < 50:
+        return NO_MOTION
     cols = [-(gx * basis.flow[k, 0] + gy * basis.flow[k, 1])[m] for k in range(N_MOTION)]
-    A = torch.stack(cols + [mean[m], torch.ones_like(mean[m])], 1).double()  # (N, 6)
+    A = torch.stack(cols + [mean[m], torch.ones_like(mean[m])], 1).double()  # (N, N_MOTION + 2)
     y = (b - a)[m].double()
-    n = y.numel()
-    if n < 50:
-        return SmallMotion(float("nan"), float("inf"), 0.0)
+    far = basis.far[m] > 0
     # Column scaling keeps the normal equations well conditioned (metres vs radians vs grey levels).
     scale = A.abs().mean(0).clamp_min(1e-12)
     As = A / scale
@@ -177,22 +224,30 @@ def small_motion(prev: Tensor, curr: Tensor, basis: FlowBasis, iterations: int =
     # and is left out, not fitted as part of the motion; when the car moves, the whole road differs
     # and all stay.
     photometric = As[:, N_MOTION:]
-    r0 = y - photometric @ torch.linalg.lstsq(photometric, y[:, None]).solution[:, 0]
+    r0 = y - photometric @ _solve(photometric, torch.ones_like(y), y)[0]
     wts = _tukey(r0, r0)
-    ridge = 1e-9 * torch.eye(As.shape[1], dtype=As.dtype, device=As.device)
     for it in range(iterations + 1):
-        Aw = As * wts[:, None]
-        H = As.T @ Aw + ridge
-        theta = torch.linalg.solve(H, Aw.T @ y)
+        theta, H = _solve(As, wts, y)
         r = y - As @ theta
         if it < iterations:
             wts = _tukey(r, r)
     dof = max(float(wts.sum()) - As.shape[1], 1.0)
     s2 = float((wts * r * r).sum()) / dof
-    cov = torch.linalg.inv(H) * s2
-    forward = float(theta[0] / scale[0])
-    std = float(cov[0, 0].clamp_min(0).sqrt() / scale[0])
-    return SmallMotion(forward, std, float((wts > 0).double().mean()))
+    std = float(torch.linalg.inv(H)[0, 0].clamp_min(0).sqrt() / scale[0]) * s2**0.5
+    halves = []
+    for part in (~far, far):
+        if int(part.sum()) < 50:
+            halves.append(float("nan"))
+        else:
+            halves.append(float(_solve(As[part], wts[part], y[part])[0][0] / scale[0]))
+    # Texture against noise: the residual's robust spread is the smoothed temporal noise at rest
+    # (more when moving: the test only gets stricter), from which the noise's share of the mean
+    # image's gradient energy follows.
+    sigma_r2 = float(1.4826 * (r - r.median()).abs().median()) ** 2
+    noise_gradient = _GRADIENT_GAIN * sigma_r2 / (2.0 * _SMOOTH_GAIN)  # both axes, of the 2-frame mean
+    energy = float((wts * (gx[m] ** 2 + gy[m] ** 2).double()).sum() / wts.sum().clamp_min(1e-12))
+    snr = energy / max(noise_gradient, 1e-12)
+    return SmallMotion(float(theta[0] / scale[0]), std, halves[0], halves[1], snr, float((wts > 0).double().mean()))
 
 
 def working_factor(width: int) -> int:
@@ -207,20 +262,21 @@ class StandstillDetector:
     Args:
         camera: the camera (its basis is built at the ``attitude`` once, then reused).
         attitude: (pitch, roll) of the base on the road (the mounting attitude), rad.
-        max_motion: the vehicle is at rest when the small-motion estimate is below this (m per
-            frame) and its standard deviation below half of it; 0 disables the detector.
+        max_speed: the vehicle is at rest when the small motion over a frame interval ``dt`` is
+            below ``max_speed * dt`` (a speed, so the same at any frame rate); 0 disables it.
     """
 
-    def __init__(self, camera: CameraModel, attitude: tuple[float, float], max_motion: float) -> None:
-        if not max_motion >= 0:
-            raise ValueError(f"max_motion must be >= 0 (0 disables), got {max_motion!r}")
-        self.max_motion = float(max_motion)
+    def __init__(self, camera: CameraModel, attitude: tuple[float, float], max_speed: float) -> None:
+        if not max_speed >= 0:
+            raise ValueError(f"max_speed must be >= 0 (0 disables), got {max_speed!r}")
+        self.max_speed = float(max_speed)
         self.attitude = (float(attitude[0]), float(attitude[1]))
+        self._warned = False
         self.set_camera(camera)
 
     @property
     def enabled(self) -> bool:
-        return self.max_motion > 0
+        return self.max_speed > 0
 
     def set_camera(self, camera: CameraModel) -> None:
         self.camera = camera
@@ -236,13 +292,21 @@ class StandstillDetector:
         return downsample(image, working_factor(self.camera.width))
 
     def measure(self, image: Tensor) -> SmallMotion | None:
-        """The small motion from the remembered image to ``image (H, W)``; None without one (or
-        when disabled, or when the two images differ in size)."""
+        """The small motion from the remembered image to ``image (H, W)``; None without one, when
+        disabled, when the two differ in size, or when they are the same bit for bit (a camera
+        driver repeating its last frame: a real sensor's noise never repeats)."""
         if not self.enabled or self._prev is None or self._prev[0].shape != image.shape:
+            return None
+        if torch.equal(self._prev[0], image):
             return None
         if self._basis is None:
             self._basis = ground_flow_basis(self.camera, *self.attitude, working_factor(self.camera.width),
                                             device=image.device)
+            if int(self._basis.road.sum()) < 200 and not self._warned:
+                self._warned = True
+                warnings.warn(f"standstill check off: the camera sees only {int(self._basis.road.sum())} grid "
+                              "pixels of road 4-30 m ahead (is it facing forward, is the mounting right?)",
+                              RuntimeWarning, stacklevel=2)
         prev = self._prev[1] if self._prev[1] is not None else self._small(self._prev[0])
         curr = self._small(image)
         self._curr = (image, curr)
@@ -250,14 +314,18 @@ class StandstillDetector:
             return None
         return small_motion(prev, curr, self._basis)
 
-    def at_rest(self, motion: SmallMotion | None) -> bool:
-        """True when ``motion`` says the vehicle stood still: below ``max_motion``, known to half of it."""
-        return (motion is not None and abs(motion.forward) < self.max_motion
-                and motion.forward_std < 0.5 * self.max_motion)
+    def at_rest(self, motion: SmallMotion | None, dt: float) -> bool:
+        """True when ``motion`` over ``dt`` (s) says the vehicle stood still: texture well above
+        the noise, below ``max_speed * dt`` over the region and over its near and far halves,
+        known to half of it."""
+        limit = self.max_speed * dt
+        return (motion is not None and motion.texture_snr >= MIN_TEXTURE_SNR
+                and abs(motion.forward) < limit and motion.forward_std < 0.5 * limit
+                and abs(motion.near) < limit and abs(motion.far) < limit)
 
     def remember(self, image: Tensor) -> None:
         """Keep ``image (H, W)`` as the previous one for the next frame (a copy: a caller refilling
-        one buffer per frame would otherwise make every pair identical, a false standstill)."""
+        one buffer per frame would otherwise make every pair identical)."""
         if not self.enabled:
             return
         small = self._curr[1] if self._curr is not None and self._curr[0] is image else None

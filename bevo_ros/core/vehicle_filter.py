@@ -75,11 +75,9 @@ class VehicleNoise:
 
 N_STATE = 4  # v, a, b (yaw gyro bias), beta (forward accelerometer bias)
 
-# At standstill: the speed and acceleration measured as zero with these standard deviations
-# (m/s, m/s^2), and the frame's motion variances (m^2: a tenth of a millimetre; rad^2).
-STANDSTILL_SPEED_STD = 0.01
+# At rest: the acceleration measured as zero with this standard deviation (m/s^2), and the
+# frame's yaw change variance (rad^2: a car does not turn in place).
 STANDSTILL_ACCEL_STD = 0.05
-STANDSTILL_MOTION_VAR = 1e-8
 STANDSTILL_YAW_VAR = 1e-10
 
 
@@ -198,7 +196,7 @@ class VehicleFilter:
 
     def step(self, s: VehicleState, dt, gyro_yaw, forward=None, forward_var=None, lateral=None,
              lateral_var=None, rotation=None, rotation_var=None, quality=None, imu_accel=None,
-             imu_accel_var=None, standstill=False) -> VehicleFrame:
+             imu_accel_var=None, rest_var=None) -> VehicleFrame:
         """One frame: predict by ``dt`` (s) and update with what the correlation gave.
 
         Args:
@@ -211,11 +209,14 @@ class VehicleFilter:
                 gravity removed with the filtered pitch) and ``imu_accel_var`` the variance of its
                 attitude part; it updates ``a`` before the prediction (inertial speed propagation:
                 a braking onset is in the prediction, not a surprise for the gate).
-            standstill: the vehicle stood still over the interval (:mod:`bevo_ros.core.standstill`;
-                a bool or ``(B,)`` bools). Then the speed and its rate are measured as zero, the
-                gyro's whole yaw increment is its bias (the images' rotation is exactly zero), the
-                correlation is not used, and the motion is exactly zero: a car at rest neither
-                creeps on the correlation's noise nor turns on the gyro's bias.
+            rest_var: > 0 when the vehicle stood still over the interval
+                (:mod:`bevo_ros.core.standstill`): the variance (m^2) of the frame's forward and
+                lateral motion at rest (what the standstill threshold leaves possible); None or 0
+                when moving (a float or ``(B,)``). At rest the speed is measured as zero with
+                ``rest_var / dt^2`` and its rate as zero, the gyro's whole yaw increment is its bias
+                (the images' rotation is exactly zero), the correlation is not used, and the motion
+                is exactly zero: a car at rest neither creeps on the correlation's noise nor turns on
+                the gyro's bias.
         """
         n = self.noise
         if imu_accel is not None:  # z = a + beta: the inertial forward acceleration, never gated
@@ -229,12 +230,15 @@ class VehicleFilter:
             informative = quality >= n.min_quality
         else:
             informative = have
-        still = standstill
+        if rest_var is None:
+            rest_var = 0.0
+        still = rest_var > 0
         moving = ~still if isinstance(still, Tensor) else not still
+        rest_speed_var = _where(still, rest_var, 1.0) / (dt * dt)
         if isinstance(still, Tensor) or still:
             # Zero velocity and acceleration (never gated: the images decided), and zero rotation:
             # the gyro's increment is its bias.
-            x, P, _, _ = _scalar_update(x, P, 0, 0.0, STANDSTILL_SPEED_STD**2, math.inf, still)
+            x, P, _, _ = _scalar_update(x, P, 0, 0.0, rest_speed_var, math.inf, still)
             x, P, _, _ = _scalar_update(x, P, 1, 0.0, STANDSTILL_ACCEL_STD**2, math.inf, still)
             x, P, _, _ = _scalar_update(x, P, 2, gyro_yaw / dt, n.gyro_yaw_density / dt, n.gate, still)
             informative = informative & moving if isinstance(informative, Tensor) or isinstance(moving, Tensor) \
@@ -272,8 +276,8 @@ class VehicleFilter:
         if isinstance(still, Tensor) or still:
             zero = dx * 0.0
             dx, dy, dyaw = _where(still, zero, dx), _where(still, zero, dy), _where(still, zero, dyaw)
-            var_dx = _where(still, zero + STANDSTILL_MOTION_VAR, var_dx)
-            var_dy = _where(still, zero + STANDSTILL_MOTION_VAR, var_dy)
+            var_dx = _where(still, zero + rest_var, var_dx)
+            var_dy = _where(still, zero + rest_var, var_dy)
             var_dyaw = _where(still, zero + STANDSTILL_YAW_VAR, var_dyaw)
         return VehicleFrame((dx, dy, dyaw), (var_dx, var_dy, var_dyaw), (acc_t, acc_r), (d_t, d_r), state)
 

@@ -125,9 +125,9 @@ DESCRIPTIONS = {
     "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
     "filter.max_acceleration": "IMU samples whose specific-force norm exceeds this (m/s^2) are dropped (imu_accel_range)",
     "filter.max_angular_rate": "IMU samples with a gyro axis above this (rad/s) are dropped (imu_gyro_range)",
-    "odometry.standstill_max_motion": "fused mode: below this small motion (m per frame, read on the raw images when the "
-                                      "correlation reads under 0.15 m) the vehicle is at rest: zero motion, the yaw gyro's "
-                                      "bias observed; 0 disables",
+    "odometry.standstill_max_speed": "fused mode: below this speed (m/s, the small motion over a frame interval read on "
+                                     "the raw images when the correlation reads under 0.15 m) the vehicle is at rest: zero "
+                                     "motion, the yaw gyro's bias observed; 0 disables",
     "learned_params_file": "learned O/Q YAML; a relative path resolves beside the parameters file that set it, "
                            "then the package share",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",

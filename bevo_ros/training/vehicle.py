@@ -49,8 +49,7 @@ def replay(noise: VehicleNoise, inputs: list[dict]) -> tuple[Tensor, Tensor]:
     state = initial_vehicle_state(like=like)
     motions, variances = [], []
     for inp in inputs:
-        kw = {k: (torch.as_tensor(v, dtype=torch.bool if k == "standstill" else torch.float64).reshape(1)
-                  if v is not None and k != "dt" else v)
+        kw = {k: (torch.as_tensor(v, dtype=torch.float64).reshape(1) if v is not None and k != "dt" else v)
               for k, v in inp.items()}
         frame = vf.step(state, **kw)
         state = frame.state
