@@ -651,7 +651,7 @@ class BevoOdometry:
         self._last_filter_inputs = inputs
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
         if still:
-            self._count("standstill", stamp)
+            self.counters.standstill += 1  # a state, not an event: a long stop would crowd the events out
         elif quality < n.min_quality:
             self._count("rejected_textureless", stamp)
         else:

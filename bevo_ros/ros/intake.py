@@ -183,11 +183,13 @@ class EngineFeed:
         self.engine = None
         self.last_imu_stamp: float | None = None
         self._last_gap = 0.0
+        self._standstill_seen = 0  # the engine's frames at rest already reported
         self._imu_backlog: collections.deque = collections.deque(maxlen=max(settings.imu_qos_depth, 1000))
 
     def start(self, engine) -> None:
         """Use ``engine`` from now on and fuse the IMU that arrived before it, in order."""
         self.engine = engine
+        self._standstill_seen = self._standstill_count()
         engine.max_pending_images = self.settings.max_pending_images
         backlog = list(self._imu_backlog)
         self._imu_backlog.clear()
@@ -269,8 +271,15 @@ class EngineFeed:
                                  f"{exc.last:.9f} ({exc.jump * 1e3:.3f} ms back)")
         return None
 
+    def _standstill_count(self) -> int:
+        return getattr(getattr(self.engine, "counters", None), "standstill", 0)
+
     def _report_events(self) -> None:
-        """Turn what the engine dropped or rejected (its events) into counted, logged node drops/events."""
+        """Turn what the engine dropped or rejected (its events) into counted, logged node drops/events,
+        and count its frames at rest (not a fault: zero motion, the yaw gyro's bias observed)."""
+        if (n := self._standstill_count()) > self._standstill_seen:
+            self.report.events["standstill"] += n - self._standstill_seen
+            self._standstill_seen = n
         d = collections.Counter(e.kind for e in self.engine.take_events()) if self.engine is not None else {}
         if not d:
             return
@@ -282,8 +291,6 @@ class EngineFeed:
             if d[kind] > 0:
                 self.report.events[kind] += d[kind]
                 self.report.log(kind, f"{d[kind]} frame(s) with {why}: carried by the motion filter's prediction")
-        if d["standstill"] > 0:  # not a fault: the car stood still (zero motion, yaw gyro bias observed)
-            self.report.events["standstill"] += d["standstill"]
         if d["imu_gaps"] > 0:
             self.report.events["imu_gap"] += d["imu_gaps"]
             self.report.log("imu_gap", f"IMU gap longer than filter.max_imu_gap={self.max_imu_gap} s (last gap "
