@@ -255,9 +255,9 @@ def test_filter_at_rest_is_still_and_learns_the_yaw_bias():
 
 @pytest.fixture(scope="module")
 def light_drive():
-    """The traffic_light preset cut at 16 s: braking to a stop at 9 s, 7 s at rest."""
+    """The traffic_light preset cut at 28 s: braking to a stop at 9 s, 15 s at rest, pulling away."""
     cam = half_camera()
-    d = preset_drive("traffic_light", seed=1, duration=16.0, render="lazy", camera=cam, road_tilt=True,
+    d = preset_drive("traffic_light", seed=1, duration=28.0, render="lazy", camera=cam, road_tilt=True,
                      imu_rate=10.0)
     return cam, d, [d.image(k) for k in range(d.num_frames)]
 
@@ -271,9 +271,11 @@ def _run(cam, d, images, max_speed: float):
 
 
 def test_engine_stands_still_at_a_light(light_drive):
-    """A 10 Hz drive stopping at a light: the frames at rest are found (none while moving more than
-    1.5 cm per frame), the pose neither creeps nor turns while the car stands, and without the
-    check it does (the test can fail)."""
+    """A 10 Hz drive stopping at a light and pulling away: the frames at rest are found (none while
+    moving more than 1.5 cm per frame: the 1 cm threshold, read while the car pitches as it stops
+    or pulls away), the pose
+    neither creeps nor turns while the car stands, and without the check it does (the test can
+    fail)."""
     cam, d, images = light_drive
     gt = d.relative_motion
     rest = gt[:, 0] < 1e-4
@@ -288,7 +290,8 @@ def test_engine_stands_still_at_a_light(light_drive):
         print(f"standstill_max_speed {max_speed}: {flagged.sum()} frames at rest of {rest.sum()} true; "
               f"creep {creep * 100:.1f} cm, turn {turn:.3f} deg while standing; counters {odo.counters.standstill}")
         if max_speed > 0:
-            assert flagged[rest].mean() > 0.95 and not flagged[gt[:, 0] > 0.012].any()
+            print(f"largest true motion of a frame at rest: {gt[flagged, 0].max() * 100:.2f} cm")
+            assert flagged[rest].mean() > 0.95 and not flagged[gt[:, 0] > 0.015].any()
             assert odo.counters.standstill == flagged.sum()
             assert creep < 0.01 and turn < 0.05
             assert all(s.twist_linear[0] == 0.0 for s, r in zip(steps[1:], flagged) if r)
@@ -313,13 +316,15 @@ def test_training_replays_the_stops(light_drive):
 
 
 def test_a_frozen_camera_at_speed_is_no_standstill(light_drive):
-    """A camera driver repeating its last frame for three frames while the car does 9.5 m/s: the
-    pairs are identical, but a car cannot stop within a frame, so none is taken as a standstill
-    (the motion filter's own gate then decides, as for any disagreeing frame)."""
+    """A camera whose picture stops updating for three frames while the car does 9.5 m/s (the same
+    view with fresh sensor noise, so not caught as a repeated frame): the images say at rest, but
+    a car cannot stop within a frame, so none is taken as a standstill (the motion filter's own
+    gate then decides, as for any disagreeing frame)."""
     cam, d, images = light_drive
+    rng = np.random.default_rng(0)
     frozen = list(images)
     for k in range(20, 23):
-        frozen[k] = images[19]
+        frozen[k] = np.clip(images[19] + rng.normal(0.0, 2.0, images[19].shape), 0, 255).astype(np.uint8)
     _, steps = _run(cam, d, frozen, 0.1)
     gt = d.relative_motion
     assert not any(s.standstill for s in steps[1:30])
