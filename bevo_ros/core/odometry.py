@@ -395,6 +395,7 @@ class BevoOdometry:
             a_var = ((self._acc_fx or 0.0) ** 2 + vs.a * vs.a) * per_second
             f, extra = compensate_floats(a, g, speed, 0.0, speed_var, a_var)
         restarted = self._state is None or stamp - self._last_imu > self.max_imu_gap
+        prev2 = self._gyro_prev2  # (rates, yaw rate) of the sample before the interval's start, or None
         if restarted:
             if self._state is not None:
                 self._count("imu_gaps", stamp)
@@ -411,7 +412,6 @@ class BevoOdometry:
             # The interval's rate by what the gyro's samples are (core/rate_integration): an
             # interval mean as it is (KITTI), instantaneous rates by the quadratic rule (10 Hz
             # presets with instantaneous rates: 13.1 % per frame with the trapezoid, 11.2 % with it).
-            prev2 = self._gyro_prev2
             rate = interval_rate(self.gyro_sampling, g, self._gyro_prev, None if prev2 is None else prev2[0],
                                  self._imu_dt, h1)
             self._state = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise, extra)
@@ -423,7 +423,6 @@ class BevoOdometry:
         # Yaw rate about the vertical (Z-Y-X Euler kinematics), integrated by the same rule.
         rate = (g[1] * math.sin(roll) + g[2] * math.cos(roll)) / math.cos(pitch)
         if self._yaw_rate is not None:
-            prev2 = self._gyro_prev2
             self._yaw_cum += interval_rate(self.gyro_sampling, [rate], [self._yaw_rate],
                                            None if prev2 is None else [prev2[1]], self._imu_dt, h1)[0] * self._imu_dt
         # the sample before the next one's interval; none across a restart

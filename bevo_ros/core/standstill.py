@@ -111,15 +111,9 @@ def ground_flow_basis(camera: CameraModel, pitch: float, roll: float, factor: in
         dv = fy * (dP[..., 1] * Zs - Y * dP[..., 2]) / (Zs * Zs)
         return torch.stack([du, dv], 0)
 
-    flows = []
-    for axis in range(3):  # the base's translation along the road axes, in the camera frame
-        e = torch.zeros(3, dtype=f64)
-        e[axis] = 1.0
-        flows.append(project_rate((-(R.T @ e)).expand_as(P)))
-    for axis in range(3):
-        e = torch.zeros(3, dtype=f64)
-        e[axis] = 1.0
-        flows.append(project_rate(-torch.cross(e.expand_as(P), P, dim=-1)))
+    axes = torch.eye(3, dtype=f64)
+    flows = [project_rate((-(R.T @ e)).expand_as(P)) for e in axes]  # the base's translations on the road
+    flows += [project_rate(-torch.cross(e.expand_as(P), P, dim=-1)) for e in axes]  # the camera's rotations
     flow = torch.stack(flows, 0) * road
     far_half = road & (ahead > (ahead[road].median() if bool(road.any()) else 0.0))
     return FlowBasis(flow.to(dtype=dtype, device=device), road.to(dtype=dtype, device=device),

@@ -233,16 +233,13 @@ class VehicleFilter:
         if rest_var is None:
             rest_var = 0.0
         still = rest_var > 0
-        moving = ~still if isinstance(still, Tensor) else not still
-        rest_speed_var = _where(still, rest_var, 1.0) / (dt * dt)
         if isinstance(still, Tensor) or still:
             # Zero velocity and acceleration (never gated: the images decided), and zero rotation:
             # the gyro's increment is its bias.
-            x, P, _, _ = _scalar_update(x, P, 0, 0.0, rest_speed_var, math.inf, still)
+            x, P, _, _ = _scalar_update(x, P, 0, 0.0, _where(still, rest_var, 1.0) / (dt * dt), math.inf, still)
             x, P, _, _ = _scalar_update(x, P, 1, 0.0, STANDSTILL_ACCEL_STD**2, math.inf, still)
             x, P, _, _ = _scalar_update(x, P, 2, gyro_yaw / dt, n.gyro_yaw_density / dt, n.gate, still)
-            informative = informative & moving if isinstance(informative, Tensor) or isinstance(moving, Tensor) \
-                else (informative and moving)
+            informative = informative & ~still if isinstance(still, Tensor) else False
         acc_t = acc_r = False
         d_t = d_r = float("nan")
         if have:

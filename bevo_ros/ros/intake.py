@@ -272,7 +272,7 @@ class EngineFeed:
         return None
 
     def _standstill_count(self) -> int:
-        return getattr(getattr(self.engine, "counters", None), "standstill", 0)
+        return self.engine.counters.standstill if self.engine is not None else 0
 
     def _report_events(self) -> None:
         """Turn what the engine dropped or rejected (its events) into counted, logged node drops/events,
