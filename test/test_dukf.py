@@ -440,3 +440,23 @@ def test_scalar_inference_path_equals_the_tensor_path(motion_model):
         worst = max(worst, max(abs(x - y) for x, y in zip([*mean, *cov], ref)))
     print(f"\n[{motion_model}] scalar vs tensor step, 300 random steps: max difference {worst:.1e}")
     assert worst < 1e-12
+
+
+def test_scalar_step_reports_the_accelerometer_pull():
+    """``return_pull``: the same posterior, plus its difference from the gyro-only prediction
+    (the engine's pitch-change correction gates on it). With an accelerometer the update cannot
+    trust (huge extra variance) the pull vanishes; a tilted reading pulls towards itself."""
+    f = DUKF(1e-4, 1e-2).double()
+    noise = f.noise_floats()
+    mean, cov = (0.0, 0.0), (1e-3, 0.0, 1e-3)
+    g, dt = [0.0, 0.05, 0.0], 0.01  # 0.05 rad/s about y: the prediction moves the pitch by 5e-4 rad
+    level = [0.0, 0.0, 9.81]
+    plain = f.step_scalar(mean, cov, g, level, dt, noise)
+    m, c, pull = f.step_scalar(mean, cov, g, level, dt, noise, return_pull=True)
+    assert (m, c) == plain
+    assert m[0] - pull[0] == pytest.approx(5e-4, rel=1e-3)  # the prediction, gyro only
+    _, _, none = f.step_scalar(mean, cov, g, level, dt, noise, (1e12, 1e12), return_pull=True)
+    assert abs(none[0]) < 1e-12 and abs(none[1]) < 1e-12
+    nose_down = [-9.81 * math.sin(0.05), 0.0, 9.81 * math.cos(0.05)]  # a reading of +0.05 rad pitch
+    _, _, pulled = f.step_scalar(mean, cov, [0.0, 0.0, 0.0], nose_down, dt, noise, return_pull=True)
+    assert 0.0 < pulled[0] < 0.05 and abs(pulled[1]) < 1e-9

@@ -438,7 +438,8 @@ class DUKF(nn.Module):
         dt: float,
         noise: tuple[tuple[float, float], tuple[float, float]],
         extra_var: tuple[float, float] = (0.0, 0.0),
-    ) -> tuple[tuple[float, float], tuple[float, float, float]]:
+        return_pull: bool = False,
+    ) -> tuple[tuple[float, float], tuple[float, float, float]] | tuple[tuple[float, float], tuple[float, float, float], tuple[float, float]]:
         """:meth:`step` for one vehicle in plain float64 arithmetic: the inference path.
 
         The same math as ``_predict`` + ``_update`` (sigma points, motion model, closed-form
@@ -449,10 +450,12 @@ class DUKF(nn.Module):
         Args:
             mean: (pitch, roll); cov: (P00, P01, P11); gyro, accel: 3 floats; dt > 0 s;
             noise: ``noise_floats()``; extra_var: added to Q for this message (rad^2, pitch/roll):
-            the fused engine's vehicle-acceleration uncertainty (0 reproduces the tensor path).
+            the fused engine's vehicle-acceleration uncertainty (0 reproduces the tensor path);
+            return_pull: also return the update's share of the step, posterior minus predicted mean
+            (the accelerometer's pull on (pitch, roll), rad).
 
         Returns:
-            the posterior ``(mean, cov)`` in the same form.
+            the posterior ``(mean, cov)`` in the same form, and with ``return_pull`` the pull.
         """
         (o0, o1), (q0, q1) = noise
         p, r = mean
@@ -495,7 +498,10 @@ class DUKF(nn.Module):
         c01 = pb - (pa * k01 + pb * k11)
         c10 = pb - (pb * k00 + pd * k10)
         c11 = pd - (pb * k01 + pd * k11)
-        return new_mean, (c00 + jit, 0.5 * (c01 + c10), c11 + jit)
+        cov_out = (c00 + jit, 0.5 * (c01 + c10), c11 + jit)
+        if return_pull:
+            return new_mean, cov_out, (new_mean[0] - mp, new_mean[1] - mr)
+        return new_mean, cov_out
 
     def step(self, state: DukfState, gyro: Tensor, accel: Tensor, dt: Tensor) -> DukfState:
         """``predict`` then ``update`` for one IMU message.

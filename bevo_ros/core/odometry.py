@@ -35,9 +35,11 @@ from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 
 MODES = ("fused", "paper")
 ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceleration stays the same
-# The pitch-change correction waits until the DUKF's pitch variance is within this factor of its
-# steady state: its first convergence moves the road-tilt running mean along with it.
-SETTLED_VARIANCE_FACTOR = 10.0
+# The pitch-change correction counts the DUKF's pitch change between two frames as the car's own
+# only while the filter's accelerometer updates moved its pitch by less than this over the pair: a
+# filter still converging from its start, or pulled by an acceleration it cannot tell from tilt,
+# changes its pitch without the car (0.1 deg would read as 14 cm of motion on KITTI).
+ACCEL_PULL_GATE = math.radians(0.1)
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 _PLANAR = np.ix_([0, 1, 5], [0, 1, 5])  # (x, y, yaw) in a 6x6 ROS covariance
@@ -231,10 +233,10 @@ class BevoOdometry:
         self._last_image: float | None = None
         self._road_tilt = RoadTiltFilter(self.road_tilt_time_constant)
         self._mounting = self.mounting_attitude if self._road_tilt.enabled else (0.0, 0.0)
-        # (stamp, road-relative (pitch, roll), DUKF belief, gyro yaw integral, DUKF start count) per
-        # IMU sample: an image is projected with the attitude of the last IMU sample at or before
-        # its stamp, however late it arrives.
-        self._history: deque[tuple[float, tuple[float, float], tuple, float, int]] = deque(maxlen=4000)
+        # (stamp, road-relative (pitch, roll), DUKF belief, gyro yaw integral, DUKF start count,
+        # accelerometer pull integral) per IMU sample: an image is projected with the attitude of the
+        # last IMU sample at or before its stamp, however late it arrives.
+        self._history: deque[tuple[float, tuple[float, float], tuple, float, int, float]] = deque(maxlen=4000)
         self._pending: list[tuple[float, np.ndarray, Any]] = []  # (stamp, image, tag) waiting for IMU
         self._prev = None  # prepared BEV of the previous frame
         self._weight_cache: tuple = (None, None)  # (dpc, MaskWeight) of the latest BEV mask (_mask_weight)
@@ -248,7 +250,8 @@ class BevoOdometry:
         self._yaw_rate = None  # its latest rate
         self._prev_yaw_cum = 0.0
         self._imu_restarts = 0  # DUKF (re)starts: the attitude jumps there (kept with each history entry)
-        self._prev_pitch = None  # fused, previous frame: (BEV pitch, DUKF pitch, DUKF start count)
+        self._prev_pitch = None  # fused, previous frame: (BEV pitch, DUKF pitch, DUKF start count, pull integral)
+        self._pull_cum = 0.0  # fused: the DUKF's accelerometer updates' pitch changes summed since the start, rad
         self._frame_clock.reset()
         self._ext_speed = None  # (stamp, VehicleState) from add_speed
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
@@ -338,7 +341,7 @@ class BevoOdometry:
         self._last_imu = stamp
         pitch, roll = self._road_tilt.update(stamp, *self._state[0])
         road = (pitch + self._mounting[0], roll + self._mounting[1])
-        self._history.append((stamp, road, self._state, 0.0, 0))
+        self._history.append((stamp, road, self._state, 0.0, 0, 0.0))
         out += self._release(lambda s: s <= stamp)
         return out
 
@@ -402,7 +405,8 @@ class BevoOdometry:
             # Start from the mounting attitude with a wide variance and take the first sample as a
             # measurement: one accelerometer sample read in a bend is not locked in.
             v0 = self.initial_attitude_std**2
-            self._state = self.dukf.step_scalar(self.mounting_attitude, (v0, 0.0, v0), g, f, 0.0, self._noise, extra)
+            mean, cov, pull = self.dukf.step_scalar(self.mounting_attitude, (v0, 0.0, v0), g, f, 0.0, self._noise,
+                                                    extra, return_pull=True)
             self._yaw_rate = None
             self._imu_restarts += 1
             h1 = None
@@ -414,7 +418,10 @@ class BevoOdometry:
             # presets with instantaneous rates: 13.1 % per frame with the trapezoid, 11.2 % with it).
             rate = interval_rate(self.gyro_sampling, g, self._gyro_prev, None if prev2 is None else prev2[0],
                                  self._imu_dt, h1)
-            self._state = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise, extra)
+            mean, cov, pull = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise, extra,
+                                                    return_pull=True)
+        self._state = (mean, cov)
+        self._pull_cum += pull[0]
         (pitch, roll) = self._state[0]
         if self.vehicle.noise.imu_accel_density > 0 and not restarted:  # the optional inertial speed input
             step = stamp - self._last_imu
@@ -435,7 +442,7 @@ class BevoOdometry:
         dyn_p, dyn_r = suspension_attitude(self._acc_fx or 0.0, speed * g[2], *self.suspension_gradients)
         rp, rr = self._road_tilt.update(stamp, pitch - dyn_p, roll - dyn_r)
         road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])
-        self._history.append((stamp, road, self._state, self._yaw_cum, self._imu_restarts))
+        self._history.append((stamp, road, self._state, self._yaw_cum, self._imu_restarts, self._pull_cum))
 
     def add_image(self, stamp: float, image, tag: Any = None) -> list[OdometryStep]:
         """Queue or process one image ``(H, W)`` uint8 or float in [0, 1]; ``tag`` comes back as
@@ -498,7 +505,7 @@ class BevoOdometry:
         image = torch.as_tensor(np.require(img, requirements="W"), device=self.device)  # bag buffers are read-only
         if image.dtype != torch.uint8:
             image = image.to(self.dtype)
-        road, state, yaw_cum, epoch = self._attitude_at(stamp)
+        road, state, yaw_cum, epoch, pull_cum = self._attitude_at(stamp)
         pitch_t, roll_t = (torch.tensor([v], dtype=self.dtype, device=self.device) for v in road)
         bev, mask = self.kernels.project_to_bev(image[None, None], self.camera, pitch_t, roll_t, self.spec)
         curr = self.kernels.prepare(bev, mask, self.dpc, self._mask_weight(mask, bev.dtype))
@@ -513,7 +520,7 @@ class BevoOdometry:
             motion_cov = np.zeros((3, 3))
             quality = float("nan")
         elif self.mode == "fused":
-            shift = self._pitch_change_shift(road[0], state, epoch)
+            shift = self._pitch_change_shift(road[0], state, epoch, pull_cum)
             # The gyro's yaw was integrated over the stamped interval: over the frame's, it is that
             # much more or less (frames and a 10 Hz IMU sharing jittered stamps: 10 Hz on-ramp
             # preset with +-10 ms stamps, yaw 0.131 -> 0.027 deg per frame, as with exact stamps).
@@ -532,7 +539,7 @@ class BevoOdometry:
         if self.mode == "fused":
             self._standstill.remember(image)
         self._prev_yaw_cum = yaw_cum
-        self._prev_pitch = (road[0], state[0][0], epoch)
+        self._prev_pitch = (road[0], state[0][0], epoch, pull_cum)
         if dt > 0:
             self._speed = float(motion[0] / dt)
         self.counters.frames_out += 1
@@ -582,24 +589,30 @@ class BevoOdometry:
             standstill=still,
         )
 
-    def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int) -> float:
+    def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int, pull: float) -> float:
         """Fused mode: the forward shift (m) this frame's correlation reads from the engine's own
         change of the BEV pitch since the previous frame.
 
         The BEV pitch is the DUKF's pitch minus the road-tilt low-pass (whose input has the
         suspension model's lean taken out). What the low-pass changes between two frames is no
         motion of the car, yet it moves the whole current BEV by :func:`~bevo_ros.core.motion.pitch_change_shift` per radian
-        (0.01 deg: 1.4 cm on KITTI), read as forward motion. Zero across a DUKF restart (the
-        attitude jumps), while the DUKF first converges (the low-pass's running mean follows it)
-        and with the correction off. Measured: KITTI sample 7.0 -> 6.5 cm per frame (`bevo
-        evaluate`); 10 Hz presets 14.4 -> 13.1 %, drift 8.1 -> 7.2 %; 100 Hz presets 4.3 -> 4.1 %.
-        The DUKF's own accelerometer updates also move the BEV without motion, but telling them
-        from a real pitch change needs the pitch gyro's bias, which the DUKF does not estimate.
+        (0.01 deg: 1.4 cm on KITTI), read as forward motion. The DUKF's change is taken as the
+        car's. Zero across a DUKF restart (the attitude jumps), when the DUKF's accelerometer
+        updates (``pull``, their pitch changes integrated) moved its pitch by more than
+        ACCEL_PULL_GATE between the two frames (converging from its start, or pulled by an
+        acceleration: its change is then not the car's, and the low-pass following it is right),
+        and with the correction off. A gate on the DUKF's variance (within 10x of its steady
+        state) kept it off for the first ~5 s of a 10 Hz drive and through every acceleration,
+        whose inflated measurement variance holds the variance up. With this gate: 10 Hz presets
+        9.9 -> 7.7 % per frame, drift 3.5 -> 2.1 %; KITTI sample 5.6 -> 5.3 cm per frame (`bevo
+        evaluate`); a 100 Hz braking start's first pair -104 -> -54 cm. The DUKF's small
+        updates also move the BEV without motion, but telling them from a real pitch change
+        needs the pitch gyro's bias, which the DUKF does not estimate.
         """
         prev = self._prev_pitch
         if not self.pitch_change_correction or prev is None or prev[2] != epoch:
             return 0.0
-        if state[1][0] > SETTLED_VARIANCE_FACTOR * self._steady_state_variances()[0]:
+        if abs(pull - prev[3]) > ACCEL_PULL_GATE:
             return 0.0
         return self._shift_per_pitch_change * ((bev_pitch - prev[0]) - (state[0][0] - prev[1]))
 
@@ -688,8 +701,9 @@ class BevoOdometry:
             self._envelope_cache = (key, self.kernels.overlap_envelope(*key))
         return self._envelope_cache[1]
 
-    def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple, float, int]:
-        """Road-relative attitude, DUKF state, integrated gyro yaw and the DUKF's start count at
+    def _attitude_at(self, stamp: float) -> tuple[tuple[float, float], tuple, float, int, float]:
+        """Road-relative attitude, DUKF state, integrated gyro yaw, the DUKF's start count and its
+        accelerometer pull integral (:meth:`_pitch_change_shift`) at
         ``stamp``: the last IMU sample at or before it, the yaw interpolated linearly to the stamp
         between samples. Fused mode interpolates the attitudes too (the DUKF's covariance stays
         the earlier sample's): with a 10 Hz IMU whose stamps jitter against the frames' (KITTI
@@ -698,15 +712,16 @@ class BevoOdometry:
         the car did not make (10 Hz urban preset with +-10 ms IMU stamps: 20.3 -> 10.4 cm per
         frame; 9.6 with exact stamps). Not across a DUKF restart."""
         i = bisect.bisect_right(self._history, stamp, key=lambda h: h[0]) - 1
-        t0, pr_road, state, yaw, epoch = self._history[max(i, 0)]  # older than the whole history: its oldest entry
+        t0, pr_road, state, yaw, epoch, pull = self._history[max(i, 0)]  # older than the whole history: its oldest entry
         if 0 <= i < len(self._history) - 1:
-            t1, road1, state1, yaw1, epoch1 = self._history[i + 1]
+            t1, road1, state1, yaw1, epoch1, pull1 = self._history[i + 1]
             w = (stamp - t0) / (t1 - t0)
             yaw += (yaw1 - yaw) * w
             if self.mode == "fused" and epoch1 == epoch:
                 pr_road = tuple(a + (b - a) * w for a, b in zip(pr_road, road1))
                 state = (tuple(a + (b - a) * w for a, b in zip(state[0], state1[0])), state[1])
-        return pr_road, state, yaw, epoch
+                pull += (pull1 - pull) * w
+        return pr_road, state, yaw, epoch, pull
 
     def _vehicle_motion(self, reg) -> np.ndarray:
         """The registration's (dx, dy, dyaw), float64 ``(3,)`` (the engine's batch of one)."""
