@@ -205,7 +205,7 @@ def test_pitch_change_correction_acts_from_the_start_and_skips_a_pulled_filter(c
     """At 10 Hz the correction acts from the first seconds on (a gate on the DUKF's variance kept it
     off for the first ~5 s of a 10 Hz drive and through accelerations). At 100 Hz the DUKF's first
     convergence from the mounting attitude moves its pitch within the first frame pair by more than
-    the gate, which is no change of the car: that pair is left alone (ACCEL_PULL_GATE), only
+    the gate, which is no change of the car: that pair is left alone (ACCEL_PULL_RATE_GATE), only
     because of the gate, and its error is the smaller for it (the 7 s braking drive's start)."""
     import bevo_ros.core.odometry as odometry
 
@@ -219,11 +219,11 @@ def test_pitch_change_correction_acts_from_the_start_and_skips_a_pulled_filter(c
     n = int(np.searchsorted(d100.imu_stamps, d100.frame_stamps[2])) + 1  # the first three frames
 
     def start(gate: float):
-        monkeypatch.setattr(odometry, "ACCEL_PULL_GATE", gate)
+        monkeypatch.setattr(odometry, "ACCEL_PULL_RATE_GATE", gate)
         return feed_engine(engine(camera, "fused"), d100.imu_stamps[:n], d100.gyro[:n], d100.accel[:n],
                            d100.frame_stamps[:3], d100.image, trailing=False)
 
-    gated, ungated = start(odometry.ACCEL_PULL_GATE), start(math.inf)
+    gated, ungated = start(odometry.ACCEL_PULL_RATE_GATE), start(math.inf)
     print(f"100 Hz, first pair: shift {gated[1].pitch_shift * 100:.2f} cm with the gate, "
           f"{ungated[1].pitch_shift * 100:.2f} cm without")
     truth = d100.relative_motion[0, 0]
@@ -232,6 +232,21 @@ def test_pitch_change_correction_acts_from_the_start_and_skips_a_pulled_filter(c
     assert gated[1].pitch_shift == 0.0
     assert abs(ungated[1].pitch_shift) > 0.05
     assert abs(gated[1].measured_motion[0] - truth) < abs(ungated[1].measured_motion[0] - truth)
+
+
+def test_pitch_change_gate_is_a_rate(camera):
+    """The gate on the DUKF's pull scales with the frame interval: 0.05 deg of pull over a 10 Hz
+    pair is small (the correction acts), over a 30 Hz pair it is a start's convergence spread over
+    several short pairs (the correction waits)."""
+    odo = engine(camera, "fused")
+    odo._prev_pitch = (0.0, 0.0, 0, 0.0)  # previous frame: BEV pitch, DUKF pitch, DUKF start, pull sum
+    state = ((0.0, 0.0), (1e-6, 0.0, 1e-6))
+    pull = math.radians(0.05)
+    acts = odo._pitch_change_shift(1e-3, state, 0, pull, 0.1)
+    waits = odo._pitch_change_shift(1e-3, state, 0, pull, 1 / 30)
+    assert acts == pytest.approx(odo._shift_per_pitch_change * 1e-3) and acts != 0.0
+    assert waits == 0.0
+    assert odo._pitch_change_shift(1e-3, state, 1, 0.0, 0.1) == 0.0  # another DUKF start: never
 
 
 def test_frame_clock_reads_jitter_as_jitter():

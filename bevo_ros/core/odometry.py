@@ -36,10 +36,12 @@ from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 MODES = ("fused", "paper")
 ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceleration stays the same
 # The pitch-change correction counts the DUKF's pitch change between two frames as the car's own
-# only while the filter's accelerometer updates moved its pitch by less than this over the pair: a
-# filter still converging from its start (or, with a 10 Hz IMU, pulled hard by an acceleration it
-# cannot tell from tilt) changes its pitch without the car (0.1 deg reads as 14 cm on KITTI).
-ACCEL_PULL_GATE = math.radians(0.1)
+# only while the filter's accelerometer updates moved its pitch by less than this rate times the
+# frame interval: a filter still converging from its start (or, with a 10 Hz IMU, pulled hard by an
+# acceleration it cannot tell from tilt) changes its pitch without the car (0.1 deg, the gate over
+# a 10 Hz pair, reads as 14 cm on KITTI). A rate, so that a faster camera does not spread a start
+# over pairs that each pass.
+ACCEL_PULL_RATE_GATE = math.radians(1.0)  # rad/s
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 _PLANAR = np.ix_([0, 1, 5], [0, 1, 5])  # (x, y, yaw) in a 6x6 ROS covariance
@@ -522,7 +524,7 @@ class BevoOdometry:
         elif self.mode == "fused":
             prev = self._prev_pitch  # the DUKF's accelerometer pull since the previous frame (same start only)
             pull = pull_cum - prev[3] if prev is not None and prev[2] == epoch else 0.0
-            shift = self._pitch_change_shift(road[0], state, epoch, pull)
+            shift = self._pitch_change_shift(road[0], state, epoch, pull, dt)
             # The gyro's yaw was integrated over the stamped interval: over the frame's, it is that
             # much more or less (frames and a 10 Hz IMU sharing jittered stamps: 10 Hz on-ramp
             # preset with +-10 ms stamps, yaw 0.131 -> 0.027 deg per frame, as with exact stamps).
@@ -591,7 +593,7 @@ class BevoOdometry:
             standstill=still,
         )
 
-    def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int, pull: float) -> float:
+    def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int, pull: float, dt: float) -> float:
         """Fused mode: the forward shift (m) this frame's correlation reads from the engine's own
         change of the BEV pitch since the previous frame.
 
@@ -600,11 +602,11 @@ class BevoOdometry:
         motion of the car, yet it moves the whole current BEV by :func:`~bevo_ros.core.motion.pitch_change_shift` per radian
         (0.01 deg: 1.4 cm on KITTI), read as forward motion. The DUKF's change is taken as the
         car's. Zero across a DUKF restart (the attitude jumps), when the DUKF's accelerometer
-        updates moved its pitch by more than ACCEL_PULL_GATE between the two frames (``pull``,
-        their pitch changes summed over the pair; converging from its start, or at 10 Hz pulled
-        hard by an acceleration: its change is then not the car's, and the low-pass following it
-        is right), and with the correction off. A gate on the DUKF's variance (within 10x of its steady
-        state) kept it off for the first ~5 s of a 10 Hz drive and through every acceleration,
+        updates moved its pitch by more than ACCEL_PULL_RATE_GATE x ``dt`` between the two frames
+        (``pull``, their pitch changes summed over the pair; converging from its start, or at
+        10 Hz pulled hard by an acceleration: its change is then not the car's, and the low-pass
+        following it is right), and with the correction off. A gate on the DUKF's variance
+        (within 10x of its steady state) kept it off for the first ~5 s of a 10 Hz drive and through every acceleration,
         whose inflated measurement variance holds the variance up. With this gate: 10 Hz presets
         9.9 -> 7.7 % per frame, drift 3.5 -> 2.1 %; KITTI sample 5.6 -> 5.3 cm per frame (`bevo
         evaluate`); a 100 Hz braking start's first pair -104 -> -54 cm. The DUKF's small
@@ -614,7 +616,7 @@ class BevoOdometry:
         prev = self._prev_pitch
         if not self.pitch_change_correction or prev is None or prev[2] != epoch:
             return 0.0
-        if abs(pull) > ACCEL_PULL_GATE:
+        if abs(pull) > ACCEL_PULL_RATE_GATE * dt:
             return 0.0
         return self._shift_per_pitch_change * ((bev_pitch - prev[0]) - (state[0][0] - prev[1]))
 
