@@ -120,10 +120,10 @@ def camera():
 
 
 # Limits at half resolution, 100 Hz IMU, short drives (measured: curve 0.12 / 0.18 deg road
-# attitude, 2.9 %, 0.024 deg, 1.2 % drift; braking 0.22 / 0.17, 6.9 %, 0.026, 3.6 %; bend_start
-# 0.12 / 0.31, 3.3 %, 0.028, 1.2 %; paper mode 13-57 %, yaw 0.28-0.56 deg, 11-29 %). Issue 9 asks
+# attitude, 2.9 %, 0.024 deg, 1.1 % drift; braking 0.12 / 0.17, 5.9 %, 0.026, 2.4 %; bend_start
+# 0.11 / 0.31, 3.3 %, 0.028, 1.0 %; paper mode 13-57 %, yaw 0.28-0.56 deg, 11-29 %). Issue 9 asks
 # 0.3 deg, 3 %, 0.05 deg and 1 %: see the README for what is reached. Braking is the spread one:
-# seeds 2-4 of the same 6 s drive give 8.4 / 7.2 / 13.2 % per frame and 4.8 / 2.4 / 6.4 % drift
+# seeds 2-4 of the same 6 s drive give 7.5 / 5.9 / 12.8 % per frame and 3.6 / 1.3 / 5.4 % drift
 # (12.2 / 8.4 / 14.0 % and 4.5 / 4.1 / 1.4 % before the pitch-change correction acted through
 # accelerations: its drift is the one figure that got worse), so its limits hold seed 1 with a
 # margin, not a lucky draw.
@@ -325,7 +325,7 @@ def test_pitch_change_correction_on_an_urban_drive(camera):
     low-pass, suspension model), and the per-frame error and drift fall (the README has the
     other presets)."""
     rows = {}
-    for name, duration in (("urban", 16.0),):
+    for name, duration in (("urban", 26.0),):  # the README's preset, whole
         d = preset_drive(name, seed=1, duration=duration, render="lazy", camera=camera, imu_rate=10.0)
         images = [d.image(k) for k in range(len(d.frame_stamps))]
         for on in (True, False):
@@ -334,10 +334,10 @@ def test_pitch_change_correction_on_an_urban_drive(camera):
             rows[name, on] = scores(feed(build_odometry(config, FUSED, camera=camera), d, images), d)
         print(f"\n{name}: corrected {rows[name, True]}\n{name}: not corrected {rows[name, False]}")
     for name in ("urban",):
-        assert rows[name, True]["trans_pct"] < 0.95 * rows[name, False]["trans_pct"]  # measured 10.5 vs 16.0 %
-        # drift 1.96 vs 1.85 % on this 16 s drive, i.e. no better, no worse (over the 9 presets of the
-        # README it falls): it must not grow by more than half a point
-        assert rows[name, True]["drift"] < rows[name, False]["drift"] + 0.5
+        # measured 7.1 vs 13.0 % per frame and 0.50 vs 2.27 % drift (its first 16 s alone: 9.9 vs 15.9 %,
+        # but 1.8 vs 1.1 % drift, a short drive's drift being a few frames' luck)
+        assert rows[name, True]["trans_pct"] < 0.7 * rows[name, False]["trans_pct"]
+        assert rows[name, True]["drift"] < 0.5 * rows[name, False]["drift"]
         assert rows[name, True]["yaw"] <= 0.05
 
 
@@ -532,7 +532,7 @@ def _road_pitch_error_on_real_drive(ox, config, learned) -> np.ndarray:
 def test_road_pitch_on_real_drives(kitti_root):
     """Issue 9 item 2 on real data: the road-relative pitch the BEV gets, against the road pitch
     the OXTS unit's own velocity implies (its pitch minus the slope atan(vu / v)), on the four
-    shared drives. The defaults (road-tilt low-pass 1 s, suspension pitch 0.003 rad per m/s^2)
+    shared drives. The defaults (road-tilt low-pass 1 s, suspension pitch 0.004 rad per m/s^2)
     beat the previous ones (2 s, no suspension pitch)."""
     from dataclasses import replace
 
