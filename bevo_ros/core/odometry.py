@@ -608,8 +608,9 @@ class BevoOdometry:
         (``pull``, their pitch changes summed over the pair; converging from its start, or at
         10 Hz pulled hard by an acceleration: its change is then not the car's, and the low-pass
         following it is right), and with the correction off. A gate on the DUKF's variance
-        (within 10x of its steady state) kept it off for the first ~5 s of a 10 Hz drive and through every acceleration,
-        whose inflated measurement variance holds the variance up. With this gate: 10 Hz presets
+        (within 10x of its steady state) kept it off for the first ~5 s of a 10 Hz drive and
+        through every acceleration, whose inflated measurement variance holds the variance up.
+        With this gate: 10 Hz presets
         9.9 -> 7.7 % per frame, drift 3.5 -> 2.1 %; KITTI sample 5.6 -> 5.3 cm per frame (`bevo
         evaluate`); a 100 Hz braking start's first pair -104 -> -54 cm. The DUKF's small
         updates also move the BEV without motion, but telling them from a real pitch change
@@ -625,9 +626,9 @@ class BevoOdometry:
     def _fused_motion(self, curr, stamp: float, dt: float, yaw_cum: float, state: tuple, pitch_shift: float = 0.0,
                       image: torch.Tensor | None = None, pull: float = 0.0):
         """Fused mode, one frame: derotate by the gyro's yaw, correlate, take ``pitch_shift``
-        (:meth:`_pitch_change_shift`) off the forward motion, count the DUKF's accelerometer
-        ``pull`` over the pair as forward variance, check for standstill on the raw ``image`` when
-        the correlation reads little motion, filter, gate."""
+        (:meth:`_pitch_change_shift`) off the forward motion, its covariance with the DUKF's
+        accelerometer ``pull`` over the pair (:meth:`_motion_covariance`), check for standstill on
+        the raw ``image`` when the correlation reads little motion, filter, gate."""
         gyro_yaw = yaw_cum - self._prev_yaw_cum
         n = self.vehicle.noise
         predicted_bias = self._vstate.b
@@ -639,12 +640,7 @@ class BevoOdometry:
                                 envelope=self._envelope(curr))
         measured = self._vehicle_motion(reg)
         measured[0] -= pitch_shift
-        cov = self._motion_covariance(reg, measured, state)
-        # The DUKF's accelerometer updates moved its pitch by ``pull`` between the frames without
-        # the car; how much of it the BEV pitch change still carries (the low-pass follows part)
-        # is unknown, so its whole shift counts as forward variance: 10 Hz presets 7.7 -> 6.5 %
-        # per frame, drift 2.1 -> 1.7 %; KITTI sample 5.3 cm, 1.36 -> 1.34 %.
-        cov[0, 0] += (self._shift_per_pitch_change * pull) ** 2
+        cov = self._motion_covariance(reg, measured, state, pull)
         rot = -reg.rotation_estimate.item()
         quality = reg.quality.item()
         # The image rotation's spread plus what the correlation spread does not see (an attitude
@@ -745,7 +741,7 @@ class BevoOdometry:
         (o_p, o_r), (q_p, q_r) = self._noise
         return steady_state_variance(o_p, q_p, dt), steady_state_variance(o_r, q_r, dt)
 
-    def _motion_covariance(self, reg, motion: np.ndarray, state: tuple) -> np.ndarray:
+    def _motion_covariance(self, reg, motion: np.ndarray, state: tuple, pull: float = 0.0) -> np.ndarray:
         """(dx, dy, dyaw) covariance: the correlation distributions' spread (first order) plus what
         the attitude uncertainty does to the BEV, the dominant error on a car, ``G P G^T`` with
         ``G = dx [[-k_p, 0], [0, C_x k_r], [0, -k_r]]`` over (pitch, roll): a pitch error scales
@@ -754,7 +750,11 @@ class BevoOdometry:
         ``P`` is the DUKF's attitude covariance with each variance capped at its steady state
         (:func:`~bevo_ros.core.dukf.steady_state_variance`): right after a start the filter is
         unsure of the absolute attitude, but that error is a constant the road-tilt high-pass
-        removes.
+        removes. Fused mode adds the forward shift of ``pull``, the pitch change the DUKF's
+        accelerometer updates made between the two frames without the car (across a DUKF restart
+        the BEV pitch's whole jump): how much of it the BEV still carries (the low-pass follows
+        part) is unknown (10 Hz presets 7.7 -> 6.5 % per frame, drift 2.1 -> 1.7 %; KITTI sample
+        5.3 cm, 1.36 -> 1.34 %).
         """
         cov = self.kernels.motion_covariance_from_registration(reg, self.spec).cpu().numpy()[0].astype(np.float64)
         (c00, c01, c11) = state[1]
@@ -764,6 +764,8 @@ class BevoOdometry:
         att = np.array([[c00 * s_p * s_p, c01 * s_p * s_r], [c01 * s_p * s_r, c11 * s_r * s_r]])
         dx, k_r = motion[0], self._yaw_per_roll
         G = dx * np.array([[-self._scale_per_pitch, 0.0], [0.0, self.spec.centre[0] * k_r], [0.0, -k_r]])
-        return cov + G @ att @ G.T
+        cov = cov + G @ att @ G.T
+        cov[0, 0] += (self._shift_per_pitch_change * pull) ** 2
+        return cov
 
 __all__ = ["BevoOdometry", "OdometryStep", "InvalidInputError", "OutOfOrderError", "Counters", "EngineEvent", "Z_VARIANCE"]
