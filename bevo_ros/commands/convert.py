@@ -38,6 +38,7 @@ examples:
   bevo convert --odometry ../shared/data/kitti/odometry --sequence 06 -o seq06_bag
   bevo convert --odometry DATASET --sequence 06 --first 0 --count 20 --storage mcap -o short
   bevo convert --raw RAW/2011_09_30/2011_09_30_drive_0020_sync --camera 0 -o drive20_bag
+  bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0027_sync/oxts --first 0 --count 160 -o real_imu_bag
 """
 
 
@@ -50,6 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--odometry", metavar="DIR", help="KITTI odometry root (holds sequences/ and poses/)")
     src.add_argument("--raw", metavar="DIR", help="a raw drive directory <date>/<date>_drive_NNNN_sync")
+    src.add_argument("--render-oxts", metavar="DIR",
+                     help="a raw drive's oxts directory: its real IMU and motion with a rendered synthetic camera "
+                          "(exact ground truth; bevo_ros.datasets.synthetic.oxts_drive; run with params/synthetic.yaml)")
     p.add_argument("--sequence", default="06", help="odometry sequence number (default 06)")
     p.add_argument("-o", "--output", required=True, help="output bag directory (must not exist, see --overwrite)")
     p.add_argument("--storage", choices=bag.STORAGES, default="sqlite3", help="rosbag2 storage plugin (default sqlite3)")
@@ -83,13 +87,44 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _render_oxts(args) -> int:
+    """``--render-oxts``: the drive of :func:`~bevo_ros.datasets.synthetic.oxts_drive.drive_from_oxts`
+    (frames ``--first``, ``--count``) written by the synthetic drives' bag writer."""
+    from bevo_ros.datasets.kitti import read_oxts
+    from bevo_ros.datasets.rosbag import write_drive_bag
+    from bevo_ros.datasets.synthetic.oxts_drive import drive_from_oxts
+
+    out = Path(args.output)
+    try:
+        if out.exists() and not args.overwrite:
+            raise FileExistsError(f"{out}: output bag exists (use --overwrite to replace it)")
+        drive = drive_from_oxts(read_oxts(args.render_oxts), render="lazy")
+        n = drive.num_frames
+        stop = n if args.count is None else args.first + args.count
+        if not (0 <= args.first and args.first + 2 <= stop <= n):
+            raise ValueError(f"--first {args.first} --count {args.count}: the drive has {n} frames (need >= 2 in range)")
+        write_drive_bag(drive, out, storage=args.storage, overwrite=args.overwrite, frame_range=(args.first, stop))
+    except KeyboardInterrupt:
+        print("kitti_to_bag: interrupted; no bag written", file=sys.stderr)
+        return 130
+    except (FileNotFoundError, FileExistsError, ValueError) as exc:
+        print(f"kitti_to_bag: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out} ({args.storage}): {args.render_oxts}'s IMU and motion, rendered camera, frames "
+          f"{args.first}..{stop - 1} of {n}, {drive.frame_stamps[stop - 1] - drive.frame_stamps[args.first]:.3f} s, "
+          f"size {_dir_size(out) / 1e6:.2f} MB")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.render_oxts:
+        return _render_oxts(args)
     out = Path(args.output)
     try:
         if out.exists() and not args.overwrite:
             raise ConversionError(f"{out}: output bag exists (use --overwrite to replace it)")
-        opts = ConversionOptions(**vars(args))
+        opts = ConversionOptions(**{k: v for k, v in vars(args).items() if k != "render_oxts"})
         src = load_source(opts)
         counts = convert(src, opts)
     except KeyboardInterrupt:

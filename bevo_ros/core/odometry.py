@@ -323,12 +323,19 @@ class BevoOdometry:
             raise InvalidInputError("IMU linear acceleration is zero: no gravity, no attitude")
         if self._last_imu is not None and stamp <= self._last_imu:
             raise OutOfOrderError("IMU", stamp, self._last_imu)
-        out = self._release(lambda s: s < stamp)
         self.counters.imu += 1
         if self.mode == "fused":
+            # Images waiting for this sample are projected with the attitude interpolated to their
+            # stamps (_attitude_at), so this sample is fused first. Releasing them before it, as
+            # paper mode does, gave a frame that arrives before the IMU sample after it (the order a
+            # node and a bag deliver them in: KITTI frames on the camera clock, 10 Hz OXTS) the
+            # attitude and the gyro yaw of the sample before it: a 10 Hz drive's per-frame gyro
+            # yaw read 0 and then twice the turn. Frames before the first sample have no attitude:
+            # dropped and counted, as before.
+            out = self._release(lambda s: s < stamp) if self._state is None else []
             self._fuse_imu(stamp, g, a)
-            out += self._release(lambda s: s <= stamp)
-            return out
+            return out + self._release(lambda s: s <= stamp)
+        out = self._release(lambda s: s < stamp)
         if self.turn_compensation:  # remove_turn_acceleration, in floats
             a[1] -= self._speed * g[2]
         if self._state is None or stamp - self._last_imu > self.max_imu_gap:

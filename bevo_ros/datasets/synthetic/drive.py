@@ -59,7 +59,9 @@ class SyntheticDrive:
     """A synthetic drive with exact ground truth. ``F`` frames, ``N`` IMU samples; numpy arrays.
 
     Stamps are seconds (float64) from ``t0``; frame ``i`` is IMU sample ``frame_imu_index[i]`` and
-    ``frame_stamps == imu_stamps[frame_imu_index]`` exactly.
+    ``frame_stamps == imu_stamps[frame_imu_index]`` exactly (:func:`make_drive`; a drive of
+    :func:`~bevo_ros.datasets.synthetic.oxts_drive.drive_from_oxts` has its frames on the camera's
+    clock and ``frame_imu_index`` the nearest IMU sample).
     """
 
     camera: CameraModel
