@@ -27,8 +27,9 @@ such as a truck ahead in a queue, fills the far half), known to half the thresho
 """
 from __future__ import annotations
 
+import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -161,6 +162,8 @@ class SmallMotion:
         near, far: the same over the near and the far half of the region (m).
         texture_snr: the road texture's gradient energy over the sensor noise's share of it.
         inliers: fraction of road pixels kept by the robust weights.
+        coarse_forward: ``forward`` on images downsampled twice as much (:meth:`StandstillDetector.measure`;
+            nan when not computed): twice the linear range.
     """
 
     forward: float
@@ -169,6 +172,7 @@ class SmallMotion:
     far: float = float("nan")
     texture_snr: float = 0.0
     inliers: float = 0.0
+    coarse_forward: float = float("nan")
 
 
 NO_MOTION = SmallMotion(float("nan"), float("inf"))  # too few road pixels, or non-finite images
@@ -275,6 +279,7 @@ class StandstillDetector:
     def set_camera(self, camera: CameraModel) -> None:
         self.camera = camera
         self._basis: FlowBasis | None = None  # built on first use
+        self._coarse_basis: FlowBasis | None = None  # the same at twice the downsampling
         self.reset()
 
     def reset(self) -> None:
@@ -306,16 +311,28 @@ class StandstillDetector:
         self._curr = (image, curr)
         if prev.shape != self._basis.road.shape:
             return None
-        return small_motion(prev, curr, self._basis)
+        fine = small_motion(prev, curr, self._basis)
+        if not math.isfinite(fine.forward):
+            return fine
+        # Beyond its linear range the estimate falls back towards zero: on a real drive's rendered
+        # frames a 14 cm motion (under CHECK_BELOW) read 0.9 cm, a false stop whose zero-rotation
+        # update took 0.8 deg of turn out of the heading. Twice coarser, the range is twice as long
+        # (the same motion reads > 10 cm) and a true rest still reads ~0.
+        if self._coarse_basis is None:
+            self._coarse_basis = ground_flow_basis(self.camera, *self.attitude, 2 * working_factor(self.camera.width),
+                                                   device=image.device)
+        coarse = small_motion(downsample(prev, 2), downsample(curr, 2), self._coarse_basis)
+        return replace(fine, coarse_forward=coarse.forward)
 
     def at_rest(self, motion: SmallMotion | None, dt: float) -> bool:
         """True when ``motion`` over ``dt`` (s) says the vehicle stood still: texture well above
         the noise, below ``max_speed * dt`` over the region and over its near and far halves,
-        known to half of it."""
+        known to half of it, and not above it at the coarse scale (``coarse_forward``)."""
         limit = self.max_speed * dt
         return (motion is not None and motion.texture_snr >= MIN_TEXTURE_SNR
                 and abs(motion.forward) < limit and motion.forward_std < 0.5 * limit
-                and abs(motion.near) < limit and abs(motion.far) < limit)
+                and abs(motion.near) < limit and abs(motion.far) < limit
+                and not abs(motion.coarse_forward) >= limit)
 
     def remember(self, image: Tensor) -> None:
         """Keep ``image (H, W)`` as the previous one for the next frame (a copy: a caller refilling
