@@ -233,3 +233,20 @@ def test_render_oxts_reports_bad_input(tmp_path, capsys):
         (oxts / "data" / f"{i:010d}.txt").write_text(" ".join(f"{v:.12g}" for v in row) + "\n")
     assert cli.main(["convert", "--render-oxts", str(oxts), "--first", "20", "--count", "50", "-o", str(out)]) == 2
     assert "the drive has" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.kitti
+def test_eval_real_imu_tool_prints_the_clip_table(kitti_root, tmp_path):
+    """tools/eval_real_imu.py (the README's clip table) on drive 0016, 10 s clips: it runs from a
+    fresh cache and says what it measured."""
+    import re
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, str(REPO_ROOT / "tools" / "eval_real_imu.py"), "--drives", "0016",
+                          "--raw", str(kitti_root / "raw" / "2011_09_30"), "--length", "100", "--step", "150",
+                          "--modes", "fused", "--cache", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    m = re.search(r"fused \((\d+) clips of 100 frames\): drift mean ([\d.]+) %", out.stdout)
+    assert m and int(m.group(1)) == 2 and float(m.group(2)) < 5.0, out.stdout
+    assert (tmp_path / "0016_seed1_620x188.npy").exists()
