@@ -25,10 +25,7 @@ PAPER = load_learned_params(REPO_ROOT / "params" / "learned_paper.yaml")
 
 
 def small_camera() -> CameraModel:
-    cam = kitti_like_camera()
-    K = cam.K.clone()
-    K[:2] *= 0.5
-    return CameraModel(K, 620, 188, cam.T_base_cam, cam.mount_height)
+    return kitti_like_camera(scale=0.5)
 
 
 def engine(camera, mode: str, learned: LearnedParams | None = None):

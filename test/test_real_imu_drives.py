@@ -26,10 +26,7 @@ CAMERA_PERIOD = 0.1037  # s, KITTI's camera (the OXTS runs at 100 Hz)
 
 
 def small_camera() -> CameraModel:
-    cam = kitti_like_camera()
-    K = cam.K.clone()
-    K[:2] *= 0.5
-    return CameraModel(K, 620, 188, cam.T_base_cam, cam.mount_height)
+    return kitti_like_camera(scale=0.5)
 
 
 def _circle_oxts(n: int = 120, speed: float = 10.0, yaw_rate: float = 0.2, lat0: float = 49.0) -> tuple[OxtsData, np.ndarray]:
@@ -105,27 +102,8 @@ def test_frames_before_their_imu_sample_get_the_interpolated_attitude_and_yaw():
     d = preset_drive("curve", seed=2, duration=4.0, imu_rate=10.0, render="lazy", camera=small_camera())
     frames = d.frame_stamps + np.where(np.arange(d.num_frames) % 2 == 0, 0.004, -0.004)
     images = [d.image(k) for k in range(d.num_frames)]
-    runs = []
-    for late in (False, True):
-        odo = build_odometry(BevoConfig(), FUSED, camera=small_camera())
-        steps = []
-        if late:  # every frame after the IMU sample that follows it
-            j = 0
-            for i, s in enumerate(d.imu_stamps):
-                steps += odo.add_imu(float(s), d.gyro[i], d.accel[i])
-                while j < len(frames) and frames[j] <= s:
-                    steps += odo.add_image(float(frames[j]), images[j])
-                    j += 1
-            for j in range(j, len(frames)):  # after the last sample
-                steps += odo.add_image(float(frames[j]), images[j])
-            steps += odo.flush()
-        else:  # by stamp, as a bag plays: each frame before the sample after it
-            events = sorted([(s, 0, i) for i, s in enumerate(d.imu_stamps)] + [(s, 1, k) for k, s in enumerate(frames)])
-            for _, kind, i in events:
-                steps += (odo.add_imu(float(d.imu_stamps[i]), d.gyro[i], d.accel[i]) if kind == 0
-                          else odo.add_image(float(frames[i]), images[i]))
-            steps += odo.flush()
-        runs.append(steps)
+    runs = [feed_engine(build_odometry(BevoConfig(), FUSED, camera=small_camera()), d.imu_stamps, d.gyro, d.accel,
+                        frames, lambda k: images[k], by_stamp=by_stamp) for by_stamp in (True, False)]
     a, b = runs
     assert len(a) == len(b) == d.num_frames
     np.testing.assert_array_equal(np.array([s.motion for s in a]), np.array([s.motion for s in b]))

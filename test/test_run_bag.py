@@ -141,3 +141,8 @@ def test_stamp_order_is_the_node_s_arrival_order():
                                               ("image", 2)]
     assert list(stamp_order(imu, frames, image_first=True, trailing=False)) == [
         ("imu", 0), ("image", 0), ("image", 1), ("imu", 1), ("imu", 2)]
+    # by_stamp: as a bag plays, each image before the samples stamped after it
+    assert list(stamp_order(imu, frames, by_stamp=True)) == [("imu", 0), ("image", 0), ("imu", 1), ("image", 1),
+                                                             ("imu", 2), ("image", 2)]
+    assert list(stamp_order(imu, frames, image_first=True, by_stamp=True)) == [
+        ("imu", 0), ("image", 0), ("image", 1), ("imu", 1), ("imu", 2), ("image", 2)]

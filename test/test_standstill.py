@@ -31,10 +31,7 @@ KITTI_MOUNTING = (0.0270, -0.0177)  # params/kitti.yaml
 
 
 def half_camera() -> CameraModel:
-    cam = kitti_like_camera()
-    K = cam.K.clone()
-    K[:2] *= 0.5
-    return CameraModel(K, 620, 188, cam.T_base_cam, cam.mount_height)
+    return kitti_like_camera(scale=0.5)
 
 
 def _small(img: np.ndarray, factor: int) -> torch.Tensor:

@@ -25,21 +25,14 @@ import numpy as np
 import torch
 
 from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry
-from bevo_ros.core.geometry import CameraModel
 from bevo_ros.core.pose import integrate_motions
 from bevo_ros.datasets.kitti import read_oxts
+from bevo_ros.datasets.rosbag import feed_engine
 from bevo_ros.datasets.synthetic import kitti_like_camera
 from bevo_ros.datasets.synthetic.oxts_drive import drive_from_oxts
 from bevo_ros.io.learned_params import load_learned_params
 
 RAW = REPO_ROOT.parent / "shared" / "data" / "kitti" / "raw" / "2011_09_30"
-
-
-def half_camera() -> CameraModel:
-    cam = kitti_like_camera()
-    K = cam.K.clone()
-    K[:2] *= 0.5
-    return CameraModel(K, 620, 188, cam.T_base_cam, cam.mount_height)
 
 
 def run_clip(d, images, f0: int, f1: int, mode: str) -> np.ndarray:
@@ -48,13 +41,9 @@ def run_clip(d, images, f0: int, f1: int, mode: str) -> np.ndarray:
     config.odometry.mode = mode
     learned = load_learned_params(REPO_ROOT / "params" / ("learned_default.yaml" if mode == "fused" else "learned_paper.yaml"))
     odo = build_odometry(config, learned, camera=d.camera)
-    imu = np.nonzero((d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15))[0]
-    events = sorted([(d.imu_stamps[i], 0, i) for i in imu] + [(d.frame_stamps[k], 1, k) for k in range(f0, f1)])
-    steps = []
-    for _, kind, i in events:
-        steps += (odo.add_imu(float(d.imu_stamps[i]), d.gyro[i], d.accel[i]) if kind == 0
-                  else odo.add_image(float(d.frame_stamps[i]), np.asarray(images[i])))
-    steps += odo.flush()
+    imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
+    steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
+                        lambda k: np.asarray(images[f0 + k]), by_stamp=True)
     return np.array([s.motion for s in steps[1:]])
 
 
@@ -76,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, list] = {m: [] for m in modes}
     args.cache.mkdir(parents=True, exist_ok=True)
     for drive in args.drives.split(","):
-        d = drive_from_oxts(read_oxts(args.raw / f"2011_09_30_drive_{drive}_sync" / "oxts"), seed=1, camera=half_camera())
+        d = drive_from_oxts(read_oxts(args.raw / f"2011_09_30_drive_{drive}_sync" / "oxts"), seed=1, camera=kitti_like_camera(scale=0.5))
         cache = args.cache / f"{drive}_seed1_620x188.npy"
         if cache.exists():
             images = np.load(cache, mmap_mode="r")

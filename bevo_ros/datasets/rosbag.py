@@ -182,13 +182,19 @@ def road_relative_gt(poses: torch.Tensor) -> torch.Tensor:
 
 
 def stamp_order(imu_stamps, frame_stamps, image_first: bool = False,
-                trailing: bool = True) -> Iterator[tuple[str, int]]:
-    """The order the node receives a recording in: ``("imu", i)`` and ``("image", k)`` events by
-    stamp, IMU first on equal stamps (``image_first``: the image first); ``trailing``: frames after
-    the last IMU sample too. The one feeding order of the offline engine runs and the tests."""
+                trailing: bool = True, by_stamp: bool = False) -> Iterator[tuple[str, int]]:
+    """The order the node receives a recording in: ``("imu", i)`` and ``("image", k)`` events,
+    each image after the first IMU sample at or after its stamp (a camera's latency), IMU first on
+    equal stamps (``image_first``: the image first); ``by_stamp``: each image before the IMU
+    samples stamped after it (a bag played by stamp: KITTI frames on the camera clock beside the
+    10 Hz OXTS); ``trailing``: frames after the last IMU sample too. The one feeding order of the
+    offline engine runs and the tests."""
     frames = [float(t) for t in frame_stamps]
     k = 0
     for i, s in enumerate(float(t) for t in imu_stamps):
+        while by_stamp and k < len(frames) and (frames[k] < s or (image_first and frames[k] == s)):
+            yield "image", k
+            k += 1
         if not image_first:
             yield "imu", i
         while k < len(frames) and frames[k] <= s:
@@ -202,11 +208,11 @@ def stamp_order(imu_stamps, frame_stamps, image_first: bool = False,
 
 
 def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: bool = False,
-                trailing: bool = True) -> list:
+                trailing: bool = True, by_stamp: bool = False) -> list:
     """Feed ``odo`` (a ``BevoOdometry``) in :func:`stamp_order`, then flush; ``image(k)`` gives frame
     ``k``. Returns every ``OdometryStep``."""
     steps = []
-    for kind, j in stamp_order(imu_stamps, frame_stamps, image_first, trailing):
+    for kind, j in stamp_order(imu_stamps, frame_stamps, image_first, trailing, by_stamp):
         if kind == "imu":
             steps += odo.add_imu(float(imu_stamps[j]), gyro[j], accel[j])
         else:

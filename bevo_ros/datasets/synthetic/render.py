@@ -40,6 +40,7 @@ def kitti_like_camera(
     mount_height: float = 1.65,
     offset: Sequence[float] = (1.08, 0.0, 0.73),
     dtype: torch.dtype = torch.float64,
+    scale: float = 1.0,
 ) -> CameraModel:
     """The KITTI grey camera (1241x376, fx = fy = 718.856) on the base frame.
 
@@ -47,7 +48,11 @@ def kitti_like_camera(
         mount_pitch: camera pitch on the base, radians; positive looks down (the nose-down sign).
         mount_height: camera centre height above the road, metres.
         offset: camera centre in the base frame (x fwd, y left, z up), metres.
+        scale: image resolution factor (0.5: the tests' and tools' 620x188 camera, K's first two
+            rows scaled, the size rounded down).
     """
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive finite number, got {scale!r}")
     # Optical axes in base coordinates: x_cam = -y_base (right), y_cam = -z_base (down), z_cam = x_base.
     r_opt = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
     c, s = math.cos(mount_pitch), math.sin(mount_pitch)
@@ -56,7 +61,9 @@ def kitti_like_camera(
     T[:3, :3] = r_y @ r_opt
     T[:3, 3] = torch.tensor([float(v) for v in offset], dtype=torch.float64)
     K = torch.tensor(KITTI_K, dtype=torch.float64)
-    return CameraModel(K.to(dtype), KITTI_SIZE[0], KITTI_SIZE[1], T.to(dtype), float(mount_height))
+    K[:2] *= scale
+    width, height = int(KITTI_SIZE[0] * scale), int(KITTI_SIZE[1] * scale)
+    return CameraModel(K.to(dtype), width, height, T.to(dtype), float(mount_height))
 
 
 @dataclass(frozen=True)
