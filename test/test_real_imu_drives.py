@@ -228,3 +228,26 @@ def test_eval_real_imu_tool_prints_the_clip_table(kitti_root, tmp_path):
     m = re.search(r"fused \((\d+) clips of 100 frames\): drift mean ([\d.]+) %", out.stdout)
     assert m and int(m.group(1)) == 2 and float(m.group(2)) < 5.0, out.stdout
     assert (tmp_path / "0016_seed1_620x188.npy").exists()
+
+
+def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
+    """``--presets``: the same cold-start clip table on synthetic drives (exact truth, no shared
+    data), with the first frame pairs' forward error apart; an unknown preset is a clear error."""
+    import re
+    import subprocess
+    import sys
+
+    tool = str(REPO_ROOT / "tools" / "eval_real_imu.py")
+    out = subprocess.run([sys.executable, tool, "--presets", "curve", "--length", "40", "--step", "60",
+                          "--modes", "fused", "--cache", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    m = re.search(r"fused \((\d+) clips of 40 frames\): drift mean ([\d.]+) %", out.stdout)
+    assert m and int(m.group(1)) == 3 and float(m.group(2)) < 10.0, out.stdout  # a 16 s preset: clips at 0, 60, 120
+    first = re.search(r"first 5 frame pairs .*?\) ([\d. /]+) cm, later pairs ([\d.]+) cm", out.stdout)
+    assert first, out.stdout
+    pairs = [float(v) for v in first.group(1).split("/")]
+    assert len(pairs) == 5 and all(0.0 < v < 100.0 for v in pairs) and 0.0 < float(first.group(2)) < 50.0
+    assert (tmp_path / "preset_curve_seed1_10hz_620x188.npy").exists()
+    bad = subprocess.run([sys.executable, tool, "--presets", "curve,nope", "--cache", str(tmp_path)],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "unknown presets ['nope']" in bad.stderr
