@@ -666,7 +666,7 @@ class BevoOdometry:
         still, rest_var = False, 0.0
         if (image is not None and self._standstill.enabled and abs(float(measured[0])) < STANDSTILL_CHECK_BELOW
                 and quality >= n.min_quality and self._stop_is_plausible(dt)):
-            sm = self._standstill.measure(image)
+            sm = self._standstill.measure(image, dt)
             still = self._standstill.at_rest(sm, dt)
             if still:  # what the threshold leaves possible, and the estimate's own spread
                 rest_var = (0.5 * self._standstill.max_speed * dt) ** 2 + sm.forward_std**2

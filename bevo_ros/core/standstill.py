@@ -290,10 +290,12 @@ class StandstillDetector:
     def _small(self, image: Tensor) -> Tensor:
         return downsample(image, working_factor(self.camera.width))
 
-    def measure(self, image: Tensor) -> SmallMotion | None:
+    def measure(self, image: Tensor, dt: float | None = None) -> SmallMotion | None:
         """The small motion from the remembered image to ``image (H, W)``; None without one, when
         disabled, when the two differ in size, or when they are the same bit for bit (a camera
-        driver repeating its last frame: a real sensor's noise never repeats)."""
+        driver repeating its last frame: a real sensor's noise never repeats). With the frame
+        interval ``dt`` (s) the coarse look is skipped when the fine estimate already rules rest
+        out (``coarse_forward`` stays nan; :meth:`at_rest` says the same either way)."""
         if not self.enabled or self._prev is None or self._prev[0].shape != image.shape:
             return None
         if torch.equal(self._prev[0], image):
@@ -312,7 +314,7 @@ class StandstillDetector:
         if prev.shape != self._basis.road.shape:
             return None
         fine = small_motion(prev, curr, self._basis)
-        if not math.isfinite(fine.forward):
+        if not math.isfinite(fine.forward) or (dt is not None and not self._fine_at_rest(fine, dt)):
             return fine
         # Beyond its linear range the estimate falls back towards zero: on a real drive's rendered
         # frames a 14 cm motion (under CHECK_BELOW) read 0.9 cm, a false stop whose zero-rotation
@@ -328,11 +330,15 @@ class StandstillDetector:
         """True when ``motion`` over ``dt`` (s) says the vehicle stood still: texture well above
         the noise, below ``max_speed * dt`` over the region and over its near and far halves,
         known to half of it, and not above it at the coarse scale (``coarse_forward``)."""
+        return (motion is not None and self._fine_at_rest(motion, dt)
+                and not abs(motion.coarse_forward) >= self.max_speed * dt)
+
+    def _fine_at_rest(self, motion: SmallMotion, dt: float) -> bool:
+        """:meth:`at_rest` without the coarse look."""
         limit = self.max_speed * dt
-        return (motion is not None and motion.texture_snr >= MIN_TEXTURE_SNR
+        return (motion.texture_snr >= MIN_TEXTURE_SNR
                 and abs(motion.forward) < limit and motion.forward_std < 0.5 * limit
-                and abs(motion.near) < limit and abs(motion.far) < limit
-                and not abs(motion.coarse_forward) >= limit)
+                and abs(motion.near) < limit and abs(motion.far) < limit)
 
     def remember(self, image: Tensor) -> None:
         """Keep ``image (H, W)`` as the previous one for the next frame (a copy: a caller refilling
