@@ -271,3 +271,34 @@ def test_bad_input_raises():
         DpcConfig(radial_range=(0.3, 0.2))
     with pytest.raises(ValueError, match="temperature"):
         DpcConfig(rotation_temperature=0.0)
+
+
+def test_a_second_motion_in_view_yields_to_the_prior(big):
+    """A car ahead: a high-contrast block over the far centre (40 % of the BEV) that keeps its place
+    while the road moves 4 px. Its peak is the highest; with a prior near the road's motion (a
+    motion filter's prediction) the road's is taken, the car's region weighted out; a prior at
+    the car's motion keeps the car's; without one nothing changes."""
+    from bevo_ros.core.phase_correlation import motion_consistency_weight
+
+    car_tex = (texture(3 * S, 1, smooth=0.8) - 0.5) * 3 + 0.5
+    region = torch.zeros(1, 1, S, S, dtype=torch.float64)
+    region[..., 0:45, 30:70] = 1
+
+    def frame(road_shift, car_shift):
+        return warp(big, 0.0, road_shift) * (1 - region) + warp(car_tex, 0.0, car_shift) * region
+
+    prev, curr = frame((0.0, 0.0), (0.0, 0.0)), frame((4.0, 0.0), (0.0, 0.0))
+    mask = torch.ones_like(prev).float()
+    cfg = DpcConfig()
+    p, c = prepare(prev.float(), mask, cfg), prepare(curr.float(), mask, cfg)
+    plain = register_prepared(p, c, cfg)
+    assert plain.shift[0].norm() < 0.3 and plain.shift_gated is None  # the car's: it moved 0
+    std = torch.tensor([[1.0, 1.0]])
+    road = register_prepared(p, c, cfg, shift_prior=torch.tensor([[3.5, 0.3]]), shift_prior_std=std)
+    assert (road.shift[0] - torch.tensor([4.0, 0.0])).norm() < 0.25, road.shift
+    assert road.shift_cov[0].diagonal().max() < 4.0  # the spread about the road's peak, not over both
+    w = motion_consistency_weight(p.spectrum, c.image, torch.tensor([[3.5, 0.3]]))
+    assert w.shape == (1, S, S)
+    assert w[0, 5:40, 35:65].mean() < 0.4 and w[0, 55:95, 10:90].mean() > 0.9
+    car = register_prepared(p, c, cfg, shift_prior=torch.tensor([[0.2, 0.0]]), shift_prior_std=std)
+    assert car.shift[0].norm() < 0.3

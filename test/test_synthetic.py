@@ -516,3 +516,48 @@ def test_preset_urban():
           f"{step.min():.3f} m/frame, distance {step.sum():.0f} m")
     assert yaw[np.argmin(np.abs(t - 12.0))] == pytest.approx(-90.0, abs=1.0) and yaw[-1] == pytest.approx(0.0, abs=1.0)
     assert step.min() == pytest.approx(0.1, abs=0.002) and np.all(d.relative_motion[:, 0] > 0)
+
+
+def test_traffic_vehicles_follow_the_drive_and_show_in_the_images():
+    """A car ahead drives the ego's path ``headway`` s ahead plus a standing gap (it stops first and
+    stands ``standing_gap`` ahead), parked cars stand still, oncoming cars come the other way; the
+    renderer shows them (and their shadows) and nothing else changes (IMU, ground truth)."""
+    opts = syn.TrafficOptions()
+    plain = syn.make_drive(seed=3, preset="traffic_light", noise=False, render=False)
+    d = syn.make_drive(seed=3, preset="traffic_light", noise=False, render=False, traffic=opts)
+    np.testing.assert_array_equal(d.gyro, plain.gyro)
+    np.testing.assert_array_equal(d.poses_xy_yaw, plain.poses_xy_yaw)
+    assert plain.traffic is None and len(d.traffic) == d.num_frames
+    lead = np.stack([v[0] for v in d.traffic])  # the first row is the car ahead
+    gap = np.hypot(*(lead[:, :2] - d.poses_xy_yaw[:, :2]).T) - lead[:, 3] / 2
+    still = d.speed < 0.01
+    ahead = int(round(opts.headway * 10))  # frames: the car ahead does now what the ego does then
+    stopped = still & np.concatenate([still[ahead:], np.zeros(ahead, bool)])
+    assert stopped.sum() > 10
+    np.testing.assert_allclose(gap[stopped], opts.standing_gap, atol=0.02)
+    moving = d.speed > 5.0
+    assert (gap[moving] > opts.standing_gap + 0.8 * opts.headway * d.speed[moving] - 0.5).all()
+    rest = [v[1:] for v in d.traffic]
+    parked = [r[np.abs(((r[:, 2] - d.poses_xy_yaw[k, 2] + math.pi) % (2 * math.pi)) - math.pi) < 0.5]
+              for k, r in enumerate(rest)]
+    oncoming = [r[np.abs(((r[:, 2] - d.poses_xy_yaw[k, 2]) % (2 * math.pi)) - math.pi) < 0.5]
+                for k, r in enumerate(rest)]
+    assert sum(len(p) for p in parked) > 0 and sum(len(o) for o in oncoming) > 0
+    # The car ahead in the image: the pixels on its rear differ from the empty road's, the sky doesn't.
+    cam = syn.kitti_like_camera(scale=0.5)
+    k = int(np.argmax(stopped))
+    ego = d.poses_xy_yaw[k]
+    only_lead = d.traffic[k][:1]
+    with_car = syn.render_view(d.ground, cam, ego, d.pitch_roll_road[k], IDEAL, vehicles=only_lead)
+    without = syn.render_view(d.ground, cam, ego, d.pitch_roll_road[k], IDEAL)
+    diff = np.abs(with_car.astype(int) - without.astype(int)) > 2
+    h, w = diff.shape
+    # The rear (1.8 m wide, 0.3-1.5 m up at ~6.5 m + 1.08 m camera offset) covers the image centre.
+    assert diff[int(0.55 * h):int(0.8 * h), int(0.45 * w):int(0.55 * w)].mean() > 0.9
+    assert not diff[: int(0.3 * h)].any()  # the sky is never the car's (it is lower than the camera)
+    with pytest.raises(ValueError, match="finite"):
+        syn.render_view(d.ground, cam, ego, d.pitch_roll_road[k], IDEAL, vehicles=np.zeros((1, 5)))
+    with pytest.raises(ValueError, match="parked_fill"):
+        syn.TrafficOptions(parked_fill=2.0)
+    with pytest.raises(ValueError, match="traffic"):
+        syn.make_drive(seed=0, duration=1.0, render=False, traffic="busy")

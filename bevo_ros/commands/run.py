@@ -63,6 +63,7 @@ def _run(args: argparse.Namespace) -> int:
     print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
           f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
           f"dropped (no imu) {c.dropped_no_imu}; rejected: textureless {c.rejected_textureless}, "
-          f"translation {c.rejected_translation}, rotation {c.rejected_rotation}; at rest {c.standstill}")
+          f"translation {c.rejected_translation}, rotation {c.rejected_rotation}; at rest {c.standstill}; "
+          f"peak off the highest (second motion in view) {c.gated_peak}")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0

@@ -228,7 +228,7 @@ def register_grid(prev: Tensor, curr: Tensor, mask_prev: Tensor, mask_curr: Tens
     off = torch.where(concave, 0.5 * (lm - lp) / torch.where(concave, den, -torch.ones_like(den)), torch.zeros_like(den))
     angle = angle0 + step * ((best - n).to(angle0.dtype) + off.clamp(-1.0, 1.0))
     derotated = rotate_about_centre(p_curr.image[:, None], -angle)[:, 0]
-    shift, tcorr, tlog = estimate_translation(p_prev.spectrum, derotated, config, envelope)
+    shift, tcorr, tlog, _ = estimate_translation(p_prev.spectrum, derotated, config, envelope)
     return angle, shift, rlog, tcorr, tlog
 
 

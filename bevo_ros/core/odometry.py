@@ -23,7 +23,7 @@ from .compiled import EngineKernels
 from .dukf import DUKF, steady_state_variance
 from .frame_clock import FrameClock
 from .geometry import BevSpec, CameraModel
-from .motion import pitch_change_shift, pitch_scale_sensitivity, roll_yaw_sensitivity
+from .motion import pitch_change_shift, pitch_scale_sensitivity, registration_from_vehicle_motion, roll_yaw_sensitivity
 from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
 from .pose import compose_se2_floats, propagate_covariance_se2_floats
 from .rate_integration import GYRO_SAMPLING, interval_rate
@@ -42,6 +42,14 @@ ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceler
 # a 10 Hz pair, reads as 14 cm on KITTI). A rate, so that a faster camera does not spread a start
 # over pairs that each pass.
 ACCEL_PULL_RATE_GATE = math.radians(1.0)  # rad/s
+# m: a frame's measurement error the translation's peak prior allows for besides the filter's
+# prediction (the correlation's per-frame error on real roads is ~5 cm: twice that).
+PEAK_PRIOR_MEASUREMENT_STD = 0.1
+# m: a forward prediction wider than this says nothing about which peak is the road's.
+PEAK_PRIOR_MAX_STD = 0.5
+# The correlation peaks at least this share of the highest compete for the prior (a second motion,
+# such as the car ahead); the road's own side peaks stay below ~0.3 of its main one.
+PEAK_RATIO = 0.5
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 _PLANAR = np.ix_([0, 1, 5], [0, 1, 5])  # (x, y, yaw) in a 6x6 ROS covariance
@@ -117,6 +125,7 @@ class Counters:
     rejected_translation: int = 0  # fused: the translation failed the Mahalanobis gate
     rejected_rotation: int = 0  # fused: the image rotation disagreed with the gyro beyond the gate
     standstill: int = 0  # fused: frames at rest (zero motion, the yaw gyro's bias observed)
+    gated_peak: int = 0  # fused: the translation's highest peak was off the prediction, the road's taken
 
 
 class BevoOdometry:
@@ -642,9 +651,20 @@ class BevoOdometry:
         dyaw = gyro_yaw - predicted_bias * dt
         dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.var(2) * dt * dt)
         dev, dt_ = self.device, self.dtype
+        imu_accel = imu_var = None
+        if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
+            imu_accel = self._fwd_sum / self._fwd_time
+            imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
+        self._fwd_sum = self._fwd_time = 0.0
+        prior = self._shift_prior(dt, dyaw, pitch_shift, pull, imu_accel, imu_var)
         reg = self.kernels.register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
                                 angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev),
-                                envelope=self._envelope(curr))
+                                envelope=self._envelope(curr),
+                                shift_prior=None if prior is None else torch.tensor([prior[0]], dtype=dt_, device=dev),
+                                shift_prior_std=None if prior is None else torch.tensor([prior[1]], dtype=dt_, device=dev),
+                                peak_ratio=PEAK_RATIO)
+        if reg.shift_gated is not None and bool(reg.shift_gated[0]):
+            self.counters.gated_peak += 1  # a state, not an event: following a car would crowd the events out
         measured = self._vehicle_motion(reg)
         measured[0] -= pitch_shift
         cov = self._motion_covariance(reg, measured, state, pull)
@@ -653,11 +673,6 @@ class BevoOdometry:
         # The image rotation's spread plus what the correlation spread does not see (an attitude
         # error shears the BEV into a rotation): image_rotation_std.
         rot_var = reg.rotation_estimate_std.item() ** 2 + n.image_rotation_std**2
-        imu_accel = imu_var = None
-        if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
-            imu_accel = self._fwd_sum / self._fwd_time
-            imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
-        self._fwd_sum = self._fwd_time = 0.0
         # At rest the BEVs still move: the engine's attitude keeps changing (the DUKF on an idling
         # engine's vibration, the road-tilt low-pass), and each 0.01 deg of BEV pitch change reads as
         # 1.4 cm. The raw images say whether the car moved (core/standstill).
@@ -688,6 +703,33 @@ class BevoOdometry:
         motion = np.array([float(v) for v in frame.motion])
         motion_cov = np.diag([float(v) for v in frame.variance])
         return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v), still
+
+    def _shift_prior(self, dt: float, dyaw: float, pitch_shift: float, pull: float, imu_accel: float | None = None,
+                     imu_accel_var: float | None = None) -> tuple[list, list] | None:
+        """Fused mode: the BEV shift (px, ``(d_row, d_col)``) the motion filter predicts for this
+        frame (with the accelerometer's ``imu_accel`` over it, as :meth:`VehicleFilter.step` will) and its
+        standard deviations (the prediction's and a measurement's,
+        :data:`PEAK_PRIOR_MEASUREMENT_STD` plus the ``pull``'s shift).
+
+        A car ahead (and its shadow) moves in the BEV with its own speed, and near a queue it covers
+        as much of the BEV as the road: its correlation peak can be the higher one. The road's is
+        the one nearest the filter's prediction (:func:`estimate_translation`'s prior), and what
+        moves unlike it is left out of the correlation (:func:`motion_consistency_weight`).
+        None (the highest peak, no weight) while the prediction is wider than
+        :data:`PEAK_PRIOR_MAX_STD` (a start, a reset, after a gap)."""
+        predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_accel_var), dt)
+        v, var_v = predicted.v, predicted.var(0)
+        dx = v * dt
+        n = self.vehicle.noise
+        meas_var = PEAK_PRIOR_MEASUREMENT_STD**2 + (self._shift_per_pitch_change * pull) ** 2
+        std_x = math.sqrt(max(var_v, 0.0) * dt * dt + meas_var)
+        if std_x > PEAK_PRIOR_MAX_STD:
+            return None
+        std_y = math.sqrt((n.slip_std * dx) ** 2 + meas_var)
+        motion = torch.tensor([[dx + pitch_shift, dx * math.tan(dyaw / 2), dyaw]], dtype=torch.float64)
+        _, shift = registration_from_vehicle_motion(motion, self.spec)
+        mpp = self.spec.metres_per_pixel
+        return [float(shift[0, 0]), float(shift[0, 1])], [std_x / mpp, std_y / mpp]
 
     def _stop_is_plausible(self, dt: float) -> bool:
         """Fused mode: the motion filter's speed can reach zero within ``dt`` braking at 1 g (plus

@@ -119,6 +119,7 @@ class Registration:
     shift_cov: Tensor
     rotation_estimate: Tensor | None = None  # (B,) the images' own rotation when ``angle`` was given
     rotation_estimate_std: Tensor | None = None  # (B,) its spread
+    shift_gated: Tensor | None = None  # (B,) bool: the shift is the peak nearest the prior, not the highest
 
     @property
     def rotation_prob(self) -> Tensor:
@@ -484,7 +485,9 @@ def translation_correlation(prev_spectrum: Tensor, curr_image: Tensor, config: D
 
 
 def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcConfig,
-                         envelope: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                         envelope: Tensor | None = None, prior: Tensor | None = None,
+                         prior_std: Tensor | None = None,
+                         peak_ratio: float = 0.5) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Shift of ``curr_image`` relative to the image whose ``rfft2`` is ``prev_spectrum``.
 
     ``curr(q) = prev(q - shift)``.
@@ -494,10 +497,16 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
         curr_image: ``(B, S, S)`` weighted image (already rotated back).
         envelope: optional :func:`overlap_envelope`; the sub-pixel fit then uses the correlation
             divided by it (the distribution is left as is: dividing amplifies far-off noise).
+        prior, prior_std: optional ``(B, 2)`` pixels: where the shift is expected (e.g. a motion
+            filter's prediction) and its standard deviation. Of the peaks (local maxima) at least
+            ``peak_ratio`` x the highest, the one nearest the prior is taken: a second motion in the
+            view (the car ahead, its shadow) can outweigh the road's. Without a prior, or with no
+            second strong peak, the highest.
 
     Returns:
         shift ``(B, 2)`` pixels ``(d_row, d_col)``, correlation ``(B, S, S)`` over
-        :func:`shift_bins` (fftshifted, 1 = perfect match), log-probabilities ``(B, S, S)``.
+        :func:`shift_bins` (fftshifted, 1 = perfect match), log-probabilities ``(B, S, S)``, and
+        with a prior ``(B,)`` bool: a peak other than the highest was taken, else None.
     """
     B, S, _ = curr_image.shape
     corr = translation_correlation(prev_spectrum, curr_image, config)
@@ -505,13 +514,52 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
     log_prob = F.log_softmax(flat / config.translation_temperature, dim=-1).reshape(B, S, S)
     j = flat.argmax(dim=-1)
     jr, jc = j // S, j % S
+    gated = None
+    if prior is not None:
+        jr, jc, gated = _nearest_strong_peak(corr, jr, jc, prior, prior_std, peak_ratio)
     index = _window_index(jr, jc, S, 1)
     win, _ = _window_2d(corr, jr, jc, 1, index)
     if envelope is not None:  # only the fit's 3x3 window is divided (the rest is never used)
         win = win / _window_2d(envelope, jr, jc, 1, index)[0].clamp_min(0.05)
     off, _ = _quadratic_peak_window(win, with_height=False)
     shift = torch.stack([jr, jc], dim=-1).to(corr.dtype) - S // 2 + off
-    return shift, corr, log_prob
+    return shift, corr, log_prob, gated
+
+
+def _nearest_strong_peak(corr: Tensor, jr: Tensor, jc: Tensor, prior: Tensor, prior_std: Tensor,
+                         ratio: float, reach: int = 4) -> tuple[Tensor, Tensor, Tensor]:
+    """The highest cell ``(jr, jc)``, or the highest within ``reach`` px of the prior where that is
+    a peak (a 3x3 local maximum, cyclic) at least ``ratio`` x the highest and nearer the prior (in
+    its standard deviations).
+
+    -> ``(jr, jc, gated)``, ``gated (B,)`` bool: the peak near the prior was taken. A few cells per
+    batch entry, decided on Python numbers (the engine's batch of one: tensor ops would cost more)."""
+    B, S, _ = corr.shape
+    c = S // 2
+    out_r, out_c, gated = jr.tolist(), jc.tolist(), [False] * B
+    for b, ((p_r, p_c), (s_r, s_c)) in enumerate(zip(prior.tolist(), prior_std.tolist())):
+        r0, c0 = round(p_r) + c, round(p_c) + c
+        idx_r = torch.tensor([(r0 + d) % S for d in range(-reach, reach + 1)], device=corr.device)
+        idx_c = torch.tensor([(c0 + d) % S for d in range(-reach, reach + 1)], device=corr.device)
+        near = corr[b].index_select(0, idx_r).index_select(1, idx_c)
+        k = int(near.argmax())
+        kr, kc = int(idx_r[k // (2 * reach + 1)]), int(idx_c[k % (2 * reach + 1)])
+        if (kr, kc) == (out_r[b], out_c[b]):
+            continue
+        rows = torch.tensor([(kr - 1) % S, kr, (kr + 1) % S], device=corr.device)
+        cols = torch.tensor([(kc - 1) % S, kc, (kc + 1) % S], device=corr.device)
+        around = corr[b].index_select(0, rows).index_select(1, cols)
+        peak, top = float(around[1, 1]), float(corr[b, out_r[b], out_c[b]])
+        s_r, s_c = max(s_r, 1e-6), max(s_c, 1e-6)
+
+        def dist(r: int, q: int) -> float:
+            return ((r - c - p_r) / s_r) ** 2 + ((q - c - p_c) / s_c) ** 2
+
+        if peak >= float(around.max()) and peak >= ratio * top and dist(kr, kc) < dist(out_r[b], out_c[b]):
+            out_r[b], out_c[b], gated[b] = kr, kc, True
+    dev = jr.device
+    return (torch.tensor(out_r, dtype=jr.dtype, device=dev), torch.tensor(out_c, dtype=jc.dtype, device=dev),
+            torch.tensor(gated, device=dev))
 
 
 @constant_cache(32)
@@ -605,8 +653,68 @@ def _shift_cov(log_prob_t: Tensor, shift: Tensor) -> Tensor:
     return torch.stack([rr, rc, rc, cc], -1).reshape(-1, 2, 2)
 
 
+def motion_consistency_weight(prev_spectrum: Tensor, curr_image: Tensor, shift: Tensor, block: int = 5,
+                              scale: float = 3.0) -> Tensor:
+    """Where ``curr_image`` agrees with the previous image moved by ``shift``: 1, falling to 0
+    where it does not. ``prev_spectrum (B, S, S // 2 + 1)``, ``curr_image (B, S, S)`` (derotated),
+    ``shift (B, 2)`` px -> ``(B, S, S)``.
+
+    The road moves by one shift; a car ahead, its shadow, a passing car move by their own. The
+    absolute difference after the move (exact sub-pixel, in the Fourier domain), averaged over
+    ``block x block`` px blocks (``S`` a multiple of ``block``), against ``scale`` x the road's level
+    of it (the blocks' mean over the current image's support, then the mean of the blocks below
+    twice that: the other motion left out): ``1 / (1 + x^4)`` per block.
+    """
+    S = curr_image.shape[-1]
+    fr, fc = _shift_phase_axes(S, curr_image.dtype, curr_image.device)
+    one = torch.ones((), dtype=curr_image.dtype, device=curr_image.device)
+    # The shift theorem's phase is separable: exp(-2 pi i fr dr) exp(-2 pi i fc dc).
+    phase = (torch.polar(one, (-2.0 * math.pi) * fr * shift[:, None, :1])
+             * torch.polar(one, (-2.0 * math.pi) * fc * shift[:, None, 1:]))  # (B, S, S // 2 + 1)
+    moved = torch.fft.irfft2(prev_spectrum * phase, s=(S, S))
+    r = F.avg_pool2d((curr_image - moved).abs_()[:, None], block)[:, 0]  # (B, S / block, S / block)
+    support = F.avg_pool2d((curr_image != 0).to(r.dtype)[:, None], block)[:, 0] > 0.5
+    level = torch.where(support, r, 0.0).sum(dim=(-2, -1)) / support.sum(dim=(-2, -1)).clamp_min(1)
+    low = support & (r < 2.0 * level[:, None, None])
+    level = torch.where(low, r, 0.0).sum(dim=(-2, -1)) / low.sum(dim=(-2, -1)).clamp_min(1)
+    x = r / (scale * level.clamp_min(1e-12))[:, None, None]
+    x = x * x
+    w = 1.0 / (1.0 + x * x)
+    return w.repeat_interleave(block, dim=-2).repeat_interleave(block, dim=-1)
+
+
+@constant_cache(8)
+def _shift_phase_axes(size: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """``(S, 1)`` row and ``(1, S // 2 + 1)`` column frequencies (cycles per pixel) of an ``rfft2``."""
+    return (torch.fft.fftfreq(size, dtype=dtype, device=device)[:, None],
+            torch.fft.rfftfreq(size, dtype=dtype, device=device)[None, :])
+
+
+def _gated_shift_cov(log_prob_t: Tensor, shift: Tensor, prior: Tensor, halfwidth: Tensor) -> Tensor:
+    """:func:`_shift_cov` of the distribution inside the prior's box (``halfwidth (B, 2)`` px): the
+    box's rows and columns sliced per batch entry (the engine's one; a mask over the grid costs more)."""
+    B, S, _ = log_prob_t.shape
+    c = S // 2
+    out = []
+    for b, ((p_r, p_c), (h_r, h_c)) in enumerate(zip(prior.tolist(), halfwidth.tolist())):
+        r0, r1 = max(0, math.ceil(p_r - h_r) + c), min(S, math.floor(p_r + h_r) + c + 1)
+        c0, c1 = max(0, math.ceil(p_c - h_c) + c), min(S, math.floor(p_c + h_c) + c + 1)
+        if r1 <= r0 or c1 <= c0:  # the box is off the grid: the whole distribution
+            out.append(_shift_cov(log_prob_t[b:b + 1], shift[b:b + 1])[0])
+            continue
+        win = log_prob_t[b, r0:r1, c0:c1]
+        p = torch.softmax(win.reshape(-1), 0).reshape(win.shape)
+        axis = _shift_axis(S, log_prob_t.dtype, log_prob_t.device)[0]
+        dr, dc = axis[r0:r1] - shift[b, 0], axis[c0:c1] - shift[b, 1]
+        rr, cc, rc = (p.sum(dim=1) * dr * dr).sum(), (p.sum(dim=0) * dc * dc).sum(), dr @ p @ dc
+        out.append(torch.stack([rr, rc, rc, cc]).reshape(2, 2))
+    return torch.stack(out)
+
+
 def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: Tensor | None = None,
-                      angle_std: Tensor | None = None, envelope: Tensor | None = None) -> Registration:
+                      angle_std: Tensor | None = None, envelope: Tensor | None = None,
+                      shift_prior: Tensor | None = None, shift_prior_std: Tensor | None = None,
+                      peak_ratio: float = 0.5) -> Registration:
     """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``).
 
     With ``angle (B,)`` (and its ``angle_std``), e.g. the gyro's rotation, the BEV is derotated by
@@ -614,7 +722,11 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
     distribution kept for the loss) but not refined: the gyro measures a car's yaw over a frame
     better than the BEVs do, and a translation correlation of well-derotated images is sharper.
     ``envelope``: ``overlap_envelope(prev.weight_spectrum, curr.weight_spectrum)`` if the caller
-    has it (the engine, while the BEV mask does not change; not checked).
+    has it (the engine, while the BEV mask does not change; not checked). ``shift_prior``,
+    ``shift_prior_std`` ``(B, 2)`` px, ``peak_ratio``: the expected shift (:func:`estimate_translation`);
+    where a peak other than the highest is taken, ``shift_cov`` is the distribution's spread
+    within 3 standard deviations of the prior (the distribution given it); ``translation_log_prob``
+    stays the whole one.
     """
     if prev.image.shape != curr.image.shape:
         raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")
@@ -624,7 +736,13 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
     given = angle is not None
     angle = angle.to(estimate.dtype) if given else estimate
     derotated = rotate_about_centre(curr.image[:, None], -angle)[:, 0]
-    shift, tcorr, tlog = estimate_translation(prev.spectrum, derotated, config, envelope)
+    weighted = derotated
+    if shift_prior is not None:
+        # What moves unlike the prior's motion (a car ahead, its shadow) is left out of the current
+        # image (the previous one keeps it: no coherent peak of it remains).
+        weighted = derotated * motion_consistency_weight(prev.spectrum, derotated, shift_prior)
+    shift, tcorr, tlog, gated = estimate_translation(prev.spectrum, weighted, config, envelope, shift_prior,
+                                                     shift_prior_std, peak_ratio)
     dtype, device = rcorr.dtype, rcorr.device
     abins = angle_bins(config, dtype, device)
     tbins = shift_bins(prev.size, dtype, device)
@@ -641,9 +759,11 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
         quality=tcorr.amax(dim=(-1, -2)).clamp(0.0, 1.0),
         rotation_quality=rcorr.amax(dim=-1).clamp(0.0, 1.0),
         angle_std=angle_std.to(dtype) if given and angle_std is not None else spread,
-        shift_cov=_shift_cov(tlog, shift),
+        shift_cov=_shift_cov(tlog, shift) if shift_prior is None else
+        _gated_shift_cov(tlog, shift, shift_prior, 3.0 * shift_prior_std),
         rotation_estimate=estimate if given else None,
         rotation_estimate_std=spread if given else None,
+        shift_gated=gated,
     )
 
 

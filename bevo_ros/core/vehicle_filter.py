@@ -194,6 +194,15 @@ class VehicleFilter:
         x[0] = s.v + s.a * dt
         return VehicleState(x, new)
 
+    def inertial_update(self, s: VehicleState, dt, imu_accel=None, imu_accel_var=None) -> VehicleState:
+        """``s`` updated with the accelerometer's mean forward acceleration over the coming ``dt``
+        (``z = a + beta``, never gated; see :meth:`step`); ``s`` itself when ``imu_accel`` is None."""
+        if imu_accel is None:
+            return s
+        x, P, _, _ = _scalar_update(s.x, s.P, (1, 3), imu_accel, imu_accel_var + self.noise.imu_accel_density / dt,
+                                    math.inf, True)
+        return VehicleState(x, P)
+
     def step(self, s: VehicleState, dt, gyro_yaw, forward=None, forward_var=None, lateral=None,
              lateral_var=None, rotation=None, rotation_var=None, quality=None, imu_accel=None,
              imu_accel_var=None, rest_var=None) -> VehicleFrame:
@@ -219,11 +228,7 @@ class VehicleFilter:
                 the gyro's bias.
         """
         n = self.noise
-        if imu_accel is not None:  # z = a + beta: the inertial forward acceleration, never gated
-            x, P, _, _ = _scalar_update(s.x, s.P, (1, 3), imu_accel, imu_accel_var + n.imu_accel_density / dt,
-                                        math.inf, True)
-            s = VehicleState(x, P)
-        p = self.predict(s, dt)
+        p = self.predict(self.inertial_update(s, dt, imu_accel, imu_accel_var), dt)
         x, P = p.x, p.P
         have = forward is not None
         if have and quality is not None:

@@ -163,6 +163,10 @@ ENGINE_REJECTIONS = (
     ("rejected_translation", "a forward motion beyond the odometry.gate Mahalanobis gate"),
     ("rejected_rotation", "an image rotation disagreeing with the gyro beyond the odometry.gate"),
 )
+# fused mode: engine counters of frame states, not faults, reported as events: frames at rest (zero
+# motion, the yaw gyro's bias observed) and frames whose translation took the correlation peak nearest
+# the motion filter's prediction over a higher one (a second motion in view: the car ahead, its shadow)
+ENGINE_STATES = ("standstill", "gated_peak")
 # engine event -> node drop reason, and why (formatted with the node settings as ``s``)
 ENGINE_DROPS = (
     ("dropped_no_imu", "no_imu", "with no IMU sample at or before their stamp (frames before any IMU)"),
@@ -183,13 +187,13 @@ class EngineFeed:
         self.engine = None
         self.last_imu_stamp: float | None = None
         self._last_gap = 0.0
-        self._standstill_seen = 0  # the engine's frames at rest already reported
+        self._states_seen = dict.fromkeys(ENGINE_STATES, 0)  # the engine's state counters already reported
         self._imu_backlog: collections.deque = collections.deque(maxlen=max(settings.imu_qos_depth, 1000))
 
     def start(self, engine) -> None:
         """Use ``engine`` from now on and fuse the IMU that arrived before it, in order."""
         self.engine = engine
-        self._standstill_seen = self._standstill_count()
+        self._states_seen = self._state_counts()
         engine.max_pending_images = self.settings.max_pending_images
         backlog = list(self._imu_backlog)
         self._imu_backlog.clear()
@@ -271,15 +275,16 @@ class EngineFeed:
                                  f"{exc.last:.9f} ({exc.jump * 1e3:.3f} ms back)")
         return None
 
-    def _standstill_count(self) -> int:
-        return self.engine.counters.standstill if self.engine is not None else 0
+    def _state_counts(self) -> dict[str, int]:
+        return {k: getattr(self.engine.counters, k) if self.engine is not None else 0 for k in ENGINE_STATES}
 
     def _report_events(self) -> None:
         """Turn what the engine dropped or rejected (its events) into counted, logged node drops/events,
-        and count its frames at rest (not a fault: zero motion, the yaw gyro's bias observed)."""
-        if (n := self._standstill_count()) > self._standstill_seen:
-            self.report.events["standstill"] += n - self._standstill_seen
-            self._standstill_seen = n
+        and count its frame states (not faults, ENGINE_STATES)."""
+        for kind, n in self._state_counts().items():
+            if n > self._states_seen[kind]:
+                self.report.events[kind] += n - self._states_seen[kind]
+                self._states_seen[kind] = n
         d = collections.Counter(e.kind for e in self.engine.take_events()) if self.engine is not None else {}
         if not d:
             return

@@ -19,6 +19,7 @@ from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
 from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_motion, _rpy, _rx, _ry, _rz,
                                                 _with_preset)
 from bevo_ros.datasets.synthetic.render import RenderOptions, kitti_like_camera, render_frame
+from bevo_ros.datasets.synthetic.traffic import TrafficOptions, traffic_at_frames
 
 __all__ = ["LazyImages", "SyntheticDrive", "base_poses_4x4", "camera_poses_4x4", "make_drive", "preset_drive"]
 
@@ -92,6 +93,7 @@ class SyntheticDrive:
     imu_poses_xy_yaw: np.ndarray  # (N, 3)
     render_options: RenderOptions = field(default_factory=RenderOptions)
     image_noise: bool = True
+    traffic: list[np.ndarray] | None = None  # per frame (K_f, 7) other vehicles (.traffic), or None
     _motion: _Motion | None = field(default=None, repr=False)
 
     @property
@@ -173,6 +175,7 @@ def make_drive(
     ground_seed: int | None = None,
     preset: str | None = None,
     gyro_sampling: str = "interval_mean",
+    traffic: TrafficOptions | bool | None = None,
 ) -> SyntheticDrive:
     """Simulate a drive: trajectory, IMU at ``imu_rate`` and camera frames at ``frame_rate``.
 
@@ -201,6 +204,9 @@ def make_drive(
             the interval since the previous sample, as a delta-angle IMU reports it and as the
             KITTI OXTS rates behave (see ``filter.gyro_sampling``); ``"instantaneous"`` the rate
             at the stamp.
+        traffic: other vehicles in the images (:mod:`.traffic`): True = the default
+            :class:`TrafficOptions` (a car ahead, parked cars, oncoming cars), or options; None/False
+            = an empty road. The IMU and the ground truth do not depend on it.
 
     Returns:
         a :class:`SyntheticDrive`.
@@ -227,6 +233,12 @@ def make_drive(
             raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
     if gyro_sampling not in GYRO_SAMPLING:
         raise ValueError(f"gyro_sampling must be one of {GYRO_SAMPLING}, got {gyro_sampling!r}")
+    if traffic is True:
+        traffic = TrafficOptions()
+    elif traffic is False:
+        traffic = None
+    if traffic is not None and not isinstance(traffic, TrafficOptions):
+        raise ValueError(f"traffic must be a bool, None or a TrafficOptions, got {traffic!r}")
     if render not in (True, False, "lazy"):
         raise ValueError(f"render must be True, False or 'lazy', got {render!r}")
     if not (road_tilt is True or road_tilt is False or (isinstance(road_tilt, (tuple, list)) and len(road_tilt) == 2)):
@@ -314,6 +326,8 @@ def make_drive(
         imu_rotation_gravity=r_grav, imu_velocity_gravity=vel, imu_poses_xy_yaw=poses,
         render_options=options, image_noise=noisy, _motion=motion,
     )
+    if traffic is not None:
+        drive.traffic = traffic_at_frames(traffic, t_dense, xy_dense, motion.yaw(t_dense), t_imu[fi], seed)
     if render == "lazy":
         drive.images = LazyImages(drive)
     elif render:

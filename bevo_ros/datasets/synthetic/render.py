@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -15,7 +16,8 @@ import torch
 import torch.nn.functional as F
 
 from bevo_ros.core.geometry import BevSpec, CameraModel, camera_pose_on_road
-from bevo_ros.datasets.synthetic.ground import RoadGround, default_ground
+from bevo_ros.datasets.synthetic.ground import RoadGround, _periodic_noise, _sample_periodic, _wrap_pad, default_ground
+from bevo_ros.datasets.synthetic.traffic import GROUND_CLEARANCE
 
 if TYPE_CHECKING:
     from bevo_ros.datasets.synthetic.drive import SyntheticDrive
@@ -105,11 +107,14 @@ def render_view(
     pitch_roll_road,
     options: RenderOptions | None = None,
     noise_seed: Sequence[int] | int | None = None,
+    vehicles: np.ndarray | None = None,
 ) -> np.ndarray:
     """Render the camera image at a vehicle pose. -> ``(H, W)`` uint8.
 
     Every (sub-)pixel ray is intersected with the road plane ``z = 0``; the pixel shows the ground
-    intensity there (bilinear texture), the sky for rays that do not hit the ground.
+    intensity there (bilinear texture), the sky for rays that do not hit the ground, or the nearest
+    of the other ``vehicles`` (boxes, :mod:`.traffic`) when one is hit first; a vehicle's shadow
+    darkens the road under it.
 
     Args:
         ground: the road surface.
@@ -117,8 +122,10 @@ def render_view(
         pose_xy_yaw: world ``(x, y, yaw)`` of the base.
         pitch_roll_road: ``(pitch, roll)`` of the base relative to the road, radians.
         options: renderer settings; image noise is drawn from ``noise_seed``.
+        vehicles: ``(K, 7)`` other vehicles (:data:`~.traffic.VEHICLE_FIELDS`), or None.
     """
     options = options or RenderOptions()
+    boxes = _vehicle_frames(vehicles)
     ss = int(options.supersample)
     if ss < 1:
         raise ValueError(f"supersample must be >= 1, got {options.supersample}")
@@ -148,11 +155,21 @@ def render_view(
         near = down & (dist < options.haze_end)
         if near.any():
             lam, dn, dist = lam[near], d[near], dist[near]
-            val = ground._intensity_torch(t_wc[0] + lam * dn[:, 0], t_wc[1] + lam * dn[:, 1]).double()
+            gx, gy = t_wc[0] + lam * dn[:, 0], t_wc[1] + lam * dn[:, 1]
+            val = ground._intensity_torch(gx, gy).double()
+            if boxes is not None:
+                val = val * _shadow(boxes, gx, gy)
             # Far ground fades into haze (hides texture aliasing near the horizon).
             wh = ((dist - options.haze_start) / (options.haze_end - options.haze_start)).clamp(0.0, 1.0)
             wh = wh * wh * (3 - 2 * wh)
             out[near] = val * (1 - wh) + options.haze_value * wh
+        if boxes is not None:
+            hit, value = _hit_vehicles(boxes, t_wc, d.reshape(-1, 3))
+            ground_lam = torch.where(near, -t_wc[2] / torch.where(down, rz, -1.0), math.inf).reshape(-1)
+            front = hit < ground_lam
+            out = out.reshape(-1)
+            out[front] = value[front]
+            out = out.reshape(d.shape[:2])
         n_r = out.shape[0] // ss
         img[r0:r0 + n_r] = F.avg_pool2d(out.float()[None, None], ss)[0, 0] if ss > 1 else out.float()
     if options.vignette:
@@ -165,6 +182,74 @@ def render_view(
     return np.clip(np.rint(out_np), 0, 255).astype(np.uint8)
 
 
+def _vehicle_frames(vehicles: np.ndarray | None) -> Tensor | None:
+    """Vehicle rows ``(K, 7)`` -> float64 tensor, validated; None when there are none."""
+    if vehicles is None or len(vehicles) == 0:
+        return None
+    v = torch.as_tensor(np.asarray(vehicles, dtype=np.float64))
+    if v.ndim != 2 or v.shape[1] != 7 or not torch.isfinite(v).all() or (v[:, 3:6] <= 0).any():
+        raise ValueError(f"vehicles must be a finite (K, 7) array with positive sizes, got shape {tuple(v.shape)}")
+    return v
+
+
+def _to_box(boxes: Tensor, k: int, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """World road-plane points -> box ``k``'s frame (forward, left), metres."""
+    c, s = math.cos(float(boxes[k, 2])), math.sin(float(boxes[k, 2]))
+    dx, dy = x - boxes[k, 0], y - boxes[k, 1]
+    return c * dx + s * dy, -s * dx + c * dy
+
+
+def _shadow(boxes: Tensor, x: Tensor, y: Tensor, darkness: float = 0.6, spread: float = 0.25) -> Tensor:
+    """Road brightness factor under the vehicles' soft shadows at world points ``(N,)`` -> ``(N,)``."""
+    factor = torch.ones_like(x)
+    for k in range(len(boxes)):
+        a, b = _to_box(boxes, k, x, y)
+        inside = (((boxes[k, 3] / 2 + spread - a.abs()) / spread).clamp(0, 1)
+                  * ((boxes[k, 4] / 2 + spread - b.abs()) / spread).clamp(0, 1))
+        factor = factor * (1.0 - darkness * inside)
+    return factor
+
+
+@lru_cache(maxsize=1)
+def _skin() -> Tensor:
+    """A seamless noise tile for the vehicles' skins (fixed: vehicles differ by shade and offset)."""
+    gen = torch.Generator().manual_seed(12345)
+    return _wrap_pad(_periodic_noise(gen, 256, 0.02, 0.05, 1.0, 1.0).numpy())
+
+
+def _hit_vehicles(boxes: Tensor, origin: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+    """First hit of rays ``origin + lam d`` (``d (N, 3)``) with the boxes: ``lam (N,)`` (inf: none) and
+    the skin's intensity there ``(N,)`` (slab method; windows dark in the upper third)."""
+    best = torch.full((d.shape[0],), math.inf, dtype=torch.float64)
+    value = torch.zeros(d.shape[0], dtype=torch.float64)
+    for k in range(len(boxes)):
+        c, s = math.cos(float(boxes[k, 2])), math.sin(float(boxes[k, 2]))
+        ox, oy = _to_box(boxes, k, origin[0:1], origin[1:2])
+        dx, dy = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+        lo = torch.tensor([-boxes[k, 3] / 2, -boxes[k, 4] / 2, GROUND_CLEARANCE], dtype=torch.float64)
+        hi = torch.tensor([boxes[k, 3] / 2, boxes[k, 4] / 2, boxes[k, 5]], dtype=torch.float64)
+        o = torch.stack([ox[0], oy[0], origin[2]])
+        dirs = torch.stack([dx, dy, d[:, 2]], 1)
+        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+        t1, t2 = (lo - o) * inv, (hi - o) * inv
+        t_near, axis = torch.minimum(t1, t2).max(1)
+        t_far = torch.maximum(t1, t2).min(1).values
+        hit = (t_near <= t_far) & (t_near > 0) & (t_near < best)
+        if not hit.any():
+            continue
+        lam, ax = t_near[hit], axis[hit]
+        p = o + lam[:, None] * dirs[hit]
+        # Skin coordinates: along the face (the side's length, the end's width) and up.
+        along = torch.where(ax == 1, p[:, 0], p[:, 1])
+        up = torch.where(ax == 2, p[:, 0], p[:, 2])
+        tex = _sample_periodic(_skin(), along / 0.02 + 40.0 * k, up / 0.02 + 17.0 * k)[0].double()
+        window = (ax != 2) & (p[:, 2] > GROUND_CLEARANCE + 0.62 * (boxes[k, 5] - GROUND_CLEARANCE))
+        shade = float(boxes[k, 6]) * torch.where(window, 0.35, torch.where(ax == 2, 1.15, 1.0))
+        best[hit] = lam
+        value[hit] = (shade * (1.0 + 0.25 * tex)).clamp(0.0, 1.0)
+    return best, value
+
+
 def render_frame(drive: SyntheticDrive, index: int, options: RenderOptions | None = None) -> np.ndarray:
     """Render frame ``index`` of a drive (deterministic: image noise seeded by drive seed + index)."""
     n = drive.num_frames
@@ -172,8 +257,9 @@ def render_frame(drive: SyntheticDrive, index: int, options: RenderOptions | Non
         raise ValueError(f"frame index {index} out of range for {n} frames")
     index = index % n
     opts = options or drive.render_options
+    vehicles = drive.traffic[index] if drive.traffic is not None else None
     return render_view(drive.ground, drive.camera, drive.poses_xy_yaw[index], drive.pitch_roll_road[index], opts,
-                       noise_seed=[drive.seed, 3, index])
+                       noise_seed=[drive.seed, 3, index], vehicles=vehicles)
 
 
 # ---------------------------------------------------------------------------------------------
