@@ -92,6 +92,14 @@ def test_drive_from_oxts_puts_the_frames_on_the_camera_clock():
     np.testing.assert_allclose(d.pitch_roll_road[:, 0], 0.0, atol=1e-12)
     with pytest.raises(ValueError, match="at least 3"):
         drive_from_oxts(ox.slice(0, 2))
+    # Traffic along the records' path: the car ahead on the circle, 6.5 m + 0.8 s of driving ahead.
+    busy = drive_from_oxts(ox, render=False, traffic=True)
+    np.testing.assert_array_equal(busy.relative_motion, d.relative_motion)
+    lead = np.stack([v[0] for v in busy.traffic[:-10]])  # the last 0.8 s: the car ahead runs out of path
+    gap = np.hypot(*(lead[:, :2] - busy.poses_xy_yaw[:-10, :2]).T) - lead[:, 3] / 2
+    np.testing.assert_allclose(gap, 6.5 + 10.0 * 0.8, atol=0.3)  # a chord of the 50 m circle: a bit short
+    with pytest.raises(ValueError, match="traffic"):
+        drive_from_oxts(ox, render=False, traffic="busy")
 
 
 def test_frames_before_their_imu_sample_get_the_interpolated_attitude_and_yaw():

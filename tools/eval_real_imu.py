@@ -10,11 +10,13 @@ are fed by stamp, as a bag plays. Rendered frames are cached (``--cache``, numpy
 
 ``--presets`` cuts the same clips from synthetic preset drives instead (exact ground truth, the
 road-relative attitude included, which the real drives' reference only approximates; a 10 Hz IMU
-as KITTI's by default, ``--imu-rate``): no shared data needed.
+as KITTI's by default, ``--imu-rate``): no shared data needed. ``--traffic`` puts other vehicles
+in the images of either (a car ahead, parked cars, oncoming cars: ``synthetic.TrafficOptions``).
 
   .venv/bin/python tools/eval_real_imu.py                       # 16 s clips, every 80 frames
   .venv/bin/python tools/eval_real_imu.py --length 51 --step 51 # 5 s clips
   .venv/bin/python tools/eval_real_imu.py --presets all --length 51 --step 25   # synthetic, 5 s clips
+  .venv/bin/python tools/eval_real_imu.py --traffic             # 16 s clips behind and among other cars
 """
 from __future__ import annotations
 
@@ -67,6 +69,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="synthetic preset drives instead of the shared OXTS (comma-separated, or 'all')")
     p.add_argument("--seeds", default="1", help="with --presets: seeds (comma-separated, default 1)")
     p.add_argument("--imu-rate", type=float, default=10.0, help="with --presets: IMU rate, Hz (default 10, KITTI's)")
+    p.add_argument("--traffic", action="store_true",
+                   help="other vehicles in the images: a car ahead, parked cars, oncoming cars (synthetic.TrafficOptions)")
     args = p.parse_args(argv)
     if args.presets is not None:
         names = sorted(PRESETS) if args.presets == "all" else args.presets.split(",")
@@ -86,13 +90,15 @@ def main(argv: list[str] | None = None) -> int:
     pair_errors: dict[str, list] = {m: [] for m in modes}  # per clip: forward error of each frame pair
     args.cache.mkdir(parents=True, exist_ok=True)
     camera = kitti_like_camera(scale=0.5)
+    traffic = "_traffic" if args.traffic else ""
     for drive, name, seed in sources:
         if args.presets is not None:
-            d = preset_drive(name, seed=seed, imu_rate=args.imu_rate, camera=camera, render="lazy")
-            cache = args.cache / f"preset_{name}_seed{seed}_{args.imu_rate:g}hz_620x188.npy"
+            d = preset_drive(name, seed=seed, imu_rate=args.imu_rate, camera=camera, render="lazy", traffic=args.traffic)
+            cache = args.cache / f"preset_{name}_seed{seed}_{args.imu_rate:g}hz_620x188{traffic}.npy"
         else:
-            d = drive_from_oxts(read_oxts(args.raw / f"2011_09_30_drive_{name}_sync" / "oxts"), seed=seed, camera=camera)
-            cache = args.cache / f"{name}_seed{seed}_620x188.npy"
+            d = drive_from_oxts(read_oxts(args.raw / f"2011_09_30_drive_{name}_sync" / "oxts"), seed=seed, camera=camera,
+                                traffic=args.traffic)
+            cache = args.cache / f"{name}_seed{seed}_620x188{traffic}.npy"
         if cache.exists():
             images = np.load(cache, mmap_mode="r")
         else:

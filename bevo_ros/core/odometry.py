@@ -149,7 +149,9 @@ class BevoOdometry:
         mode: ``"fused"`` (default): the accelerometer minus the car's own acceleration, the
             suspension's lean kept in the road-relative attitude, yaw from the gyro (its bias
             observed by the images), and a vehicle motion filter with Mahalanobis gates between
-            the correlation and the pose (see :mod:`~bevo_ros.core.vehicle_filter`).
+            the correlation and the pose (see :mod:`~bevo_ros.core.vehicle_filter`), whose
+            prediction also picks the road's correlation peak over another motion in view (the
+            car ahead: :meth:`_shift_prior`).
             ``"paper"``: the paper's pipeline (accelerometer = gravity, correlation composed as is).
         vehicle_noise: the motion filter's noise (fused mode).
         suspension_gradients: (pitch, roll) body lean per m/s^2 of forward / lateral

@@ -35,6 +35,7 @@ from bevo_ros.core.geometry import CameraModel
 from bevo_ros.datasets.kitti import OxtsData
 from bevo_ros.datasets.synthetic.drive import LazyImages, SyntheticDrive
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
+from bevo_ros.datasets.synthetic.traffic import TrafficOptions, traffic_at_frames
 from bevo_ros.datasets.synthetic.motion import _rx, _ry, _rz
 from bevo_ros.datasets.synthetic.render import RenderOptions, kitti_like_camera, render_frame
 
@@ -122,6 +123,7 @@ def drive_from_oxts(
     camber_smoothing: float = 2.0,
     lean_gradient: float = 0.0087,
     min_speed: float = 2.0,
+    traffic: TrafficOptions | bool | None = None,
 ) -> SyntheticDrive:
     """A drive with the OXTS records' path and IMU and a rendered camera, one frame per record.
 
@@ -135,6 +137,8 @@ def drive_from_oxts(
         camber_smoothing: the Gaussian (seconds) whose roll, less the lean, is the road's camber.
         lean_gradient: the body's roll out of a bend, rad per m/s^2 (0.0087: 0.5 deg, 5 deg per g).
         min_speed: below it (m/s) the slope is held: ``vu / v`` is noise at a crawl.
+        traffic: other vehicles in the images (:mod:`.traffic`, as :func:`make_drive`'s), along the
+            records' path; None/False = an empty road.
 
     Returns:
         a :class:`SyntheticDrive`: the IMU at the records' stamps, the frames on the camera's clock
@@ -210,6 +214,11 @@ def drive_from_oxts(
         imu_pitch_roll_gravity=pr_grav, imu_road_slope_camber=tilt, imu_rotation_gravity=r_grav,
         imu_velocity_gravity=vel, imu_poses_xy_yaw=imu_poses, render_options=options, image_noise=True,
     )
+    options_traffic = TrafficOptions() if traffic is True else (traffic or None)
+    if options_traffic is not None:
+        if not isinstance(options_traffic, TrafficOptions):
+            raise ValueError(f"traffic must be a bool, None or a TrafficOptions, got {traffic!r}")
+        drive.traffic = traffic_at_frames(options_traffic, stamps, xy, yaw_u, f_stamps, seed)
     if render == "lazy":
         drive.images = LazyImages(drive)
     elif render:

@@ -139,6 +139,7 @@ def render_view(
     us = (torch.arange(w, dtype=torch.float64)[:, None] + off).reshape(-1)  # (W*ss,)
     vs = (torch.arange(h, dtype=torch.float64)[:, None] + off).reshape(-1)  # (H*ss,)
     img = torch.empty(h, w, dtype=torch.float32)
+    bounds = None if boxes is None else _image_bounds(boxes, camera, r_wc, t_wc, ss)
     rows = max(1, 96 // ss)  # image rows per block: bounded memory (~30 MB) whatever the size
     for r0 in range(0, h, rows):
         v = vs[r0 * ss:(r0 + rows) * ss]
@@ -153,23 +154,31 @@ def render_view(
         lam = -t_wc[2] / torch.where(down, rz, -1.0)
         dist = lam * horiz  # horizontal range of the ground point
         near = down & (dist < options.haze_end)
+        # The vehicles whose image rectangle meets this block, and the block's part they can cover.
+        here = [] if boxes is None else _vehicles_in_block(bounds, r0 * ss, r0 * ss + d.shape[0], ss)
         if near.any():
-            lam, dn, dist = lam[near], d[near], dist[near]
-            gx, gy = t_wc[0] + lam * dn[:, 0], t_wc[1] + lam * dn[:, 1]
-            val = ground._intensity_torch(gx, gy).double()
-            if boxes is not None:
-                val = val * _shadow(boxes, gx, gy)
+            lam_all = torch.where(near, lam, 0.0)
+            gx_all, gy_all = t_wc[0] + lam_all * d[..., 0], t_wc[1] + lam_all * d[..., 1]
+            val = ground._intensity_torch(gx_all[near], gy_all[near]).double()
+            if here:
+                shade = torch.ones_like(lam_all)
+                for k, sl in here:
+                    shade[sl] = shade[sl] * _shadow(boxes[k:k + 1], gx_all[sl], gy_all[sl])
+                val = val * shade[near]
             # Far ground fades into haze (hides texture aliasing near the horizon).
+            dist = dist[near]
             wh = ((dist - options.haze_start) / (options.haze_end - options.haze_start)).clamp(0.0, 1.0)
             wh = wh * wh * (3 - 2 * wh)
             out[near] = val * (1 - wh) + options.haze_value * wh
-        if boxes is not None:
-            hit, value = _hit_vehicles(boxes, t_wc, d.reshape(-1, 3))
-            ground_lam = torch.where(near, -t_wc[2] / torch.where(down, rz, -1.0), math.inf).reshape(-1)
-            front = hit < ground_lam
-            out = out.reshape(-1)
-            out[front] = value[front]
-            out = out.reshape(d.shape[:2])
+        if here:
+            ground_lam = torch.where(near, lam, math.inf)
+            best = torch.full_like(ground_lam, math.inf)
+            for k, sl in here:
+                hit, value = _hit_vehicles(boxes[k:k + 1], t_wc, d[sl].reshape(-1, 3))
+                hit, value = hit.reshape(best[sl].shape), value.reshape(best[sl].shape)
+                front = (hit < ground_lam[sl]) & (hit < best[sl])
+                best[sl] = torch.where(front, hit, best[sl])
+                out[sl] = torch.where(front, value, out[sl])
         n_r = out.shape[0] // ss
         img[r0:r0 + n_r] = F.avg_pool2d(out.float()[None, None], ss)[0, 0] if ss > 1 else out.float()
     if options.vignette:
@@ -190,6 +199,49 @@ def _vehicle_frames(vehicles: np.ndarray | None) -> Tensor | None:
     if v.ndim != 2 or v.shape[1] != 7 or not torch.isfinite(v).all() or (v[:, 3:6] <= 0).any():
         raise ValueError(f"vehicles must be a finite (K, 7) array with positive sizes, got shape {tuple(v.shape)}")
     return v
+
+
+def _image_bounds(boxes: Tensor, camera: CameraModel, r_wc: Tensor, t_wc: Tensor, ss: int) -> list:
+    """Per vehicle, the sub-pixel rectangle ``(u0, u1, v0, v1)`` (half-open, sub-pixel indices) that
+    its box and its shadow (0.25 m around the footprint) can cover; the whole image when the box
+    reaches behind the camera plane; None when it lies wholly behind."""
+    K = camera.K.detach().cpu().double()
+    W, H = camera.width * ss, camera.height_px * ss
+    out = []
+    for k in range(len(boxes)):
+        x, y, yaw, length, width, height = (float(v) for v in boxes[k, :6])
+        a, b = length / 2 + 0.25, width / 2 + 0.25
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        corners = torch.tensor([[x + c * i * a - s_ * j * b, y + s_ * i * a + c * j * b, z]
+                                for i in (-1, 1) for j in (-1, 1) for z in (0.0, height)], dtype=torch.float64)
+        cam = (corners - t_wc) @ r_wc  # camera coordinates (x right, y down, z forward)
+        z = cam[:, 2]
+        if bool((z <= 0.05).all()):
+            out.append(None)
+            continue
+        if bool((z <= 0.05).any()):
+            out.append((0, W, 0, H))
+            continue
+        uv = (cam @ K.T)[:, :2] / z[:, None]
+        u0, v0 = (uv.min(0).values * ss).floor().long().tolist()
+        u1, v1 = (uv.max(0).values * ss).ceil().long().tolist()
+        u0, u1, v0, v1 = max(0, u0 - ss), min(W, u1 + 2 * ss), max(0, v0 - ss), min(H, v1 + 2 * ss)
+        out.append((u0, u1, v0, v1) if u0 < u1 and v0 < v1 else None)
+    return out
+
+
+def _vehicles_in_block(bounds: list, v_lo: int, v_hi: int, ss: int) -> list:
+    """``(k, (row slice, column slice))`` of the block's sub-pixel rows ``[v_lo, v_hi)`` each vehicle
+    can cover."""
+    out = []
+    for k, bd in enumerate(bounds):
+        if bd is None:
+            continue
+        u0, u1, v0, v1 = bd
+        r0, r1 = max(v0, v_lo), min(v1, v_hi)
+        if r0 < r1:
+            out.append((k, (slice(r0 - v_lo, r1 - v_lo), slice(u0, u1))))
+    return out
 
 
 def _to_box(boxes: Tensor, k: int, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
@@ -242,7 +294,8 @@ def _hit_vehicles(boxes: Tensor, origin: Tensor, d: Tensor) -> tuple[Tensor, Ten
         # Skin coordinates: along the face (the side's length, the end's width) and up.
         along = torch.where(ax == 1, p[:, 0], p[:, 1])
         up = torch.where(ax == 2, p[:, 0], p[:, 2])
-        tex = _sample_periodic(_skin(), along / 0.02 + 40.0 * k, up / 0.02 + 17.0 * k)[0].double()
+        seed = 1000.0 * float(boxes[k, 6])  # where on the skin tile: by the vehicle (its shade), not its order
+        tex = _sample_periodic(_skin(), along / 0.02 + seed, up / 0.02 + 0.37 * seed)[0].double()
         window = (ax != 2) & (p[:, 2] > GROUND_CLEARANCE + 0.62 * (boxes[k, 5] - GROUND_CLEARANCE))
         shade = float(boxes[k, 6]) * torch.where(window, 0.35, torch.where(ax == 2, 1.15, 1.0))
         best[hit] = lam
