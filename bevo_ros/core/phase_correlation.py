@@ -526,6 +526,7 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
     return shift, corr, log_prob, gated
 
 
+@torch.compiler.disable  # decided on Python numbers: traced, each new prior would be a recompilation
 def _nearest_strong_peak(corr: Tensor, jr: Tensor, jc: Tensor, prior: Tensor, prior_std: Tensor,
                          ratio: float, reach: int = 4) -> tuple[Tensor, Tensor, Tensor]:
     """The highest cell ``(jr, jc)``, or the highest within ``reach`` px of the prior where that is
@@ -690,6 +691,7 @@ def _shift_phase_axes(size: int, dtype: torch.dtype, device: torch.device) -> tu
             torch.fft.rfftfreq(size, dtype=dtype, device=device)[None, :])
 
 
+@torch.compiler.disable  # sliced by Python numbers: traced, each new box would be a recompilation
 def _gated_shift_cov(log_prob_t: Tensor, shift: Tensor, prior: Tensor, halfwidth: Tensor) -> Tensor:
     """:func:`_shift_cov` of the distribution inside the prior's box (``halfwidth (B, 2)`` px): the
     box's rows and columns sliced per batch entry (the engine's one; a mask over the grid costs more)."""
