@@ -498,10 +498,10 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
         envelope: optional :func:`overlap_envelope`; the sub-pixel fit then uses the correlation
             divided by it (the distribution is left as is: dividing amplifies far-off noise).
         prior, prior_std: optional ``(B, 2)`` pixels: where the shift is expected (e.g. a motion
-            filter's prediction) and its standard deviation. Of the peaks (local maxima) at least
-            ``peak_ratio`` x the highest, the one nearest the prior is taken: a second motion in the
-            view (the car ahead, its shadow) can outweigh the road's. Without a prior, or with no
-            second strong peak, the highest.
+            filter's prediction) and its standard deviation. A peak near the prior (at least
+            ``peak_ratio`` x the highest, :func:`_nearest_strong_peak`) is taken over a highest one
+            farther from it: a second motion in the view (the car ahead, its shadow) can outweigh
+            the road's. Without a prior, or with no such peak, the highest.
 
     Returns:
         shift ``(B, 2)`` pixels ``(d_row, d_col)``, correlation ``(B, S, S)`` over
@@ -540,17 +540,15 @@ def _nearest_strong_peak(corr: Tensor, jr: Tensor, jc: Tensor, prior: Tensor, pr
     out_r, out_c, gated = jr.tolist(), jc.tolist(), [False] * B
     for b, ((p_r, p_c), (s_r, s_c)) in enumerate(zip(prior.tolist(), prior_std.tolist())):
         r0, c0 = round(p_r) + c, round(p_c) + c
-        idx_r = torch.tensor([(r0 + d) % S for d in range(-reach, reach + 1)], device=corr.device)
-        idx_c = torch.tensor([(c0 + d) % S for d in range(-reach, reach + 1)], device=corr.device)
-        near = corr[b].index_select(0, idx_r).index_select(1, idx_c)
+        near, _ = _window_2d(corr[b:b + 1], torch.tensor([r0], device=corr.device),
+                             torch.tensor([c0], device=corr.device), reach)
         k = int(near.argmax())
-        kr, kc = int(idx_r[k // (2 * reach + 1)]), int(idx_c[k % (2 * reach + 1)])
+        kr, kc = (r0 + k // (2 * reach + 1) - reach) % S, (c0 + k % (2 * reach + 1) - reach) % S
         if (kr, kc) == (out_r[b], out_c[b]):
             continue
-        rows = torch.tensor([(kr - 1) % S, kr, (kr + 1) % S], device=corr.device)
-        cols = torch.tensor([(kc - 1) % S, kc, (kc + 1) % S], device=corr.device)
-        around = corr[b].index_select(0, rows).index_select(1, cols)
-        peak, top = float(around[1, 1]), float(corr[b, out_r[b], out_c[b]])
+        around, _ = _window_2d(corr[b:b + 1], torch.tensor([kr], device=corr.device),
+                               torch.tensor([kc], device=corr.device), 1)
+        peak, top = float(around[0, 1, 1]), float(corr[b, out_r[b], out_c[b]])
         s_r, s_c = max(s_r, 1e-6), max(s_c, 1e-6)
 
         def dist(r: int, q: int) -> float:
@@ -725,10 +723,11 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
     better than the BEVs do, and a translation correlation of well-derotated images is sharper.
     ``envelope``: ``overlap_envelope(prev.weight_spectrum, curr.weight_spectrum)`` if the caller
     has it (the engine, while the BEV mask does not change; not checked). ``shift_prior``,
-    ``shift_prior_std`` ``(B, 2)`` px, ``peak_ratio``: the expected shift (:func:`estimate_translation`);
-    where a peak other than the highest is taken, ``shift_cov`` is the distribution's spread
-    within 3 standard deviations of the prior (the distribution given it); ``translation_log_prob``
-    stays the whole one.
+    ``shift_prior_std`` ``(B, 2)`` px, ``peak_ratio``: the expected shift; what moves unlike it is
+    weighted out of the current BEV (:func:`motion_consistency_weight`), the peak is chosen with it
+    (:func:`estimate_translation`), and ``shift_cov`` is the distribution's spread within 3
+    standard deviations of it (the distribution given the prior); ``translation_log_prob`` stays
+    the whole one.
     """
     if prev.image.shape != curr.image.shape:
         raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")

@@ -19,7 +19,7 @@ from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
 from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_motion, _rpy, _rx, _ry, _rz,
                                                 _with_preset)
 from bevo_ros.datasets.synthetic.render import RenderOptions, kitti_like_camera, render_frame
-from bevo_ros.datasets.synthetic.traffic import TrafficOptions, traffic_at_frames
+from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
 
 __all__ = ["LazyImages", "SyntheticDrive", "base_poses_4x4", "camera_poses_4x4", "make_drive", "preset_drive"]
 
@@ -233,12 +233,7 @@ def make_drive(
             raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
     if gyro_sampling not in GYRO_SAMPLING:
         raise ValueError(f"gyro_sampling must be one of {GYRO_SAMPLING}, got {gyro_sampling!r}")
-    if traffic is True:
-        traffic = TrafficOptions()
-    elif traffic is False:
-        traffic = None
-    if traffic is not None and not isinstance(traffic, TrafficOptions):
-        raise ValueError(f"traffic must be a bool, None or a TrafficOptions, got {traffic!r}")
+    traffic = as_traffic_options(traffic)
     if render not in (True, False, "lazy"):
         raise ValueError(f"render must be True, False or 'lazy', got {render!r}")
     if not (road_tilt is True or road_tilt is False or (isinstance(road_tilt, (tuple, list)) and len(road_tilt) == 2)):

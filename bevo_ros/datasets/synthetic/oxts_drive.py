@@ -35,7 +35,7 @@ from bevo_ros.core.geometry import CameraModel
 from bevo_ros.datasets.kitti import OxtsData
 from bevo_ros.datasets.synthetic.drive import LazyImages, SyntheticDrive
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
-from bevo_ros.datasets.synthetic.traffic import TrafficOptions, traffic_at_frames
+from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
 from bevo_ros.datasets.synthetic.motion import _rx, _ry, _rz
 from bevo_ros.datasets.synthetic.render import RenderOptions, kitti_like_camera, render_frame
 
@@ -214,11 +214,9 @@ def drive_from_oxts(
         imu_pitch_roll_gravity=pr_grav, imu_road_slope_camber=tilt, imu_rotation_gravity=r_grav,
         imu_velocity_gravity=vel, imu_poses_xy_yaw=imu_poses, render_options=options, image_noise=True,
     )
-    options_traffic = TrafficOptions() if traffic is True else (traffic or None)
-    if options_traffic is not None:
-        if not isinstance(options_traffic, TrafficOptions):
-            raise ValueError(f"traffic must be a bool, None or a TrafficOptions, got {traffic!r}")
-        drive.traffic = traffic_at_frames(options_traffic, stamps, xy, yaw_u, f_stamps, seed)
+    traffic = as_traffic_options(traffic)
+    if traffic is not None:
+        drive.traffic = traffic_at_frames(traffic, stamps, xy, yaw_u, f_stamps, seed)
     if render == "lazy":
         drive.images = LazyImages(drive)
     elif render:

@@ -155,7 +155,7 @@ def render_view(
         dist = lam * horiz  # horizontal range of the ground point
         near = down & (dist < options.haze_end)
         # The vehicles whose image rectangle meets this block, and the block's part they can cover.
-        here = [] if boxes is None else _vehicles_in_block(bounds, r0 * ss, r0 * ss + d.shape[0], ss)
+        here = [] if boxes is None else _vehicles_in_block(bounds, r0 * ss, r0 * ss + d.shape[0])
         if near.any():
             lam_all = torch.where(near, lam, 0.0)
             gx_all, gy_all = t_wc[0] + lam_all * d[..., 0], t_wc[1] + lam_all * d[..., 1]
@@ -163,7 +163,7 @@ def render_view(
             if here:
                 shade = torch.ones_like(lam_all)
                 for k, sl in here:
-                    shade[sl] = shade[sl] * _shadow(boxes[k:k + 1], gx_all[sl], gy_all[sl])
+                    shade[sl] = shade[sl] * _shadow(boxes[k], gx_all[sl], gy_all[sl])
                 val = val * shade[near]
             # Far ground fades into haze (hides texture aliasing near the horizon).
             dist = dist[near]
@@ -174,7 +174,7 @@ def render_view(
             ground_lam = torch.where(near, lam, math.inf)
             best = torch.full_like(ground_lam, math.inf)
             for k, sl in here:
-                hit, value = _hit_vehicles(boxes[k:k + 1], t_wc, d[sl].reshape(-1, 3))
+                hit, value = _hit_vehicle(boxes[k], t_wc, d[sl].reshape(-1, 3))
                 hit, value = hit.reshape(best[sl].shape), value.reshape(best[sl].shape)
                 front = (hit < ground_lam[sl]) & (hit < best[sl])
                 best[sl] = torch.where(front, hit, best[sl])
@@ -230,7 +230,7 @@ def _image_bounds(boxes: Tensor, camera: CameraModel, r_wc: Tensor, t_wc: Tensor
     return out
 
 
-def _vehicles_in_block(bounds: list, v_lo: int, v_hi: int, ss: int) -> list:
+def _vehicles_in_block(bounds: list, v_lo: int, v_hi: int) -> list:
     """``(k, (row slice, column slice))`` of the block's sub-pixel rows ``[v_lo, v_hi)`` each vehicle
     can cover."""
     out = []
@@ -244,22 +244,19 @@ def _vehicles_in_block(bounds: list, v_lo: int, v_hi: int, ss: int) -> list:
     return out
 
 
-def _to_box(boxes: Tensor, k: int, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
-    """World road-plane points -> box ``k``'s frame (forward, left), metres."""
-    c, s = math.cos(float(boxes[k, 2])), math.sin(float(boxes[k, 2]))
-    dx, dy = x - boxes[k, 0], y - boxes[k, 1]
+def _to_box(box: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """World road-plane points -> the frame (forward, left) of ``box`` (a vehicle row), metres."""
+    c, s = math.cos(float(box[2])), math.sin(float(box[2]))
+    dx, dy = x - box[0], y - box[1]
     return c * dx + s * dy, -s * dx + c * dy
 
 
-def _shadow(boxes: Tensor, x: Tensor, y: Tensor, darkness: float = 0.6, spread: float = 0.25) -> Tensor:
-    """Road brightness factor under the vehicles' soft shadows at world points ``(N,)`` -> ``(N,)``."""
-    factor = torch.ones_like(x)
-    for k in range(len(boxes)):
-        a, b = _to_box(boxes, k, x, y)
-        inside = (((boxes[k, 3] / 2 + spread - a.abs()) / spread).clamp(0, 1)
-                  * ((boxes[k, 4] / 2 + spread - b.abs()) / spread).clamp(0, 1))
-        factor = factor * (1.0 - darkness * inside)
-    return factor
+def _shadow(box: Tensor, x: Tensor, y: Tensor, darkness: float = 0.6, spread: float = 0.25) -> Tensor:
+    """Road brightness factor under a vehicle's soft shadow at world points ``(...)`` -> same shape."""
+    a, b = _to_box(box, x, y)
+    inside = (((box[3] / 2 + spread - a.abs()) / spread).clamp(0, 1)
+              * ((box[4] / 2 + spread - b.abs()) / spread).clamp(0, 1))
+    return 1.0 - darkness * inside
 
 
 @lru_cache(maxsize=1)
@@ -269,38 +266,37 @@ def _skin() -> Tensor:
     return _wrap_pad(_periodic_noise(gen, 256, 0.02, 0.05, 1.0, 1.0).numpy())
 
 
-def _hit_vehicles(boxes: Tensor, origin: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
-    """First hit of rays ``origin + lam d`` (``d (N, 3)``) with the boxes: ``lam (N,)`` (inf: none) and
+def _hit_vehicle(box: Tensor, origin: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+    """Hit of rays ``origin + lam d`` (``d (N, 3)``) with a vehicle's box: ``lam (N,)`` (inf: none) and
     the skin's intensity there ``(N,)`` (slab method; windows dark in the upper third)."""
-    best = torch.full((d.shape[0],), math.inf, dtype=torch.float64)
+    lam_out = torch.full((d.shape[0],), math.inf, dtype=torch.float64)
     value = torch.zeros(d.shape[0], dtype=torch.float64)
-    for k in range(len(boxes)):
-        c, s = math.cos(float(boxes[k, 2])), math.sin(float(boxes[k, 2]))
-        ox, oy = _to_box(boxes, k, origin[0:1], origin[1:2])
-        dx, dy = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-        lo = torch.tensor([-boxes[k, 3] / 2, -boxes[k, 4] / 2, GROUND_CLEARANCE], dtype=torch.float64)
-        hi = torch.tensor([boxes[k, 3] / 2, boxes[k, 4] / 2, boxes[k, 5]], dtype=torch.float64)
-        o = torch.stack([ox[0], oy[0], origin[2]])
-        dirs = torch.stack([dx, dy, d[:, 2]], 1)
-        inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-        t1, t2 = (lo - o) * inv, (hi - o) * inv
-        t_near, axis = torch.minimum(t1, t2).max(1)
-        t_far = torch.maximum(t1, t2).min(1).values
-        hit = (t_near <= t_far) & (t_near > 0) & (t_near < best)
-        if not hit.any():
-            continue
-        lam, ax = t_near[hit], axis[hit]
-        p = o + lam[:, None] * dirs[hit]
-        # Skin coordinates: along the face (the side's length, the end's width) and up.
-        along = torch.where(ax == 1, p[:, 0], p[:, 1])
-        up = torch.where(ax == 2, p[:, 0], p[:, 2])
-        seed = 1000.0 * float(boxes[k, 6])  # where on the skin tile: by the vehicle (its shade), not its order
-        tex = _sample_periodic(_skin(), along / 0.02 + seed, up / 0.02 + 0.37 * seed)[0].double()
-        window = (ax != 2) & (p[:, 2] > GROUND_CLEARANCE + 0.62 * (boxes[k, 5] - GROUND_CLEARANCE))
-        shade = float(boxes[k, 6]) * torch.where(window, 0.35, torch.where(ax == 2, 1.15, 1.0))
-        best[hit] = lam
-        value[hit] = (shade * (1.0 + 0.25 * tex)).clamp(0.0, 1.0)
-    return best, value
+    c, s = math.cos(float(box[2])), math.sin(float(box[2]))
+    ox, oy = _to_box(box, origin[0:1], origin[1:2])
+    dx, dy = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    lo = torch.tensor([-box[3] / 2, -box[4] / 2, GROUND_CLEARANCE], dtype=torch.float64)
+    hi = torch.tensor([box[3] / 2, box[4] / 2, box[5]], dtype=torch.float64)
+    o = torch.stack([ox[0], oy[0], origin[2]])
+    dirs = torch.stack([dx, dy, d[:, 2]], 1)
+    inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+    t1, t2 = (lo - o) * inv, (hi - o) * inv
+    t_near, axis = torch.minimum(t1, t2).max(1)
+    t_far = torch.maximum(t1, t2).min(1).values
+    hit = (t_near <= t_far) & (t_near > 0)
+    if not hit.any():
+        return lam_out, value
+    lam, ax = t_near[hit], axis[hit]
+    p = o + lam[:, None] * dirs[hit]
+    # Skin coordinates: along the face (the side's length, the end's width) and up.
+    along = torch.where(ax == 1, p[:, 0], p[:, 1])
+    up = torch.where(ax == 2, p[:, 0], p[:, 2])
+    seed = 1000.0 * float(box[6])  # where on the skin tile: by the vehicle (its shade), not its order
+    tex = _sample_periodic(_skin(), along / 0.02 + seed, up / 0.02 + 0.37 * seed)[0].double()
+    window = (ax != 2) & (p[:, 2] > GROUND_CLEARANCE + 0.62 * (box[5] - GROUND_CLEARANCE))
+    shade = float(box[6]) * torch.where(window, 0.35, torch.where(ax == 2, 1.15, 1.0))
+    lam_out[hit] = lam
+    value[hit] = (shade * (1.0 + 0.25 * tex)).clamp(0.0, 1.0)
+    return lam_out, value
 
 
 def render_frame(drive: SyntheticDrive, index: int, options: RenderOptions | None = None) -> np.ndarray:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["TrafficOptions", "VEHICLE_FIELDS", "traffic_at_frames"]
+__all__ = ["TrafficOptions", "VEHICLE_FIELDS", "as_traffic_options", "traffic_at_frames"]
 
 # Columns of a vehicle row: world x, y (box centre on the road), yaw, length, width, height, grey shade.
 VEHICLE_FIELDS = ("x", "y", "yaw", "length", "width", "height", "shade")
@@ -56,6 +56,17 @@ class TrafficOptions:
                 raise ValueError(f"traffic {name} must be a finite number >= 0, got {v!r}")
         if not 0.0 <= self.parked_fill <= 1.0:
             raise ValueError(f"traffic parked_fill must be in [0, 1], got {self.parked_fill!r}")
+
+
+def as_traffic_options(traffic: "TrafficOptions | bool | None") -> "TrafficOptions | None":
+    """A drive's ``traffic`` argument: True = the defaults, None/False = none, or the options."""
+    if traffic is True:
+        return TrafficOptions()
+    if traffic is None or traffic is False:
+        return None
+    if not isinstance(traffic, TrafficOptions):
+        raise ValueError(f"traffic must be a bool, None or a TrafficOptions, got {traffic!r}")
+    return traffic
 
 
 class _ArcPath:
