@@ -119,6 +119,10 @@ class OdometrySettings:
     # constancy); below this speed (m/s) over the frame interval the vehicle is at rest: zero
     # motion, the yaw gyro's bias observed. 0 disables the check.
     standstill_max_speed: float = 0.1
+    # Fused mode: the direction of travel is forward from the start and changes only at a standstill
+    # the images confirm; the correlation's peak is taken among shifts of that direction (the car
+    # ahead pulling away reads as reversing). Off for a vehicle that reverses without stopping.
+    direction_lock: bool = True
 
 
 @dataclass
@@ -486,6 +490,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         gyro_sampling=config.filter.gyro_sampling,
         kernels=config.kernels,
         standstill_max_speed=config.odometry.standstill_max_speed,
+        direction_lock=config.odometry.direction_lock,
     )
     odometry.imu_limits = limits
     return odometry

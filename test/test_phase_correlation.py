@@ -302,3 +302,32 @@ def test_a_second_motion_in_view_yields_to_the_prior(big):
     assert w[0, 5:40, 35:65].mean() < 0.4 and w[0, 55:95, 10:90].mean() > 0.9
     car = register_prepared(p, c, cfg, shift_prior=torch.tensor([[0.2, 0.0]]), shift_prior_std=std)
     assert car.shift[0].norm() < 0.3
+
+
+def test_a_forward_range_takes_the_strongest_peak_inside_it(big):
+    """The car ahead pulling away: its block moves -5 px (backwards in the BEV, as the road would if
+    the car reversed) and outweighs the road's +2 px. Plain, the car's motion is read; with the
+    rows limited to forward motion (``forward_range`` [-1, inf), the engine's direction of travel)
+    the road's, and the distribution stays whole. A range whose edge sits on the flank of the
+    excluded peak does not slide out to it: the peak taken is a peak inside the range, the road's."""
+    car_tex = (texture(3 * S, 1, smooth=0.8) - 0.5) * 3 + 0.5
+    region = torch.zeros(1, 1, S, S, dtype=torch.float64)
+    region[..., 0:45, 30:70] = 1
+
+    def frame(road_shift, car_shift):
+        return warp(big, 0.0, road_shift) * (1 - region) + warp(car_tex, 0.0, car_shift) * region
+
+    prev, curr = frame((0.0, 0.0), (0.0, 0.0)), frame((2.0, 0.0), (-5.0, 0.0))
+    mask = torch.ones_like(prev).float()
+    cfg = DpcConfig()
+    p, c = prepare(prev.float(), mask, cfg), prepare(curr.float(), mask, cfg)
+    plain = register_prepared(p, c, cfg)
+    assert (plain.shift[0] - torch.tensor([-5.0, 0.0])).norm() < 0.3, plain.shift  # the car's
+    forward = register_prepared(p, c, cfg, forward_range=torch.tensor([[-1.0, math.inf]]))
+    assert (forward.shift[0] - torch.tensor([2.0, 0.0])).norm() < 0.5, forward.shift  # no weight: the car's edges pull
+    assert bool(forward.shift_gated[0])
+    assert torch.equal(forward.translation_log_prob, plain.translation_log_prob)
+    edge = register_prepared(p, c, cfg, forward_range=torch.tensor([[-4.0, math.inf]]))  # row -4: the car's flank
+    assert (edge.shift[0] - torch.tensor([2.0, 0.0])).norm() < 0.5, edge.shift
+    backward = register_prepared(p, c, cfg, forward_range=torch.tensor([[-math.inf, 1.0]]))
+    assert (backward.shift[0] - torch.tensor([-5.0, 0.0])).norm() < 0.3 and not bool(backward.shift_gated[0])

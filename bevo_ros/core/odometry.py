@@ -31,7 +31,7 @@ from .road_tilt import RoadTiltFilter
 from .standstill import CHECK_BELOW as STANDSTILL_CHECK_BELOW, StandstillDetector
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
 from .vehicle_dynamics import GRAVITY, compensate_floats, suspension_attitude
-from .vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
+from .vehicle_filter import VehicleFilter, VehicleNoise, forget_speed, initial_vehicle_state
 
 MODES = ("fused", "paper")
 ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceleration stays the same
@@ -50,6 +50,15 @@ PEAK_PRIOR_MAX_STD = 0.5
 # The correlation peaks at least this share of the highest compete for the prior (a second motion,
 # such as the car ahead); the road's own side peaks stay below ~0.3 of its main one.
 PEAK_RATIO = 0.5
+# The direction of travel (fused mode, ``direction_lock``): the correlation's peak is taken among
+# forward (or, after a stop, reverse) shifts to this tolerance (m: the noise of a reading at rest),
+# and a direction is taken once the motion filter's speed passes DIRECTION_SPEED (m/s) after a stop.
+DIRECTION_TOLERANCE = 0.1
+DIRECTION_SPEED = 1.0
+# m: the images' small flow (core/standstill, run when the correlation reads a near stop) says the
+# car moved at least this much more than the correlation's peak: that peak is something moving
+# with the car (the car ahead at our speed), and the filter's near-zero speed is wrong.
+MOVING_MARGIN = 0.05
 
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 _PLANAR = np.ix_([0, 1, 5], [0, 1, 5])  # (x, y, yaw) in a 6x6 ROS covariance
@@ -125,7 +134,15 @@ class Counters:
     rejected_translation: int = 0  # fused: the translation failed the Mahalanobis gate
     rejected_rotation: int = 0  # fused: the image rotation disagreed with the gyro beyond the gate
     standstill: int = 0  # fused: frames at rest (zero motion, the yaw gyro's bias observed)
-    gated_peak: int = 0  # fused: the translation's highest peak was off the prediction, the road's taken
+    gated_peak: int = 0  # fused: the highest peak was off the prediction or the direction of travel, the road's taken
+
+
+def _peak_height(reg) -> float:
+    """The translation correlation at the registration's shift (its nearest cell; batch of one)."""
+    corr = reg.translation_corr[0]
+    S = corr.shape[-1]
+    r, c = (int(round(float(v))) % S for v in reg.shift[0] + S // 2)
+    return float(corr[r, c])
 
 
 class BevoOdometry:
@@ -176,6 +193,14 @@ class BevoOdometry:
             :data:`~bevo_ros.core.standstill.CHECK_BELOW` forward is checked for standstill on the
             raw images (:mod:`~bevo_ros.core.standstill`); below this speed (m/s) over the frame
             interval the vehicle is at rest: zero motion, the yaw gyro's bias observed. 0 disables it.
+        direction_lock: fused mode: the direction of travel is forward from the start and changes
+            only at a standstill the images confirm: the correlation's peak is taken among shifts
+            of that direction (:data:`DIRECTION_TOLERANCE`). A car ahead pulling away moves in the
+            BEV as the road would if the car reversed; followed, its peak took a creeping car to
+            -9 m/s. After a confirmed stop either direction; the first one the motion filter's speed
+            passes :data:`DIRECTION_SPEED` in is kept. Reversing without a confirmed stop (the
+            images too dark or plain to confirm one) is then not followed: turn it off where a
+            vehicle reverses so.
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
@@ -201,6 +226,7 @@ class BevoOdometry:
         kernels: str = "eager",
         gyro_sampling: str = "interval_mean",
         standstill_max_speed: float = 0.1,
+        direction_lock: bool = True,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -213,6 +239,7 @@ class BevoOdometry:
         self.suspension_gradients = (float(suspension_gradients[0]), float(suspension_gradients[1]))
         self.initial_attitude_std = float(initial_attitude_std)
         self.pitch_change_correction = bool(pitch_change_correction)
+        self.direction_lock = bool(direction_lock)
         self._frame_clock = FrameClock(frame_clock_window)
         self.max_speed_age = 0.5  # s: an external speed older than this is not used
         self.device = torch.device(device)
@@ -272,6 +299,7 @@ class BevoOdometry:
         self._gyro_prev2 = None  # fused: the sample before that, (rates, yaw rate about the vertical); its interval is the previous _imu_dt
         self._fwd_sum = 0.0  # integral of the accelerometer's forward acceleration since the last frame, m/s
         self._fwd_time = 0.0  # the time it covers, s
+        self._direction = 1  # fused: direction of travel, +1 forward, -1 reverse, 0 either (after a stop)
         self._standstill.reset()
         self.counters.resets += 1
 
@@ -659,17 +687,25 @@ class BevoOdometry:
             imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
         self._fwd_sum = self._fwd_time = 0.0
         prior = self._shift_prior(dt, dyaw, pitch_shift, pull, imu_accel, imu_var)
-        reg = self.kernels.register_prepared(self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
-                                angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev),
-                                envelope=self._envelope(curr),
-                                shift_prior=None if prior is None else torch.tensor([prior[0]], dtype=dt_, device=dev),
-                                shift_prior_std=None if prior is None else torch.tensor([prior[1]], dtype=dt_, device=dev),
-                                peak_ratio=PEAK_RATIO)
-        if reg.shift_gated is not None and bool(reg.shift_gated[0]):
-            self.counters.gated_peak += 1  # a state, not an event: following a car would crowd the events out
-        measured = self._vehicle_motion(reg)
-        measured[0] -= pitch_shift
-        cov = self._motion_covariance(reg, measured, state, pull)
+        direction = self._direction if self.direction_lock else 0
+        tolerance = DIRECTION_TOLERANCE
+        bounds = (-tolerance if direction > 0 else -math.inf, tolerance if direction < 0 else math.inf)
+
+        def register(prior, bounds):
+            mpp = self.spec.metres_per_pixel
+            reg = self.kernels.register_prepared(
+                self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
+                angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev), envelope=self._envelope(curr),
+                shift_prior=None if prior is None else torch.tensor([prior[0]], dtype=dt_, device=dev),
+                shift_prior_std=None if prior is None else torch.tensor([prior[1]], dtype=dt_, device=dev),
+                peak_ratio=PEAK_RATIO,
+                forward_range=None if bounds == (-math.inf, math.inf) else
+                torch.tensor([[(b + pitch_shift) / mpp for b in bounds]], dtype=dt_, device=dev))
+            measured = self._vehicle_motion(reg)
+            measured[0] -= pitch_shift
+            return reg, measured, self._motion_covariance(reg, measured, state, pull)
+
+        reg, measured, cov = register(prior, bounds)
         rot = -reg.rotation_estimate.item()
         quality = reg.quality.item()
         # The image rotation's spread plus what the correlation spread does not see (an attitude
@@ -683,16 +719,35 @@ class BevoOdometry:
         still, rest_var = False, 0.0
         if (image is not None and self._standstill.enabled and abs(float(measured[0])) < STANDSTILL_CHECK_BELOW
                 and quality >= n.min_quality and self._stop_is_plausible(dt)):
-            sm = self._standstill.measure(image, dt)
+            sm = self._standstill.measure(image)  # with the coarse look: twice the range, for the least motion
             still = self._standstill.at_rest(sm, dt)
             if still:  # what the threshold leaves possible, and the estimate's own spread
                 rest_var = (0.5 * self._standstill.max_speed * dt) ** 2 + sm.forward_std**2
+            elif sm is not None and direction >= 0 and math.isfinite(sm.forward):
+                # Beyond its linear range the flow reads short (towards zero): a least motion. Once
+                # that is more than the correlation can read as a near stop, the correlation's peak
+                # moved with the car; the road's is the strong one beyond it, if there is one.
+                least = max(sm.forward, sm.coarse_forward) - 3.0 * sm.forward_std
+                if least > max(STANDSTILL_CHECK_BELOW, float(measured[0]) + MOVING_MARGIN):
+                    half = (self.spec.size // 2 - 2) * self.spec.metres_per_pixel
+                    alt, alt_measured, alt_cov = register(None, (min(least, half) - tolerance, math.inf))
+                    if (float(alt_measured[0]) >= least - 2 * tolerance
+                            and _peak_height(alt) >= PEAK_RATIO * alt.quality.item()):
+                        reg, measured, cov, quality = alt, alt_measured, alt_cov, alt.quality.item()
+                        if not self._within_gate(float(measured[0]), float(cov[0, 0]), dt):
+                            self._vstate = forget_speed(self._vstate)  # its speed followed that peak
+        if reg.shift_gated is not None and bool(reg.shift_gated[0]):
+            self.counters.gated_peak += 1  # a state, not an event: following a car would crowd the events out
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
                       quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, rest_var=rest_var)
         frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
         self._last_filter_inputs = inputs
+        if still:
+            self._direction = 0
+        elif self._direction == 0 and abs(frame.state.v) > DIRECTION_SPEED:
+            self._direction = 1 if frame.state.v > 0 else -1
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
         if still:
             self.counters.standstill += 1  # a state, not an event: a long stop would crowd the events out
@@ -727,11 +782,19 @@ class BevoOdometry:
         std_x = math.sqrt(max(var_v, 0.0) * dt * dt + meas_var)
         if std_x > PEAK_PRIOR_MAX_STD:
             return None
+        if self.direction_lock and self._direction * dx < 0:
+            dx = 0.0  # a prediction overshooting a stop: the car stops, it does not turn round
         std_y = math.sqrt((n.slip_std * dx) ** 2 + meas_var)
         motion = torch.tensor([[dx + pitch_shift, dx * math.tan(dyaw / 2), dyaw]], dtype=torch.float64)
         _, shift = registration_from_vehicle_motion(motion, self.spec)
         mpp = self.spec.metres_per_pixel
         return [float(shift[0, 0]), float(shift[0, 1])], [std_x / mpp, std_y / mpp]
+
+    def _within_gate(self, forward: float, forward_var: float, dt: float) -> bool:
+        """Fused mode: a forward motion (m over ``dt``) passes the motion filter's gate."""
+        predicted = self.vehicle.predict(self._vstate, dt)
+        innovation = forward - predicted.v * dt
+        return innovation * innovation < self.vehicle.noise.gate**2 * (predicted.var(0) * dt * dt + forward_var)
 
     def _stop_is_plausible(self, dt: float) -> bool:
         """Fused mode: the motion filter's speed can reach zero within ``dt`` braking at 1 g (plus

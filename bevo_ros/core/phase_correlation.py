@@ -119,7 +119,7 @@ class Registration:
     shift_cov: Tensor
     rotation_estimate: Tensor | None = None  # (B,) the images' own rotation when ``angle`` was given
     rotation_estimate_std: Tensor | None = None  # (B,) its spread
-    shift_gated: Tensor | None = None  # (B,) bool: the shift is the peak nearest the prior, not the highest
+    shift_gated: Tensor | None = None  # (B,) bool: the shift is the peak nearest the prior or in the direction, not the highest
 
     @property
     def rotation_prob(self) -> Tensor:
@@ -487,7 +487,8 @@ def translation_correlation(prev_spectrum: Tensor, curr_image: Tensor, config: D
 def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcConfig,
                          envelope: Tensor | None = None, prior: Tensor | None = None,
                          prior_std: Tensor | None = None,
-                         peak_ratio: float = 0.5) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+                         peak_ratio: float = 0.5,
+                         forward_range: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """Shift of ``curr_image`` relative to the image whose ``rfft2`` is ``prev_spectrum``.
 
     ``curr(q) = prev(q - shift)``.
@@ -502,21 +503,28 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
             ``peak_ratio`` x the highest, :func:`_nearest_strong_peak`) is taken over a highest one
             farther from it: a second motion in the view (the car ahead, its shadow) can outweigh
             the road's. Without a prior, or with no such peak, the highest.
+        forward_range: optional ``(B, 2)`` px: the peak is taken among shifts whose row (forward)
+            offset lies in ``[lo, hi]`` (``inf`` for none): the direction of travel (a car does
+            not reverse without stopping; the car ahead pulling away reads as reversing), or the
+            least motion the images' flow says (a car ahead moving with ours reads as a stop).
 
     Returns:
         shift ``(B, 2)`` pixels ``(d_row, d_col)``, correlation ``(B, S, S)`` over
         :func:`shift_bins` (fftshifted, 1 = perfect match), log-probabilities ``(B, S, S)``, and
-        with a prior ``(B,)`` bool: a peak other than the highest was taken, else None.
+        with a prior or a range ``(B,)`` bool: a peak other than the highest was taken, else None.
     """
     B, S, _ = curr_image.shape
     corr = translation_correlation(prev_spectrum, curr_image, config)
     flat = corr.reshape(B, S * S)
     log_prob = F.log_softmax(flat / config.translation_temperature, dim=-1).reshape(B, S, S)
     j = flat.argmax(dim=-1)
-    jr, jc = j // S, j % S
     gated = None
+    if forward_range is not None:
+        j, gated = _peak_in_range(corr, j, forward_range)
+    jr, jc = j // S, j % S
     if prior is not None:
-        jr, jc, gated = _nearest_strong_peak(corr, jr, jc, prior, prior_std, peak_ratio)
+        jr, jc, near = _nearest_strong_peak(corr, jr, jc, prior, prior_std, peak_ratio, forward_range)
+        gated = near if gated is None else gated | near
     index = _window_index(jr, jc, S, 1)
     win, _ = _window_2d(corr, jr, jc, 1, index)
     if envelope is not None:  # only the fit's 3x3 window is divided (the rest is never used)
@@ -526,25 +534,54 @@ def estimate_translation(prev_spectrum: Tensor, curr_image: Tensor, config: DpcC
     return shift, corr, log_prob, gated
 
 
+@torch.compiler.disable  # decided on Python numbers: traced, each new range would be a recompilation
+def _peak_in_range(corr: Tensor, j: Tensor, forward_range: Tensor) -> tuple[Tensor, Tensor]:
+    """The flat index ``j (B,)`` of the highest cell if its row offset lies in ``forward_range
+    (B, 2)``, else that of the highest peak (a 3x3 local maximum, cyclic) whose row does. -> ``(j,
+    moved (B,) bool)``. Not merely the highest allowed cell: at the range's edge that is the flank
+    of a peak outside it, and the sub-pixel fit would slide out to that peak. Python numbers per
+    batch entry: in the common case (the highest is allowed) no tensor work at all."""
+    B, S, _ = corr.shape
+    out, moved = j.tolist(), [False] * B
+    for b, (lo, hi) in enumerate(forward_range.tolist()):
+        if lo <= out[b] // S - S // 2 <= hi:
+            continue
+        c = corr[b:b + 1]
+        peaks = c >= F.max_pool2d(F.pad(c[:, None], (1, 1, 1, 1), mode="circular"), 3, 1)[:, 0]
+        rows = _shift_axis(S, corr.dtype, corr.device)[0]
+        wrong = (rows < lo) | (rows > hi)
+        allowed = c.masked_fill(wrong[None, :, None] | ~peaks, float("-inf")).reshape(-1)
+        k = int(allowed.argmax())
+        if math.isfinite(float(allowed[k])):  # an allowed peak exists (else the highest stays)
+            out[b], moved[b] = k, True
+    return torch.tensor(out, dtype=j.dtype, device=j.device), torch.tensor(moved, device=j.device)
+
+
 @torch.compiler.disable  # decided on Python numbers: traced, each new prior would be a recompilation
 def _nearest_strong_peak(corr: Tensor, jr: Tensor, jc: Tensor, prior: Tensor, prior_std: Tensor,
-                         ratio: float, reach: int = 4) -> tuple[Tensor, Tensor, Tensor]:
+                         ratio: float, forward_range: Tensor | None = None,
+                         reach: int = 4) -> tuple[Tensor, Tensor, Tensor]:
     """The highest cell ``(jr, jc)``, or the highest within ``reach`` px of the prior where that is
     a peak (a 3x3 local maximum, cyclic) at least ``ratio`` x the highest and nearer the prior (in
-    its standard deviations).
+    its standard deviations), and with its row offset in ``forward_range`` (if given).
 
     -> ``(jr, jc, gated)``, ``gated (B,)`` bool: the peak near the prior was taken. A few cells per
     batch entry, decided on Python numbers (the engine's batch of one: tensor ops would cost more)."""
     B, S, _ = corr.shape
     c = S // 2
     out_r, out_c, gated = jr.tolist(), jc.tolist(), [False] * B
+    bounds = [(-math.inf, math.inf)] * B if forward_range is None else forward_range.tolist()
     for b, ((p_r, p_c), (s_r, s_c)) in enumerate(zip(prior.tolist(), prior_std.tolist())):
         r0, c0 = round(p_r) + c, round(p_c) + c
         near, _ = _window_2d(corr[b:b + 1], torch.tensor([r0], device=corr.device),
                              torch.tensor([c0], device=corr.device), reach)
+        lo, hi = bounds[b]
+        if r0 - c - reach < lo or r0 - c + reach > hi:  # the window reaches out of the range
+            offsets = _offsets(reach, corr.dtype, corr.device) + (r0 - c)
+            near = near.masked_fill(((offsets < lo) | (offsets > hi))[None, :, None], float("-inf"))
         k = int(near.argmax())
         kr, kc = (r0 + k // (2 * reach + 1) - reach) % S, (c0 + k % (2 * reach + 1) - reach) % S
-        if (kr, kc) == (out_r[b], out_c[b]):
+        if (kr, kc) == (out_r[b], out_c[b]) or not math.isfinite(float(near.reshape(-1)[k])):
             continue
         around, _ = _window_2d(corr[b:b + 1], torch.tensor([kr], device=corr.device),
                                torch.tensor([kc], device=corr.device), 1)
@@ -711,10 +748,20 @@ def _gated_shift_cov(log_prob_t: Tensor, shift: Tensor, prior: Tensor, halfwidth
     return torch.stack(out)
 
 
+def _range_shift_cov(log_prob_t: Tensor, shift: Tensor, forward_range: Tensor) -> Tensor:
+    """:func:`_shift_cov` of the distribution inside the allowed rows ``forward_range (B, 2)`` px
+    (all columns): the distribution given the range."""
+    half_grid = log_prob_t.shape[-1] / 2
+    bounds = forward_range.to(log_prob_t.dtype).clamp(-half_grid, half_grid)
+    centre = torch.stack([bounds.mean(dim=1), torch.zeros_like(bounds[:, 0])], dim=1)
+    halfwidth = torch.stack([(bounds[:, 1] - bounds[:, 0]) / 2, torch.full_like(bounds[:, 0], half_grid)], dim=1)
+    return _gated_shift_cov(log_prob_t, shift, centre, halfwidth)
+
+
 def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: Tensor | None = None,
                       angle_std: Tensor | None = None, envelope: Tensor | None = None,
                       shift_prior: Tensor | None = None, shift_prior_std: Tensor | None = None,
-                      peak_ratio: float = 0.5) -> Registration:
+                      peak_ratio: float = 0.5, forward_range: Tensor | None = None) -> Registration:
     """:func:`register` on already prepared BEVs (reuse ``curr`` as the next ``prev``).
 
     With ``angle (B,)`` (and its ``angle_std``), e.g. the gyro's rotation, the BEV is derotated by
@@ -727,7 +774,8 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
     weighted out of the current BEV (:func:`motion_consistency_weight`), the peak is chosen with it
     (:func:`estimate_translation`), and ``shift_cov`` is the distribution's spread within 3
     standard deviations of it (the distribution given the prior); ``translation_log_prob`` stays
-    the whole one.
+    the whole one. ``forward_range`` ``(B, 2)`` px: the rows the peak is taken in
+    (:func:`estimate_translation`); without a prior ``shift_cov`` is the spread within them.
     """
     if prev.image.shape != curr.image.shape:
         raise ValueError(f"prepared BEVs differ in shape: {tuple(prev.image.shape)} vs {tuple(curr.image.shape)}")
@@ -743,7 +791,7 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
         # image (the previous one keeps it: no coherent peak of it remains).
         weighted = derotated * motion_consistency_weight(prev.spectrum, derotated, shift_prior)
     shift, tcorr, tlog, gated = estimate_translation(prev.spectrum, weighted, config, envelope, shift_prior,
-                                                     shift_prior_std, peak_ratio)
+                                                     shift_prior_std, peak_ratio, forward_range)
     dtype, device = rcorr.dtype, rcorr.device
     abins = angle_bins(config, dtype, device)
     tbins = shift_bins(prev.size, dtype, device)
@@ -760,8 +808,9 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
         quality=tcorr.amax(dim=(-1, -2)).clamp(0.0, 1.0),
         rotation_quality=rcorr.amax(dim=-1).clamp(0.0, 1.0),
         angle_std=angle_std.to(dtype) if given and angle_std is not None else spread,
-        shift_cov=_shift_cov(tlog, shift) if shift_prior is None else
-        _gated_shift_cov(tlog, shift, shift_prior, 3.0 * shift_prior_std),
+        shift_cov=_shift_cov(tlog, shift) if shift_prior is None and forward_range is None else
+        _gated_shift_cov(tlog, shift, shift_prior, 3.0 * shift_prior_std) if shift_prior is not None else
+        _range_shift_cov(tlog, shift, forward_range),
         rotation_estimate=estimate if given else None,
         rotation_estimate_std=spread if given else None,
         shift_gated=gated,

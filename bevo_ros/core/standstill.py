@@ -19,7 +19,8 @@ through the region (the car ahead pulling away) is left out, not fitted.
 Inside the linear range (a few pixels of flow at the working resolution, ~0.2 m on KITTI-like
 geometry) the estimate is the motion itself; beyond it, it falls back towards zero (1 m reads
 ~0.15 m), so it only decides standstill, and only when the correlation itself reads little
-motion (:data:`CHECK_BELOW`). At rest means all of: the images differ (a repeated frame is no
+motion (:data:`CHECK_BELOW`); the fused engine also takes it as a *least* motion there (a car
+ahead moving with ours reads as a stop to the correlation, not to the road's flow). At rest means all of: the images differ (a repeated frame is no
 measurement), the road texture stands well above the sensor noise (:data:`MIN_TEXTURE_SNR`: a
 low-contrast night road would dilute the estimate towards zero), the motion below the threshold
 over the whole region and over its near and far halves alike (an object moving with the car,

@@ -32,7 +32,7 @@ import torch
 
 Tensor = torch.Tensor
 
-__all__ = ["VehicleNoise", "VehicleState", "VehicleFrame", "VehicleFilter", "initial_vehicle_state"]
+__all__ = ["VehicleNoise", "VehicleState", "VehicleFrame", "VehicleFilter", "initial_vehicle_state", "forget_speed"]
 
 
 @dataclass
@@ -117,6 +117,15 @@ def initial_vehicle_state(speed_std: float = 30.0, accel_std: float = 3.0, bias_
     var = [speed_std**2, accel_std**2, bias_std**2, accel_bias_std**2]
     z = 0.0 if like is None else torch.zeros_like(like)
     return VehicleState([z] * N_STATE, [[(z + var[i]) if i == j else z for j in range(N_STATE)] for i in range(N_STATE)])
+
+
+def forget_speed(s: VehicleState, speed_std: float = 30.0, accel_std: float = 3.0) -> VehicleState:
+    """``s`` with its speed and acceleration unknown again (zero means, wide variances, no
+    correlation), the biases kept: the images showed the speed belief to be wrong."""
+    fresh = initial_vehicle_state(speed_std, accel_std, like=s.v if isinstance(s.v, Tensor) else None)
+    x = [fresh.x[0], fresh.x[1]] + list(s.x[2:])
+    P = [[fresh.P[i][j] if i < 2 or j < 2 else s.P[i][j] for j in range(N_STATE)] for i in range(N_STATE)]
+    return VehicleState(x, P)
 
 
 @dataclass

@@ -128,6 +128,9 @@ DESCRIPTIONS = {
     "odometry.standstill_max_speed": "fused mode: below this speed (m/s, the small motion over a frame interval read on "
                                      "the raw images when the correlation reads under 0.15 m) the vehicle is at rest: zero "
                                      "motion, the yaw gyro's bias observed; 0 disables",
+    "odometry.direction_lock": "fused mode: forward from the start, the direction of travel changes only at a stop the "
+                               "images confirm, and the correlation's peak is taken in it (the car ahead pulling away "
+                               "reads as reversing); false for a vehicle that reverses without a confirmed stop",
     "learned_params_file": "learned O/Q YAML; a relative path resolves beside the parameters file that set it, "
                            "then the package share",
     "device": "'cpu' or 'cuda' (falls back to CPU with a warning)",
