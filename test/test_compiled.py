@@ -67,7 +67,8 @@ def test_compiled_kernels_agree_with_eager():
         # which the drive below reuses (each other argument pattern is a compilation of its own).
         for prev, curr, angle in ((prepared[0], prepared[1], 0.01), (prepared[1], prepared[2], -0.004)):
             kw = dict(angle=torch.tensor([angle]), angle_std=torch.tensor([0.002]),
-                      envelope=k.overlap_envelope(prev.weight_spectrum, curr.weight_spectrum))
+                      envelope=k.overlap_envelope(prev.weight_spectrum, curr.weight_spectrum),
+                      forward_range=torch.tensor([[-1.0, float("inf")]]))  # the direction of travel
             reg = k.register_prepared(prev, curr, dpc, **kw)
             reg = k.register_prepared(prev, curr, dpc, **kw)
             reg0 = eager_odo.kernels.register_prepared(prev, curr, dpc, **kw)

@@ -657,6 +657,7 @@ def _drift_pct(est: np.ndarray, gt: np.ndarray) -> float:
     return float(np.linalg.norm(end_e[:2] - end_g[:2]) / np.linalg.norm(gt[:, :2], axis=1).sum() * 100)
 
 
+@pytest.mark.slow
 def test_the_car_ahead_pulling_away_is_not_read_as_reversing():
     """Urban preset with traffic, a clip started cold 10 s in (5 s, 31 m): the car ahead moves with
     the ego, its peak near zero shift, and pulling away it moves backwards in the BEV, as the road

@@ -138,11 +138,12 @@ class Counters:
 
 
 def _peak_height(reg) -> float:
-    """The translation correlation at the registration's shift (its nearest cell; batch of one)."""
+    """The translation correlation's peak at the registration's shift: the highest of the 3x3 cells
+    around its nearest (the sub-pixel fit may move the shift past half a cell; batch of one)."""
     corr = reg.translation_corr[0]
     S = corr.shape[-1]
-    r, c = (int(round(float(v))) % S for v in reg.shift[0] + S // 2)
-    return float(corr[r, c])
+    r, c = (int(round(float(v))) for v in reg.shift[0] + S // 2)
+    return float(corr.roll((1 - r, 1 - c), dims=(0, 1))[:3, :3].max())
 
 
 class BevoOdometry:
@@ -691,6 +692,11 @@ class BevoOdometry:
         tolerance = DIRECTION_TOLERANCE
         bounds = (-tolerance if direction > 0 else -math.inf, tolerance if direction < 0 else math.inf)
 
+        # A forward motion b is the BEV row offset (b + pitch_shift - turn) / mpp: the BEV turns about
+        # its centre, which moves the centre back by cx (1 - cos dyaw) + cy sin dyaw (core/motion).
+        cx, cy = self.spec.centre
+        turn = cx * (1.0 - math.cos(dyaw)) + cy * math.sin(dyaw)
+
         def register(prior, bounds):
             mpp = self.spec.metres_per_pixel
             reg = self.kernels.register_prepared(
@@ -700,7 +706,7 @@ class BevoOdometry:
                 shift_prior_std=None if prior is None else torch.tensor([prior[1]], dtype=dt_, device=dev),
                 peak_ratio=PEAK_RATIO,
                 forward_range=None if bounds == (-math.inf, math.inf) else
-                torch.tensor([[(b + pitch_shift) / mpp for b in bounds]], dtype=dt_, device=dev))
+                torch.tensor([[(b + pitch_shift - turn) / mpp for b in bounds]], dtype=dt_, device=dev))
             measured = self._vehicle_motion(reg)
             measured[0] -= pitch_shift
             return reg, measured, self._motion_covariance(reg, measured, state, pull)
@@ -734,7 +740,7 @@ class BevoOdometry:
                     if (float(alt_measured[0]) >= least - 2 * tolerance
                             and _peak_height(alt) >= PEAK_RATIO * alt.quality.item()):
                         reg, measured, cov, quality = alt, alt_measured, alt_cov, alt.quality.item()
-                        if not self._within_gate(float(measured[0]), float(cov[0, 0]), dt):
+                        if not self._within_gate(float(measured[0]), float(cov[0, 0]), dt, imu_accel, imu_var):
                             self._vstate = forget_speed(self._vstate)  # its speed followed that peak
         if reg.shift_gated is not None and bool(reg.shift_gated[0]):
             self.counters.gated_peak += 1  # a state, not an event: following a car would crowd the events out
@@ -790,9 +796,11 @@ class BevoOdometry:
         mpp = self.spec.metres_per_pixel
         return [float(shift[0, 0]), float(shift[0, 1])], [std_x / mpp, std_y / mpp]
 
-    def _within_gate(self, forward: float, forward_var: float, dt: float) -> bool:
-        """Fused mode: a forward motion (m over ``dt``) passes the motion filter's gate."""
-        predicted = self.vehicle.predict(self._vstate, dt)
+    def _within_gate(self, forward: float, forward_var: float, dt: float, imu_accel: float | None = None,
+                     imu_accel_var: float | None = None) -> bool:
+        """Fused mode: a forward motion (m over ``dt``) passes the motion filter's gate (its
+        prediction as :meth:`VehicleFilter.step` makes it)."""
+        predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_accel_var), dt)
         innovation = forward - predicted.v * dt
         return innovation * innovation < self.vehicle.noise.gate**2 * (predicted.var(0) * dt * dt + forward_var)
 

@@ -576,8 +576,9 @@ def _nearest_strong_peak(corr: Tensor, jr: Tensor, jc: Tensor, prior: Tensor, pr
         near, _ = _window_2d(corr[b:b + 1], torch.tensor([r0], device=corr.device),
                              torch.tensor([c0], device=corr.device), reach)
         lo, hi = bounds[b]
-        if r0 - c - reach < lo or r0 - c + reach > hi:  # the window reaches out of the range
-            offsets = _offsets(reach, corr.dtype, corr.device) + (r0 - c)
+        if r0 - c - reach < lo or r0 - c + reach > hi or not -c <= r0 - c - reach <= r0 - c + reach < S - c:
+            # the window reaches out of the range (or wraps round the grid): the rows' offsets, cyclic
+            offsets = torch.remainder(_offsets(reach, corr.dtype, corr.device) + r0, S) - c
             near = near.masked_fill(((offsets < lo) | (offsets > hi))[None, :, None], float("-inf"))
         k = int(near.argmax())
         kr, kc = (r0 + k // (2 * reach + 1) - reach) % S, (c0 + k % (2 * reach + 1) - reach) % S
@@ -750,7 +751,8 @@ def _gated_shift_cov(log_prob_t: Tensor, shift: Tensor, prior: Tensor, halfwidth
 
 def _range_shift_cov(log_prob_t: Tensor, shift: Tensor, forward_range: Tensor) -> Tensor:
     """:func:`_shift_cov` of the distribution inside the allowed rows ``forward_range (B, 2)`` px
-    (all columns): the distribution given the range."""
+    (all columns): the distribution given the range. Where the range excludes a stronger peak and
+    the one allowed is the noise's, the spread is wide: such a reading counts for little."""
     half_grid = log_prob_t.shape[-1] / 2
     bounds = forward_range.to(log_prob_t.dtype).clamp(-half_grid, half_grid)
     centre = torch.stack([bounds.mean(dim=1), torch.zeros_like(bounds[:, 0])], dim=1)
