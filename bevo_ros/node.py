@@ -253,6 +253,7 @@ class BevoNode(Node):
         inputs = {key: m.state() for key, m in self.monitors.items()}  # per input: OK / WARN late / ERROR silent
         values["calibration"] = self.rig.calibration.source if self.rig.calibration is not None else "none yet"
         values["extrinsics"] = self.rig.extrinsics_source
+        values["direction_of_travel"] = self.engine.direction_of_travel if self.engine is not None else "unknown"
         name = self.get_name()
         statuses = [status_message(name, "odometry", odometry_state(values, inputs, self.engine is not None,
                                                                     drops - prev_drops))]

@@ -421,6 +421,8 @@ def test_diagnostics_per_input_warn_late_error_silent_ok_again(graph, drive):
     assert image_status.level == DiagnosticStatus.ERROR
     odo = [st for st in diag[-1].status if st.name == "bevo_node: odometry"][0]
     assert odo.level == DiagnosticStatus.ERROR  # a dead input makes the odometry's status ERROR too
+    # the engine's direction of travel (forward from the start), or unknown before the engine exists
+    assert {kv.key: kv.value for kv in odo.values}["direction_of_travel"] in ("forward", "unknown")
 
     def stream(seconds, t0):
         import time

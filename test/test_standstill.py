@@ -302,6 +302,13 @@ def test_engine_stands_still_at_a_light(light_drive):
             assert odo.counters.standstill == flagged.sum()
             assert creep < 0.01 and turn < 0.05
             assert all(s.twist_linear[0] == 0.0 for s, r in zip(steps[1:], flagged) if r)
+            # The direction of travel: forward until the confirmed stop, either while standing,
+            # forward again once pulling away passes 1 m/s (odometry.direction_lock).
+            direction = [s.direction_of_travel for s in steps[1:]]
+            first_stop = int(np.argmax(flagged))
+            assert set(direction[:first_stop]) == {"forward"}
+            assert all(direction[k] == "either" for k in np.flatnonzero(flagged))
+            assert direction[-1] == "forward" and gt[-1, 0] > 0.1
         else:
             assert not flagged.any() and odo.counters.standstill == 0
     assert moves[0.0][0] > 0.05  # without it: centimetres per frame of BEV-pitch noise read as motion

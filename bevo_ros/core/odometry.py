@@ -107,6 +107,7 @@ class OdometryStep:
     tag: Any = None  # the caller's tag given to add_image with this image
     pitch_shift: float = 0.0  # fused: forward shift (m) taken off the correlation by the pitch-change correction
     standstill: bool = False  # fused: the images say the vehicle stood still since the previous frame
+    direction_of_travel: str = "forward"  # fused: after this frame (BevoOdometry.direction_of_travel)
 
 
 @dataclass(frozen=True)
@@ -316,6 +317,15 @@ class BevoOdometry:
     def pitch_roll(self) -> np.ndarray | None:
         """Current gravity-referenced (pitch, roll) from the DUKF, radians."""
         return None if self._state is None else np.array(self._state[0])
+
+    @property
+    def direction_of_travel(self) -> str:
+        """Fused mode with ``direction_lock``: ``"forward"`` or ``"reverse"`` (the translation's
+        peak is taken in that direction) or ``"either"`` (after a confirmed stop, until the speed
+        passes DIRECTION_SPEED); ``"any"`` without the lock (and in paper mode)."""
+        if self.mode != "fused" or not self.direction_lock:
+            return "any"
+        return {1: "forward", -1: "reverse", 0: "either"}[self._direction]
 
     @property
     def road_pitch_roll(self) -> np.ndarray | None:
@@ -640,6 +650,7 @@ class BevoOdometry:
             tag=tag,
             pitch_shift=shift,
             standstill=still,
+            direction_of_travel=self.direction_of_travel,
         )
 
     def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int, pull: float, dt: float) -> float:
