@@ -201,8 +201,8 @@ class BevoOdometry:
             BEV as the road would if the car reversed; followed, its peak took a creeping car to
             -9 m/s. After a confirmed stop either direction; the first one the motion filter's speed
             passes :data:`DIRECTION_SPEED` in is kept. Reversing without a confirmed stop (the
-            images too dark or plain to confirm one) is then not followed: turn it off where a
-            vehicle reverses so.
+            images too dark or plain to confirm one, or the standstill check off) is then not
+            followed: turn it off where a vehicle reverses so.
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
