@@ -698,18 +698,19 @@ class BevoOdometry:
             imu_accel = self._fwd_sum / self._fwd_time
             imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
         self._fwd_sum = self._fwd_time = 0.0
-        prior = self._shift_prior(dt, dyaw, pitch_shift, pull, imu_accel, imu_var)
+        predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_var), dt)
+        # The BEV shift (px) of no motion of the base over this frame: the pitch-change shift and the
+        # turn about the BEV's centre. A base motion (dx, dy) adds (dx, dy) / mpp to it (core/motion).
+        _, origin = registration_from_vehicle_motion(
+            torch.tensor([[pitch_shift, 0.0, dyaw]], dtype=torch.float64), self.spec)
+        row0, col0 = float(origin[0, 0]), float(origin[0, 1])
+        mpp = self.spec.metres_per_pixel
+        prior = self._shift_prior(predicted, dt, dyaw, row0, col0, pull)
         direction = self._direction if self.direction_lock else 0
         tolerance = DIRECTION_TOLERANCE
         bounds = (-tolerance if direction > 0 else -math.inf, tolerance if direction < 0 else math.inf)
 
-        # A forward motion b is the BEV row offset (b + pitch_shift - turn) / mpp: the BEV turns about
-        # its centre, which moves the centre back by cx (1 - cos dyaw) + cy sin dyaw (core/motion).
-        cx, cy = self.spec.centre
-        turn = cx * (1.0 - math.cos(dyaw)) + cy * math.sin(dyaw)
-
         def register(prior, bounds):
-            mpp = self.spec.metres_per_pixel
             reg = self.kernels.register_prepared(
                 self._prev, curr, self.dpc, angle=torch.tensor([-dyaw], dtype=dt_, device=dev),
                 angle_std=torch.tensor([dyaw_std], dtype=dt_, device=dev), envelope=self._envelope(curr),
@@ -717,7 +718,7 @@ class BevoOdometry:
                 shift_prior_std=None if prior is None else torch.tensor([prior[1]], dtype=dt_, device=dev),
                 peak_ratio=PEAK_RATIO,
                 forward_range=None if bounds == (-math.inf, math.inf) else
-                torch.tensor([[(b + pitch_shift - turn) / mpp for b in bounds]], dtype=dt_, device=dev))
+                torch.tensor([[row0 + b / mpp for b in bounds]], dtype=dt_, device=dev))
             measured = self._vehicle_motion(reg)
             measured[0] -= pitch_shift
             return reg, measured, self._motion_covariance(reg, measured, state, pull)
@@ -746,12 +747,13 @@ class BevoOdometry:
                 # moved with the car; the road's is the strong one beyond it, if there is one.
                 least = max(sm.forward, sm.coarse_forward) - 3.0 * sm.forward_std
                 if least > max(STANDSTILL_CHECK_BELOW, float(measured[0]) + MOVING_MARGIN):
-                    half = (self.spec.size // 2 - 2) * self.spec.metres_per_pixel
+                    half = (self.spec.size // 2 - 2) * mpp
                     alt, alt_measured, alt_cov = register(None, (min(least, half) - tolerance, math.inf))
                     if (float(alt_measured[0]) >= least - 2 * tolerance
                             and _peak_height(alt) >= PEAK_RATIO * alt.quality.item()):
                         reg, measured, cov, quality = alt, alt_measured, alt_cov, alt.quality.item()
-                        if not self._within_gate(float(measured[0]), float(cov[0, 0]), dt, imu_accel, imu_var):
+                        innovation = float(measured[0]) - predicted.v * dt
+                        if innovation**2 >= n.gate**2 * (predicted.var(0) * dt * dt + float(cov[0, 0])):
                             self._vstate = forget_speed(self._vstate)  # its speed followed that peak
         if reg.shift_gated is not None and bool(reg.shift_gated[0]):
             self.counters.gated_peak += 1  # a state, not an event: following a car would crowd the events out
@@ -778,10 +780,11 @@ class BevoOdometry:
         motion_cov = np.diag([float(v) for v in frame.variance])
         return reg, motion, motion_cov, measured, (acc_t, acc_r), float(frame.state.v), still
 
-    def _shift_prior(self, dt: float, dyaw: float, pitch_shift: float, pull: float, imu_accel: float | None = None,
-                     imu_accel_var: float | None = None) -> tuple[list, list] | None:
+    def _shift_prior(self, predicted, dt: float, dyaw: float, row0: float, col0: float,
+                     pull: float) -> tuple[list, list] | None:
         """Fused mode: the BEV shift (px, ``(d_row, d_col)``) the motion filter predicts for this
-        frame (with the accelerometer's ``imu_accel`` over it, as :meth:`VehicleFilter.step` will) and its
+        frame (``predicted``: its state predicted over ``dt``, the accelerometer's input in, as
+        :meth:`VehicleFilter.step` makes it; ``row0, col0``: the shift of no base motion) and its
         standard deviations (the prediction's and a measurement's,
         :data:`PEAK_PRIOR_MEASUREMENT_STD` plus the ``pull``'s shift).
 
@@ -791,7 +794,6 @@ class BevoOdometry:
         moves unlike it is left out of the correlation (:func:`motion_consistency_weight`).
         None (the highest peak, no weight) while the prediction is wider than
         :data:`PEAK_PRIOR_MAX_STD` (a start, a reset, after a gap)."""
-        predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_accel_var), dt)
         v, var_v = predicted.v, predicted.var(0)
         dx = v * dt
         n = self.vehicle.noise
@@ -802,18 +804,8 @@ class BevoOdometry:
         if self.direction_lock and self._direction * dx < 0:
             dx = 0.0  # a prediction overshooting a stop: the car stops, it does not turn round
         std_y = math.sqrt((n.slip_std * dx) ** 2 + meas_var)
-        motion = torch.tensor([[dx + pitch_shift, dx * math.tan(dyaw / 2), dyaw]], dtype=torch.float64)
-        _, shift = registration_from_vehicle_motion(motion, self.spec)
         mpp = self.spec.metres_per_pixel
-        return [float(shift[0, 0]), float(shift[0, 1])], [std_x / mpp, std_y / mpp]
-
-    def _within_gate(self, forward: float, forward_var: float, dt: float, imu_accel: float | None = None,
-                     imu_accel_var: float | None = None) -> bool:
-        """Fused mode: a forward motion (m over ``dt``) passes the motion filter's gate (its
-        prediction as :meth:`VehicleFilter.step` makes it)."""
-        predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_accel_var), dt)
-        innovation = forward - predicted.v * dt
-        return innovation * innovation < self.vehicle.noise.gate**2 * (predicted.var(0) * dt * dt + forward_var)
+        return [row0 + dx / mpp, col0 + dx * math.tan(dyaw / 2) / mpp], [std_x / mpp, std_y / mpp]
 
     def _stop_is_plausible(self, dt: float) -> bool:
         """Fused mode: the motion filter's speed can reach zero within ``dt`` braking at 1 g (plus

@@ -576,7 +576,7 @@ def _nearest_strong_peak(corr: Tensor, jr: Tensor, jc: Tensor, prior: Tensor, pr
         near, _ = _window_2d(corr[b:b + 1], torch.tensor([r0], device=corr.device),
                              torch.tensor([c0], device=corr.device), reach)
         lo, hi = bounds[b]
-        if r0 - c - reach < lo or r0 - c + reach > hi or not -c <= r0 - c - reach <= r0 - c + reach < S - c:
+        if not (lo <= r0 - c - reach and r0 - c + reach <= hi and 0 <= r0 - reach and r0 + reach < S):
             # the window reaches out of the range (or wraps round the grid): the rows' offsets, cyclic
             offsets = torch.remainder(_offsets(reach, corr.dtype, corr.device) + r0, S) - c
             near = near.masked_fill(((offsets < lo) | (offsets > hi))[None, :, None], float("-inf"))
@@ -794,6 +794,12 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
         weighted = derotated * motion_consistency_weight(prev.spectrum, derotated, shift_prior)
     shift, tcorr, tlog, gated = estimate_translation(prev.spectrum, weighted, config, envelope, shift_prior,
                                                      shift_prior_std, peak_ratio, forward_range)
+    if shift_prior is not None:  # the distribution given the prior (far peaks are the gate's business)
+        shift_cov = _gated_shift_cov(tlog, shift, shift_prior, 3.0 * shift_prior_std)
+    elif forward_range is not None:  # ... given the range
+        shift_cov = _range_shift_cov(tlog, shift, forward_range)
+    else:
+        shift_cov = _shift_cov(tlog, shift)
     dtype, device = rcorr.dtype, rcorr.device
     abins = angle_bins(config, dtype, device)
     tbins = shift_bins(prev.size, dtype, device)
@@ -810,9 +816,7 @@ def register_prepared(prev: Prepared, curr: Prepared, config: DpcConfig, angle: 
         quality=tcorr.amax(dim=(-1, -2)).clamp(0.0, 1.0),
         rotation_quality=rcorr.amax(dim=-1).clamp(0.0, 1.0),
         angle_std=angle_std.to(dtype) if given and angle_std is not None else spread,
-        shift_cov=_shift_cov(tlog, shift) if shift_prior is None and forward_range is None else
-        _gated_shift_cov(tlog, shift, shift_prior, 3.0 * shift_prior_std) if shift_prior is not None else
-        _range_shift_cov(tlog, shift, forward_range),
+        shift_cov=shift_cov,
         rotation_estimate=estimate if given else None,
         rotation_estimate_std=spread if given else None,
         shift_gated=gated,

@@ -164,8 +164,9 @@ ENGINE_REJECTIONS = (
     ("rejected_rotation", "an image rotation disagreeing with the gyro beyond the odometry.gate"),
 )
 # fused mode: engine counters of frame states, not faults, reported as events: frames at rest (zero
-# motion, the yaw gyro's bias observed) and frames whose translation took the correlation peak nearest
-# the motion filter's prediction over a higher one (a second motion in view: the car ahead, its shadow)
+# motion, the yaw gyro's bias observed) and frames whose translation took a correlation peak other
+# than the highest (the one nearest the motion filter's prediction, or in the direction of travel:
+# a second motion in view, the car ahead, its shadow)
 ENGINE_STATES = ("standstill", "gated_peak")
 # engine event -> node drop reason, and why (formatted with the node settings as ``s``)
 ENGINE_DROPS = (
