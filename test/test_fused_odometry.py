@@ -621,6 +621,26 @@ def test_replay_reproduces_the_engine(camera):
     assert np.abs(m.numpy() - np.array([s.motion for s in steps[1:]])).max() < 1e-9
 
 
+def test_learning_the_suspension_beats_the_default_on_a_held_out_drive():
+    """Issue 9 item 6 for the suspension gradients: the synthetic car dives 0.3 deg per m/s^2
+    (0.00524 rad) when it brakes, the default (KITTI's car) says 0.003. Searched on one braking
+    drive (seed 1, 10 Hz IMU, half-resolution camera) by the engine's per-frame translation error,
+    the pitch gradient comes out near the car's, the roll one (no bend to tell) stays, and the
+    engine's per-frame error falls on the training drive and on a held-out one (seed 2).
+    Measured: pitch 0.00588, training 6.25 -> 3.78 cm, held out 18.96 -> 16.50 cm per frame."""
+    from bevo_ros.training.suspension import fit_suspension
+
+    cam = kitti_like_camera(scale=0.5)
+    train, held_out = (preset_drive("braking", seed=s, imu_rate=10.0, camera=cam, render="lazy").to_recording()
+                       for s in (1, 2))
+    fit = fit_suspension([(train, len(train) - 1), (held_out, 0)], BevoConfig(), FUSED, evals_per_axis=6)
+    print(f"\nsuspension fit: {fit}")
+    assert 0.0045 <= fit.gradients[0] <= 0.0075
+    assert fit.gradients[1] == FUSED.suspension_gradients[1]
+    assert fit.train_after < 0.8 * fit.train_before
+    assert fit.validation_after < 0.95 * fit.validation_before
+
+
 def test_behind_a_car_the_road_motion_is_kept():
     """Urban preset behind a car (10 Hz IMU, 13 s: the car ahead covers the BEV's centre from ~8.4 m,
     brakes first, pulls away first). Its correlation peak (it moves with the ego) outweighs the

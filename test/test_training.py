@@ -131,13 +131,13 @@ def test_training_lowers_validation_loss_and_pose_error(synth):
     assert o[0] / q[0] < 0.1 * BAD_INIT[0] / BAD_INIT[2]
 
 
-def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path):
+def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path, capsys):
     bag_path, _, _ = synth
     tool = train_command
     out = tmp_path / "learned.yaml"
     common = [str(bag_path), "--out", str(out), "--params", str(SYNTH_PARAMS), "--lr", "0.5", "--steps-per-bag",
               "3", "-q"]
-    assert tool.main(common + ["--epochs", "1", "--init", *map(str, BAD_INIT)]) == 0
+    assert tool.main(common + ["--epochs", "1", "--init", *map(str, BAD_INIT), "--suspension-evals", "0"]) == 0
     learned = load_learned_params(out)
     info = learned.info
     print(f"\nafter 1 epoch: O {learned.process_noise_density}, Q {learned.measurement_noise_variance}; "
@@ -154,12 +154,21 @@ def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path):
     ckpt = load_checkpoint(ckpt_path)
     assert ckpt["epoch"] == 1 and len(ckpt["history"]) == 1 and ckpt["adam"]["log_process_var"]["step"] == 3
 
-    assert tool.main(common + ["--epochs", "2", "--resume", str(ckpt_path)]) == 0
+    capsys.readouterr()
+    assert tool.main(common + ["--epochs", "2", "--resume", str(ckpt_path), "--suspension-evals", "3"]) == 0
+    said = capsys.readouterr().out
+    assert "suspension (" in said and "engine runs" in said  # the fused params learn the suspension too
     ckpt2 = load_checkpoint(ckpt_path)
     assert ckpt2["epoch"] == 2 and [h["epoch"] for h in ckpt2["history"]] == [1, 2]
     assert ckpt2["adam"]["log_process_var"]["step"] == 6
     assert ckpt2["before"] == ckpt["before"]  # the same run, continued
-    assert load_learned_params(out).info["epochs_run"] == 2
+    resumed = load_learned_params(out)
+    assert resumed.info["epochs_run"] == 2
+    # kept only when the validation frames say so, and then recorded
+    assert (resumed.suspension_gradients == base.suspension_gradients) != ("suspension_fit" in resumed.info)
+    with pytest.raises(SystemExit) as refused:  # refused before training, as argparse refuses
+        tool.main(common + ["--epochs", "1", "--suspension-evals", "2"])
+    assert refused.value.code == 2
 
 
 def test_divergence_stops_cleanly_keeping_the_last_good_values(synth, tmp_path, capsys):
@@ -167,7 +176,7 @@ def test_divergence_stops_cleanly_keeping_the_last_good_values(synth, tmp_path, 
     tool = train_command
     out = tmp_path / "learned.yaml"
     rc = tool.main([str(bag_path), "--out", str(out), "--params", str(SYNTH_PARAMS), "--epochs", "3", "--lr", "1e6",
-                    "--init", *map(str, BAD_INIT), "-q"])
+                    "--init", *map(str, BAD_INIT), "--suspension-evals", "0", "-q"])
     err = capsys.readouterr().err
     print(err)
     assert rc == 3 and "diverged" in err

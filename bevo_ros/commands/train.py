@@ -81,12 +81,18 @@ def build_parser() -> argparse.ArgumentParser:
     add_threads_option(p, ": fastest for 100x100 BEVs")
     p.add_argument("--vehicle-steps", type=int, default=100,
                    help="fused mode: Adam steps fitting the vehicle motion filter's noise after O/Q (0 = keep it)")
+    p.add_argument("--suspension-evals", type=int, default=8,
+                   help="fused mode: engine runs per axis searching the suspension gradients after O/Q, scored by "
+                        "the per-frame translation error (0 = keep the configuration's; default 8)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if 0 < args.suspension_evals < 3 or args.suspension_evals < 0:
+        parser.error(f"--suspension-evals must be 0 or >= 3, got {args.suspension_evals}")
     from bevo_ros.training.trainer import TrainingDiverged
 
     set_threads(args.threads)
@@ -104,6 +110,7 @@ def _train(args: argparse.Namespace) -> int:
     from bevo_ros.datasets.rosbag import load_sequence
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, train
+    from bevo_ros.training.suspension import fit_suspension_on_sequences
     from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
     out, checkpoint = Path(args.out), _checkpoint(args)
@@ -116,8 +123,8 @@ def _train(args: argparse.Namespace) -> int:
     options.check()
     config, _ = load_config(args.params)
     # What O/Q training does not learn comes from the configuration's learned file: the suspension
-    # gradients as they are, the vehicle noise as the start of its own fit (else a trained file
-    # would silently drop the suspension model the engine uses). Read before training, so a bad
+    # gradients and the vehicle noise as the starts of their own fits (else a trained file would
+    # silently drop the suspension model the engine uses). Read before training, so a bad
     # path fails before the epochs, not after them.
     base = load_learned_params(config.learned_params_file)
     t0 = time.perf_counter()
@@ -134,6 +141,8 @@ def _train(args: argparse.Namespace) -> int:
                                "params_file": str(Path(args.params).resolve())})
     result.learned.suspension_gradients = base.suspension_gradients
     result.learned.vehicle = dict(base.vehicle)
+    if config.odometry.mode == "fused" and args.suspension_evals > 0:
+        fit_suspension_on_sequences(result.learned, seqs, config, args.split, args.suspension_evals)
     if config.odometry.mode == "fused" and args.vehicle_steps > 0:
         fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps)
     save_learned_params(result.learned, out)

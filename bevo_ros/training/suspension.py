@@ -1,0 +1,150 @@
+"""Learning the suspension's lean (fused mode), like the DUKF's O and Q and the vehicle filter's noise.
+
+The engine's road-relative attitude adds the body's lean on its springs to the high-passed gyro
+attitude: ``suspension_gradients`` (pitch per m/s^2 of forward acceleration, roll per m/s^2 of
+lateral acceleration, :func:`~bevo_ros.core.vehicle_dynamics.suspension_attitude`). A car's lean
+is its own (springs, load, seat of the IMU), and a pitch gradient off by 0.1 deg per m/s^2 is a
+0.5 deg BEV pitch error in hard braking, a 9 % scale error on KITTI's geometry.
+
+What the ground truth supervises is the frame motion, so that is what the fit scores: the engine
+(the node's, ``run_engine``) over each recording with a candidate gradient, the per-frame
+translation RMSE of its output against the ground-truth frame motion on the training frames. One
+axis at a time (pitch, then roll), a bounded search: a grid over :data:`SEARCH_BOUNDS` with the
+current value, then golden-section steps inside the best grid point's neighbours. The engine is
+not differentiable in this number through its discrete choices (the correlation peak, the
+gates), and one number per axis needs no gradient: a few engine runs find it. The body's pitch
+on the road regressed on ``dv/dt`` (README, the real drives) is not the target: the number the
+engine needs also absorbs what its gravity attitude misreads during the same accelerations.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+__all__ = ["SEARCH_BOUNDS", "SuspensionFit", "fit_suspension", "fit_suspension_on_sequences", "translation_errors"]
+
+# rad/(m/s^2), (pitch, roll): 0-0.57 deg and 0-1.15 deg per m/s^2, beyond any passenger car's
+# (typical: pitch 0.1-0.4 deg, roll 0.3-0.8 deg per m/s^2).
+SEARCH_BOUNDS = ((0.0, 0.01), (0.0, 0.02))
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+# An axis moves only if that lowers the training RMSE by this share: drives without the
+# acceleration an axis needs (no bends for roll) leave its objective flat, and its noise would
+# pick any value (two straight synthetic drives: roll 0.0087 -> 0, validated on bends: worse).
+MIN_IMPROVEMENT = 0.01
+
+
+@dataclass
+class SuspensionFit:
+    gradients: tuple[float, float]  # (pitch, roll), rad/(m/s^2)
+    train_before: float  # per-frame translation RMSE on the training frames, m
+    train_after: float
+    validation_before: float  # on the validation frames (nan without any)
+    validation_after: float
+    evaluations: int  # engine runs over the recordings
+
+
+def translation_errors(sequence, config, learned) -> np.ndarray:
+    """``(F-1,)`` translation error (m) of each frame pair of the fused engine (``run_engine``, with
+    ``learned``) over a :class:`~bevo_ros.datasets.rosbag.Recording` against its ground truth."""
+    from bevo_ros.datasets.rosbag import run_engine
+
+    steps = run_engine(sequence, config, learned, mode="fused")
+    if len(steps) != len(sequence):
+        raise ValueError(f"{sequence.name}: {len(sequence) - len(steps)} frame(s) dropped while scoring the suspension")
+    est = np.array([s.motion for s in steps[1:]])
+    gt = sequence.gt_motion().double().numpy()
+    return np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
+
+
+def _rmse(errors: list[np.ndarray]) -> float:
+    e = np.concatenate(errors) if errors else np.zeros(0)
+    return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+
+
+def fit_suspension(parts, config, learned, evals_per_axis: int = 8, log=print) -> SuspensionFit:
+    """Search the suspension gradients that minimise the engine's per-frame translation RMSE.
+
+    Args:
+        parts: ``[(recording, cut), ...]``: pairs ``[0, cut)`` of each recording train, pairs
+            ``[cut, F-1)`` validate (``cut = F - 1``: no validation frames).
+        config: the :class:`~bevo_ros.config.BevoConfig` the engine runs with (fused mode is forced).
+        learned: the :class:`~bevo_ros.io.learned_params.LearnedParams` to start from (not changed).
+        evals_per_axis: the search's size per axis (>= 3): a grid of ``evals_per_axis // 2 + 1``
+            points (and the current value), then ``(evals_per_axis - grid) // 2`` golden-section
+            steps (one engine run each, two for the first).
+
+    Returns:
+        the best gradients on the training frames and the RMSEs before and after.
+    """
+    if evals_per_axis < 3:
+        raise ValueError(f"evals_per_axis must be >= 3, got {evals_per_axis}")
+    cache: dict[tuple[float, float], tuple[float, float]] = {}
+
+    def score(gradients: tuple[float, float]) -> tuple[float, float]:
+        key = (round(gradients[0], 12), round(gradients[1], 12))
+        if key not in cache:
+            trial = replace(learned, suspension_gradients=key)
+            train, val = [], []
+            for rec, cut in parts:
+                e = translation_errors(rec, config, trial)
+                train.append(e[:cut])
+                val.append(e[cut:])
+            cache[key] = (_rmse(train), _rmse(val))
+        return cache[key]
+
+    start = (float(learned.suspension_gradients[0]), float(learned.suspension_gradients[1]))
+    before = score(start)
+    best = start
+    for axis, (lo, hi) in enumerate(SEARCH_BOUNDS):
+        def at(value: float) -> tuple[float, float]:
+            return (value, best[1]) if axis == 0 else (best[0], value)
+
+        n_grid = max(3, evals_per_axis // 2 + 1)
+        grid = sorted(set(np.linspace(lo, hi, n_grid).tolist() + [min(max(best[axis], lo), hi)]))
+        values = [score(at(v))[0] for v in grid]
+        i = int(np.argmin(values))
+        # golden-section inside the neighbours of the best grid point
+        a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+        c, d = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
+        for _ in range(max(evals_per_axis - n_grid, 0) // 2):
+            if score(at(c))[0] <= score(at(d))[0]:
+                b, d = d, c
+                c = b - _GOLDEN * (b - a)
+            else:
+                a, c = c, d
+                d = a + _GOLDEN * (b - a)
+        tried = [k for k in cache if (k[1] == best[1] if axis == 0 else k[0] == best[0])]
+        candidate = min(tried, key=lambda k: cache[k][0])
+        if cache[candidate][0] < (1.0 - MIN_IMPROVEMENT) * cache[best][0]:
+            best = candidate
+        log(f"suspension {('pitch', 'roll')[axis]}: {best[axis]:.5f} rad/(m/s^2) ({math.degrees(best[axis]):.3f} deg), "
+            f"training RMSE {cache[best][0]:.4f} m per frame")
+    after = score(best)
+    return SuspensionFit(gradients=best, train_before=before[0], train_after=after[0], validation_before=before[1],
+                         validation_after=after[1], evaluations=len(cache))
+
+
+def fit_suspension_on_sequences(learned, seqs, config, split: str = "3/4", evals_per_axis: int = 8) -> None:
+    """``bevo train``'s step (fused mode): fit the suspension gradients on each recording's
+    training frames; keep them in ``learned`` only if the validation frames' per-frame translation
+    RMSE does not get worse (the fit is then recorded in ``learned.info``)."""
+    from bevo_ros.datasets.rosbag import split_frames
+
+    t0 = time.perf_counter()
+    parts = [(s, split_frames(len(s), split)[0][1] - 1) for s in seqs]
+    fit = fit_suspension(parts, config, learned, evals_per_axis)
+    old = tuple(float(v) for v in learned.suspension_gradients)
+    print(f"suspension ({time.perf_counter() - t0:.1f} s, {fit.evaluations} engine runs): (pitch, roll) "
+          f"{old[0]:.5f}, {old[1]:.5f} -> {fit.gradients[0]:.5f}, {fit.gradients[1]:.5f} rad/(m/s^2); per-frame "
+          f"translation RMSE train {fit.train_before:.4f} -> {fit.train_after:.4f} m, validation "
+          f"{fit.validation_before:.4f} -> {fit.validation_after:.4f} m")
+    if fit.validation_after <= fit.validation_before:
+        learned.suspension_gradients = fit.gradients
+        learned.info["suspension_fit"] = {"from": list(old), "train_rmse": [fit.train_before, fit.train_after],
+                                          "validation_rmse": [fit.validation_before, fit.validation_after],
+                                          "engine_runs": fit.evaluations}
+    else:
+        print("suspension: the fit did not improve the validation frames; keeping the previous values")
