@@ -207,14 +207,14 @@ def test_pitch_change_correction_skips_a_dukf_restart(camera):
     assert after.filter_inputs["forward_var"] >= shift**2
 
 
-def test_pitch_change_correction_acts_from_the_start_and_skips_a_pulled_filter(camera, monkeypatch):
+def test_pitch_change_correction_acts_from_the_start_and_the_dukf_start_stays_out_of_the_bev(camera):
     """At 10 Hz the correction acts from the first seconds on (a gate on the DUKF's variance kept it
     off for the first ~5 s of a 10 Hz drive and through accelerations). At 100 Hz the DUKF's first
-    convergence from the mounting attitude moves its pitch within the first frame pair by more than
-    the gate, which is no change of the car: that pair is left alone (ACCEL_PULL_RATE_GATE), only
-    because of the gate, and its error is the smaller for it (the 7 s braking drive's start)."""
-    import bevo_ros.core.odometry as odometry
-
+    convergence from the mounting attitude moves its pitch by 1 deg within the first frame pair,
+    which is no change of the car: the share of its pull its excess variance says is its start is
+    kept out of the BEV's attitude (the 7 s braking drive's start: the BEV pitch changes by 0.08 deg,
+    the first pair's error is -7 cm; before, with the BEV following the DUKF, 0.65 deg and -54 cm
+    with the pull gate leaving the pair alone, -104 cm without it)."""
     d10 = preset_drive("curve", seed=4, duration=3.0, render="lazy", camera=camera, imu_rate=10.0)
     steps = feed(engine(camera, "fused"), d10)
     acting = [abs(s.pitch_shift) > 1e-6 for s in steps[2:]]
@@ -223,21 +223,16 @@ def test_pitch_change_correction_acts_from_the_start_and_skips_a_pulled_filter(c
 
     d100 = preset_drive("braking", seed=1, duration=7.0, render="lazy", camera=camera)
     n = int(np.searchsorted(d100.imu_stamps, d100.frame_stamps[2])) + 1  # the first three frames
-
-    def start(gate: float):
-        monkeypatch.setattr(odometry, "ACCEL_PULL_RATE_GATE", gate)
-        return feed_engine(engine(camera, "fused"), d100.imu_stamps[:n], d100.gyro[:n], d100.accel[:n],
-                           d100.frame_stamps[:3], d100.image, trailing=False)
-
-    gated, ungated = start(odometry.ACCEL_PULL_RATE_GATE), start(math.inf)
-    print(f"100 Hz, first pair: shift {gated[1].pitch_shift * 100:.2f} cm with the gate, "
-          f"{ungated[1].pitch_shift * 100:.2f} cm without")
-    truth = d100.relative_motion[0, 0]
-    print(f"first pair forward error: {(gated[1].measured_motion[0] - truth) * 100:+.1f} cm with the gate, "
-          f"{(ungated[1].measured_motion[0] - truth) * 100:+.1f} cm without")
-    assert gated[1].pitch_shift == 0.0
-    assert abs(ungated[1].pitch_shift) > 0.05
-    assert abs(gated[1].measured_motion[0] - truth) < abs(ungated[1].measured_motion[0] - truth)
+    first = feed_engine(engine(camera, "fused"), d100.imu_stamps[:n], d100.gyro[:n], d100.accel[:n],
+                        d100.frame_stamps[:3], d100.image, trailing=False)
+    dukf_change = first[1].rpy[1] - first[0].rpy[1]
+    bev_change = first[1].pitch_roll_road[0] - first[0].pitch_roll_road[0]
+    error = first[1].measured_motion[0] - d100.relative_motion[0, 0]
+    print(f"100 Hz, first pair: DUKF pitch {math.degrees(dukf_change):+.2f} deg, BEV pitch "
+          f"{math.degrees(bev_change):+.2f} deg, forward error {error * 100:+.1f} cm")
+    assert abs(dukf_change) > math.radians(0.5)  # the start's convergence happens
+    assert abs(bev_change) < 0.2 * abs(dukf_change)
+    assert abs(error) < 0.15
 
 
 def test_pitch_change_gate_is_a_rate(camera):
@@ -245,7 +240,7 @@ def test_pitch_change_gate_is_a_rate(camera):
     pair is small (the correction acts), over a 30 Hz pair it is a start's convergence spread over
     several short pairs (the correction waits)."""
     odo = engine(camera, "fused")
-    odo._prev_pitch = (0.0, 0.0, 0, 0.0)  # previous frame: BEV pitch, DUKF pitch, DUKF start, pull sum
+    odo._prev_pitch = (0.0, 0.0, 0, (0.0, 0.0))  # previous frame: BEV pitch, DUKF pitch, DUKF start, pull sums
     state = ((0.0, 0.0), (1e-6, 0.0, 1e-6))
     pull = math.radians(0.05)
     acts = odo._pitch_change_shift(1e-3, state, 0, pull, 0.1)
@@ -309,7 +304,8 @@ def test_attitude_is_interpolated_to_the_frame_stamp(camera):
     """A 10 Hz IMU whose stamps jitter by +-10 ms against exact frame stamps (KITTI: OXTS stamps
     beside times.txt): the last IMU sample before a frame is often the previous frame's. With the
     attitude interpolated to the frame stamp the error stays near that of exact stamps (measured
-    7.9 cm exact, 10.3 jittered; 18.1 cm when the previous sample's attitude was used)."""
+    4.2 cm exact, 6.3 jittered; before the DUKF's start was kept out of the BEV 7.9 and 10.3; 18.1 cm
+    jittered when the previous sample's attitude was used)."""
     d = preset_drive("curve", seed=4, duration=8.0, render="lazy", camera=camera, imu_rate=10.0)
     images = [d.image(k) for k in range(len(d.frame_stamps))]
     jittered = d.imu_stamps + 0.01 * np.random.default_rng(0).integers(-1, 2, len(d.imu_stamps))
@@ -321,7 +317,7 @@ def test_attitude_is_interpolated_to_the_frame_stamp(camera):
         assert len(est) == len(d.relative_motion)
         rmse[label] = float(np.sqrt(np.mean((est[:, 0] - d.relative_motion[:, 0]) ** 2)))
     print(f"\nforward RMSE: IMU stamps exact {rmse['exact'] * 100:.2f} cm, jittered {rmse['jittered'] * 100:.2f} cm")
-    assert rmse["jittered"] < 1.4 * rmse["exact"]
+    assert rmse["jittered"] < 1.6 * rmse["exact"] and rmse["jittered"] < 0.09
 
 
 @pytest.mark.slow
@@ -679,18 +675,19 @@ def _drift_pct(est: np.ndarray, gt: np.ndarray) -> float:
 
 @pytest.mark.slow
 def test_the_car_ahead_pulling_away_is_not_read_as_reversing():
-    """Urban preset with traffic, a clip started cold 10 s in (5 s, 31 m): the car ahead moves with
+    """Urban preset with traffic, a clip started cold 10.4 s in (5 s): the car ahead moves with
     the ego, its peak near zero shift, and pulling away it moves backwards in the BEV, as the road
-    would if the car reversed. Followed, the ego went backwards (the engine before the direction
-    of travel: 70.8 % drift, 69 cm per frame; unlocked now 53 %, 19 frames backwards). With the
-    direction locked forward until a confirmed stop (``odometry.direction_lock``, the default): 2.4 %."""
+    would if the car reversed. Followed, the ego goes backwards (unlocked: 120 % drift, 27 frames
+    backwards; the clip from 10 s, which this test used before the DUKF's start was kept out of the
+    BEV, now reads 1.2 % unlocked with 3 frames backwards). With the direction locked forward until
+    a confirmed stop (``odometry.direction_lock``, the default): 2.4 %."""
     cam = kitti_like_camera(scale=0.5)
     d = preset_drive("urban", seed=1, imu_rate=10, camera=cam, render="lazy", traffic=True)
     runs = {}
     for lock in (True, False):
         config = BevoConfig()
         config.odometry.direction_lock = lock
-        runs[lock] = _clip_motions(build_odometry(config, FUSED, camera=cam), d, 100, 151)
+        runs[lock] = _clip_motions(build_odometry(config, FUSED, camera=cam), d, 104, 155)
     (est, gt), (free, _) = runs[True], runs[False]
     locked_drift, free_drift = _drift_pct(est, gt), _drift_pct(free, gt)
     print(f"cold start behind a car: drift {locked_drift:.2f} % locked, {free_drift:.2f} % free; "

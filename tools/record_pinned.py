@@ -7,7 +7,7 @@ Recorded:
                     sample (odometry sequence 06, converted by kitti_to_bag), modes fused and paper
   synthetic/<mode>  the same on a short synthetic bumpy drive (test/helpers/drives.py make_bumpy_bag)
   training          a 1-epoch train_from_bag on that synthetic drive (fixed seed: random init and
-                    its O search; the vehicle-filter fit off): the learned (best validated) O and
+                    its O search; the vehicle-filter and suspension fits off): the learned (best validated) O and
                     Q, and the O and Q after the epoch's Adam steps
 
 Re-record (after an intended change of the numbers, e.g. a new fused engine), one command:
@@ -34,7 +34,8 @@ KITTI_ROOT = REPO.parent / "shared" / "data" / "kitti"
 MODES = ("fused", "paper")
 PARTS = (*(f"kitti/{m}" for m in MODES), *(f"synthetic/{m}" for m in MODES), "training")
 SYNTH_SECONDS = 3.0  # the short synthetic drive (30 frames at 10 Hz)
-TRAIN_ARGS = ("--epochs", "1", "--steps-per-bag", "2", "--seed", "0", "--vehicle-steps", "0", "--threads", "1")
+TRAIN_ARGS = ("--epochs", "1", "--steps-per-bag", "2", "--seed", "0", "--vehicle-steps", "0", "--suspension-evals", "0",
+              "--threads", "1")
 
 
 def kitti_bag(kitti_root: Path, out: Path) -> Path:
