@@ -240,7 +240,8 @@ def test_eval_real_imu_tool_prints_the_clip_table(kitti_root, tmp_path):
 
 def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
     """``--presets``: the same cold-start clip table on synthetic drives (exact truth, no shared
-    data), with the first frame pairs' forward error apart; an unknown preset is a clear error."""
+    data), with the first frame pairs' forward error apart and the BEV's road pitch error the
+    scale error follows; an unknown preset is a clear error."""
     import re
     import subprocess
     import sys
@@ -255,6 +256,11 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
     assert first, out.stdout
     pairs = [float(v) for v in first.group(1).split("/")]
     assert len(pairs) == 5 and all(0.0 < v < 100.0 for v in pairs) and 0.0 < float(first.group(2)) < 50.0
+    # the scale error's attribution: the BEV's road pitch error while moving against the exact truth
+    pitch = re.search(r"fused: the BEV's road pitch error while moving .*? RMS ([\d.]+) deg; the clips' scale error "
+                      r"follows it at ([-+\d.]+) % per 0.1 deg \(correlation ([-+\d.]+)\)", out.stdout)
+    assert pitch, out.stdout
+    assert 0.0 < float(pitch.group(1)) < 0.3 and -1.0 <= float(pitch.group(3)) <= 1.0
     assert (tmp_path / "preset_curve_seed1_10hz_620x188.npy").exists()
     bad = subprocess.run([sys.executable, tool, "--presets", "curve,nope", "--cache", str(tmp_path)],
                          capture_output=True, text=True, timeout=120)

@@ -4,8 +4,9 @@ cut into clips that each start cold, as a held-out clip does (README: "Real driv
 with a rendered camera"; bevo_ros.datasets.synthetic.oxts_drive).
 
 Prints, per mode, the clips' endpoint drift (mean, median, p90, max, how many over 3 % and 5 %),
-per-frame translation RMSE and forward scale error, and the forward error of the first frame pairs
-after the cold start against the later ones; ``--verbose`` prints every clip. Frames and IMU samples
+per-frame translation RMSE and forward scale error, the BEV's road-relative pitch error while moving
+(against the rendered truth; the clips' scale error follows it) and the forward error of the first
+frame pairs after the cold start against the later ones; ``--verbose`` prints every clip. Frames and IMU samples
 are fed by stamp, as a bag plays. Rendered frames are cached (``--cache``, numpy ``.npy``).
 
 ``--presets`` cuts the same clips from synthetic preset drives instead (exact ground truth, the
@@ -44,8 +45,9 @@ RAW = REPO_ROOT.parent / "shared" / "data" / "kitti" / "raw" / "2011_09_30"
 FIRST_PAIRS = 5  # the cold start's pairs, reported apart from the rest
 
 
-def run_clip(d, images, f0: int, f1: int, mode: str) -> np.ndarray:
-    """The engine over frames f0..f1 fed by stamp (IMU first on equal stamps). -> ``(F-1, 3)`` motions."""
+def run_clip(d, images, f0: int, f1: int, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """The engine over frames f0..f1 fed by stamp (IMU first on equal stamps). -> ``(F-1, 3)``
+    motions and ``(F,)`` the BEV's road-relative pitch less the mounting (rad)."""
     config = BevoConfig()
     config.odometry.mode = mode
     learned = load_learned_params(REPO_ROOT / "params" / ("learned_default.yaml" if mode == "fused" else "learned_paper.yaml"))
@@ -53,7 +55,8 @@ def run_clip(d, images, f0: int, f1: int, mode: str) -> np.ndarray:
     imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
     steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
                         lambda k: np.asarray(images[f0 + k]), by_stamp=True)
-    return np.array([s.motion for s in steps[1:]])
+    pitch = np.array([s.pitch_roll_road[0] for s in steps]) - odo.mounting_attitude[0]
+    return np.array([s.motion for s in steps[1:]]), pitch
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,17 +116,22 @@ def main(argv: list[str] | None = None) -> int:
             if dist < 20.0:  # mostly standing: drift in % means nothing
                 continue
             for mode in modes:
-                est = run_clip(d, images, f0, f1, mode)
+                est, bev_pitch = run_clip(d, images, f0, f1, mode)
                 end_e = integrate_motions(torch.tensor(est))[-1].numpy()
                 end_g = integrate_motions(torch.tensor(gt))[-1].numpy()
                 drift = float(np.linalg.norm(end_e[:2] - end_g[:2]) / dist * 100)
                 trans = float(np.sqrt(np.mean(np.sum((est[:, :2] - gt[:, :2]) ** 2, axis=1))) * 100)
                 scale = float((est[:, 0].sum() - gt[:, 0].sum()) / gt[:, 0].sum() * 100)
-                rows[mode].append((drift, trans, scale))
+                # The BEV pitch error of each pair's first frame weighted by the pair's motion: a
+                # pitch error e scales the forward reading by ~(1 - 2 X e / h), so this mean is
+                # what the clip's scale error follows (README: "where the scale error comes from").
+                pitch_err = float(np.degrees(((bev_pitch[:-1] - d.pitch_roll_road[f0:f1 - 1, 0]) * gt[:, 0]).sum()
+                                             / gt[:, 0].sum()))
+                rows[mode].append((drift, trans, scale, pitch_err))
                 pair_errors[mode].append(est[:, 0] - gt[:, 0])
                 if args.verbose:
                     print(f"  {drive:>14s} {f0:5d} {mode:5s} {dist:6.1f} m: drift {drift:6.2f} %, scale {scale:+6.2f} %, "
-                          f"per frame {trans:5.2f} cm", flush=True)
+                          f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)
     if not rows[modes[0]]:
         print(f"eval_real_imu: no clip of {args.length} frames covers 20 m or more", file=sys.stderr)
         return 1
@@ -133,6 +141,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{np.median(r[:, 0]):.2f}, p90 {np.percentile(r[:, 0], 90):.2f}, max {r[:, 0].max():.2f}; over 3 %: "
               f"{(r[:, 0] > 3).sum()}, over 5 %: {(r[:, 0] > 5).sum()}; per frame {r[:, 1].mean():.2f} cm; "
               f"scale error RMS {np.sqrt(np.mean(r[:, 2] ** 2)):.2f} %")
+        if len(r) > 2 and np.std(r[:, 3]) > 0:
+            slope = np.polyfit(r[:, 3], r[:, 2], 1)[0]
+            print(f"{mode}: the BEV's road pitch error while moving (motion-weighted mean per clip) RMS "
+                  f"{np.sqrt(np.mean(r[:, 3] ** 2)):.3f} deg; the clips' scale error follows it at {slope / 10:+.2f} % "
+                  f"per 0.1 deg (correlation {np.corrcoef(r[:, 3], r[:, 2])[0, 1]:+.2f})")
         errors = pair_errors[mode]
         first = [np.sqrt(np.mean([e[k] ** 2 for e in errors])) * 100 for k in range(FIRST_PAIRS)]
         later = np.concatenate([e[FIRST_PAIRS:] for e in errors])
