@@ -265,3 +265,32 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
     bad = subprocess.run([sys.executable, tool, "--presets", "curve,nope", "--cache", str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "unknown presets ['nope']" in bad.stderr
+
+
+@pytest.mark.kitti
+def test_a_cold_start_behind_a_car_keeps_the_first_pairs_speed(kitti_root, monkeypatch):
+    """0027 with traffic, started cold at frame 480 (4.7 m/s behind a car moving with ours): the
+    first pair reads the road (0.55 m for 0.47 m), but with the DUKF's start in its variance
+    (0.56 m std). With a prediction that wide taken as no prediction (the peak prior's limit at
+    0.5 m, before), the second pair took the highest peak, the car's at ~0, and the motion filter
+    followed it to a stop for four frames (-49 cm each); with the limit at 1 m the prediction picks
+    the road's peak (read 13-18 cm long in those pairs: found, not fixed)."""
+    import bevo_ros.core.odometry as odometry
+
+    d = drive_from_oxts(read_oxts(kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0027_sync" / "oxts"),
+                        seed=1, camera=small_camera(), traffic=True)
+    f0, f1 = 480, 488
+
+    def forward_errors() -> np.ndarray:
+        odo = build_odometry(BevoConfig(), FUSED, camera=d.camera)
+        imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
+        steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
+                            lambda k: d.image(f0 + k), by_stamp=True)
+        return np.array([s.motion[0] for s in steps[1:]]) - d.relative_motion[f0:f1 - 1, 0]
+
+    err = forward_errors()
+    monkeypatch.setattr(odometry, "PEAK_PRIOR_MAX_STD", 0.5)
+    before = forward_errors()
+    print(f"\nforward error per pair (cm): {np.round(err * 100, 1)}; with the 0.5 m limit {np.round(before * 100, 1)}")
+    assert np.abs(err).max() < 0.2
+    assert before[1:5].min() < -0.3
