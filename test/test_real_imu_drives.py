@@ -270,11 +270,13 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
 @pytest.mark.kitti
 def test_a_cold_start_behind_a_car_keeps_the_first_pairs_speed(kitti_root, monkeypatch):
     """0027 with traffic, started cold at frame 480 (4.7 m/s behind a car moving with ours): the
-    first pair reads the road (0.55 m for 0.47 m), but with the DUKF's start in its variance
-    (0.56 m std). With a prediction that wide taken as no prediction (the peak prior's limit at
+    first pair reads the road (0.55 m for 0.47 m), its variance wide with the spread of the
+    road's and the car's peaks (0.56 m std; 0.064 m without traffic). With a prediction that wide
+    taken as no prediction (the peak prior's limit at
     0.5 m, before), the second pair took the highest peak, the car's at ~0, and the motion filter
     followed it to a stop for four frames (-49 cm each); with the limit at 1 m the prediction picks
-    the road's peak (read 13-18 cm long in those pairs: found, not fixed)."""
+    the road's peak (read 13-18 cm long in those pairs, 8-11 cm without traffic: the cold start's
+    attitude; found, not fixed)."""
     import bevo_ros.core.odometry as odometry
 
     d = drive_from_oxts(read_oxts(kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0027_sync" / "oxts"),

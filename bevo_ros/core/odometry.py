@@ -46,10 +46,11 @@ ACCEL_PULL_RATE_GATE = math.radians(1.0)  # rad/s
 # prediction (the correlation's per-frame error on real roads is ~5 cm: twice that).
 PEAK_PRIOR_MEASUREMENT_STD = 0.1
 # m: a forward prediction wider than this says nothing about which peak is the road's. 0.5 m turned
-# away the prediction after a cold start's first pair (its variance holds the DUKF's start: 0.56 m
-# std behind a car at 4.7 m/s, real drive 0027 with traffic), and the second pair took the car's peak
-# at ~0: the 26 real-IMU traffic clips' pairs 2-5 read 10.9 / 10.7 / 10.1 / 8.8 cm RMS, 5.6 / 5.1 / 5.0 /
-# 5.5 cm with 1 m (no other clip set changed).
+# away the prediction after a cold start's first pair behind a car (that pair's variance holds the
+# spread of its two peaks, the road's and the car's: 0.56 m std at 4.7 m/s on real drive 0027 with
+# traffic, 0.064 m without), and the second pair took the car's peak at ~0: the 26 real-IMU traffic
+# clips' pairs 2-5 read 10.9 / 10.7 / 10.1 / 8.8 cm RMS, 5.6 / 5.1 / 5.0 / 5.5 cm with 1 m (no other
+# clip set changed).
 PEAK_PRIOR_MAX_STD = 1.0
 # The correlation peaks at least this share of the highest compete for the prior (a second motion,
 # such as the car ahead); the road's own side peaks stay below ~0.3 of its main one.
