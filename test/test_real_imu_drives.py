@@ -120,13 +120,19 @@ def test_frames_before_their_imu_sample_get_the_interpolated_attitude_and_yaw():
     assert np.degrees(np.abs(gyro_yaw - true_yaw)).max() < 0.15  # 0.7-1.2 deg per frame: 0 or 2x before
 
 
+def _feed_clip(odo, d, f0: int, f1: int, by_stamp: bool = False) -> list:
+    """The engine ``odo`` started cold at frame ``f0`` of a drive through ``f1 - 1`` (frames rendered
+    as needed, the IMU from 0.15 s around them). -> its steps."""
+    sel = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
+    return feed_engine(odo, d.imu_stamps[sel], d.gyro[sel], d.accel[sel], d.frame_stamps[f0:f1],
+                       lambda k: d.image(f0 + k), by_stamp=by_stamp)
+
+
 def _clip_scores(d, f0: int, f1: int, mode: str) -> tuple[float, float]:
     """(endpoint drift %, yaw RMSE deg) of the engine over frames f0..f1 of a drive."""
-    sel = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
     config = BevoConfig()
     config.odometry.mode = mode
-    odo = build_odometry(config, FUSED if mode == "fused" else PAPER, camera=d.camera)
-    steps = feed_engine(odo, d.imu_stamps[sel], d.gyro[sel], d.accel[sel], d.frame_stamps[f0:f1], lambda k: d.image(f0 + k))
+    steps = _feed_clip(build_odometry(config, FUSED if mode == "fused" else PAPER, camera=d.camera), d, f0, f1)
     est, gt = np.array([s.motion for s in steps[1:]]), d.relative_motion[f0:f1 - 1]
     assert len(est) == len(gt)
     end_e = integrate_motions(torch.tensor(est))[-1].numpy()
@@ -284,10 +290,7 @@ def test_a_cold_start_behind_a_car_keeps_the_first_pairs_speed(kitti_root, monke
     f0, f1 = 480, 488
 
     def forward_errors() -> np.ndarray:
-        odo = build_odometry(BevoConfig(), FUSED, camera=d.camera)
-        imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
-        steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
-                            lambda k: d.image(f0 + k), by_stamp=True)
+        steps = _feed_clip(build_odometry(BevoConfig(), FUSED, camera=d.camera), d, f0, f1, by_stamp=True)
         return np.array([s.motion[0] for s in steps[1:]]) - d.relative_motion[f0:f1 - 1, 0]
 
     err = forward_errors()
@@ -318,9 +321,7 @@ def test_a_cold_start_in_an_acceleration_keeps_the_suspensions_input(kitti_root)
         seen.append((stamp, math.nan if odo._acc_fx is None else odo._acc_fx, odo._state[0][0]))
 
     odo._fuse_imu = recording
-    imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
-    feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
-                lambda k: d.image(f0 + k), by_stamp=True)
+    _feed_clip(odo, d, f0, f1, by_stamp=True)
     t, acc, pitch = (np.array(v) for v in zip(*seen))
     true_acc = np.interp(t, d.frame_stamps[1:], np.diff(d.speed) / np.diff(d.frame_stamps))
     true_pitch = np.interp(t, d.imu_stamps, d.imu_pitch_roll_gravity[:, 0])
