@@ -268,6 +268,18 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
     assert pitch, out.stdout
     assert 0.0 < float(pitch.group(1)) < 0.3 and -1.0 <= float(pitch.group(3)) <= 1.0
     assert (tmp_path / "preset_curve_seed1_10hz_620x188.npy").exists()
+    # --starts picks one clip, --pairs prints its frame pairs: error = engine - truth, and the
+    # correlation's own reading less the pitch-change shift is what the filter was given
+    one = subprocess.run([sys.executable, tool, "--presets", "curve", "--length", "40", "--starts", "60", "--pairs",
+                          "--modes", "fused", "--cache", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert one.returncode == 0, one.stderr
+    assert "fused (1 clips of 40 frames)" in one.stdout and "curve/1 60 fused: pair;" in one.stdout, one.stdout
+    rows = [line.split() for line in one.stdout.splitlines() if re.match(r"^\s+\d+\s+[-\d.]+\s", line)]
+    assert [int(r[0]) for r in rows] == list(range(1, 40)), one.stdout
+    for r in rows:
+        truth, engine, error = float(r[1]), float(r[2]), float(r[3])
+        assert abs(engine - truth - error) <= 0.0015 and 0.5 < truth < 2.5 and r[-1] in ("yy", "yn", "ny", "nn")
+    assert np.sqrt(np.mean([float(r[3]) ** 2 for r in rows])) < 0.2  # a 15 m/s bend read to well under 20 cm
     bad = subprocess.run([sys.executable, tool, "--presets", "curve,nope", "--cache", str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "unknown presets ['nope']" in bad.stderr

@@ -45,9 +45,10 @@ RAW = REPO_ROOT.parent / "shared" / "data" / "kitti" / "raw" / "2011_09_30"
 FIRST_PAIRS = 5  # the cold start's pairs, reported apart from the rest
 
 
-def run_clip(d, images, f0: int, f1: int, mode: str) -> tuple[np.ndarray, np.ndarray]:
+def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The engine over frames f0..f1 fed by stamp (IMU first on equal stamps). -> ``(F-1, 3)``
-    motions and ``(F,)`` the BEV's road-relative pitch less the mounting (rad)."""
+    motions and ``(F,)`` the BEV's road-relative pitch less the mounting (rad); the engine's
+    ``OdometryStep`` s are appended to ``steps_out`` if given."""
     config = BevoConfig()
     config.odometry.mode = mode
     learned = load_learned_params(REPO_ROOT / "params" / ("learned_default.yaml" if mode == "fused" else "learned_paper.yaml"))
@@ -56,7 +57,23 @@ def run_clip(d, images, f0: int, f1: int, mode: str) -> tuple[np.ndarray, np.nda
     steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
                         lambda k: np.asarray(images[f0 + k]), by_stamp=True)
     pitch = np.array([s.pitch_roll_road[0] for s in steps]) - odo.mounting_attitude[0]
+    if steps_out is not None:
+        steps_out.extend(steps)
     return np.array([s.motion for s in steps[1:]]), pitch
+
+
+def print_pairs(name: str, steps: list, gt: np.ndarray, pitch_err_deg: np.ndarray) -> None:
+    """One line per frame pair of a clip (``--pairs``): where a bad clip's error comes from. ``gt``
+    ``(F-1, 3)`` true motions, ``pitch_err_deg`` ``(F,)`` the BEV's road pitch error per frame."""
+    print(f"  {name}: pair; forward motion (m): truth, engine, error; the correlation's own forward reading and the "
+          f"pitch-change correction's shift taken off it (m); yaw truth, engine (deg); BEV pitch error (deg); "
+          f"translation / rotation accepted by the motion filter")
+    for k, s in enumerate(steps[1:]):
+        # measured_motion is the filter's measurement, the shift already taken off
+        meas = float("nan") if s.measured_motion is None else s.measured_motion[0] + s.pitch_shift
+        print(f"    {k + 1:4d} {gt[k, 0]:7.3f} {s.motion[0]:7.3f} {s.motion[0] - gt[k, 0]:+7.3f}  {meas:7.3f} "
+              f"{s.pitch_shift:+7.3f}  {np.degrees(gt[k, 2]):+6.2f} {np.degrees(s.motion[2]):+6.2f}  "
+              f"{pitch_err_deg[k + 1]:+6.3f}  {'y' if s.accepted[0] else 'n'}{'y' if s.accepted[1] else 'n'}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -68,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--modes", default="fused,paper")
     p.add_argument("--cache", type=Path, default=REPO_ROOT / "out" / "real_imu_frames", help="rendered frames (.npy)")
     p.add_argument("--verbose", action="store_true", help="print every clip")
+    p.add_argument("--starts", default=None,
+                   help="only the clips starting at these frames (comma-separated), e.g. one bad clip of --verbose")
+    p.add_argument("--pairs", action="store_true",
+                   help="print every frame pair of every clip: the truth's and the engine's forward motion, the "
+                        "correlation's own reading, the pitch-change correction's shift, the BEV's pitch error")
     p.add_argument("--presets", default=None,
                    help="synthetic preset drives instead of the shared OXTS (comma-separated, or 'all')")
     p.add_argument("--seeds", default="1", help="with --presets: seeds (comma-separated, default 1)")
@@ -109,14 +131,17 @@ def main(argv: list[str] | None = None) -> int:
             tmp = cache.with_suffix(".partial.npy")
             np.save(tmp, images)
             tmp.replace(cache)  # atomic: a killed run leaves no half cache
-        for f0 in range(0, d.num_frames - args.length + 1, args.step):
+        starts = range(0, d.num_frames - args.length + 1, args.step) if args.starts is None else \
+            [int(v) for v in args.starts.split(",") if 0 <= int(v) <= d.num_frames - args.length]
+        for f0 in starts:
             f1 = f0 + args.length
             gt = d.relative_motion[f0:f1 - 1]
             dist = float(np.linalg.norm(gt[:, :2], axis=1).sum())
             if dist < 20.0:  # mostly standing: drift in % means nothing
                 continue
             for mode in modes:
-                est, bev_pitch = run_clip(d, images, f0, f1, mode)
+                steps: list = []
+                est, bev_pitch = run_clip(d, images, f0, f1, mode, steps)
                 end_e = integrate_motions(torch.tensor(est))[-1].numpy()
                 end_g = integrate_motions(torch.tensor(gt))[-1].numpy()
                 drift = float(np.linalg.norm(end_e[:2] - end_g[:2]) / dist * 100)
@@ -129,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
                                              / gt[:, 0].sum()))
                 rows[mode].append((drift, trans, scale, pitch_err))
                 pair_errors[mode].append(est[:, 0] - gt[:, 0])
+                if args.pairs:
+                    print_pairs(f"{drive} {f0} {mode}", steps, gt, np.degrees(bev_pitch - d.pitch_roll_road[f0:f1, 0]))
                 if args.verbose:
                     print(f"  {drive:>14s} {f0:5d} {mode:5s} {dist:6.1f} m: drift {drift:6.2f} %, scale {scale:+6.2f} %, "
                           f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)
