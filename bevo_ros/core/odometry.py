@@ -42,6 +42,17 @@ ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceler
 # a 10 Hz pair, reads as 14 cm on KITTI). A rate, so that a faster camera does not spread a start
 # over pairs that each pass.
 ACCEL_PULL_RATE_GATE = math.radians(1.0)  # rad/s
+# Nor in a turn while the DUKF's roll is unconverged: a roll error e makes the gyro's yaw rate wz
+# move the gravity pitch by -wz e (Euler kinematics), a pitch change of neither the car nor the
+# road. The correction is off over a pair whose yaw rate times the DUKF's roll standard deviation
+# above its steady state exceeds this rate. Found on real drive 0018 cold at frame 102: a braking
+# start left the DUKF 2.5 deg off, a 32 deg/s corner rotated that into roll and back into a 1 deg/s
+# pitch drift, which the correction took off the forward motion (+0.1..+0.2 m of 0.37 m per pair,
+# scale -19.3 -> -8.9 % over those 5 s with this gate). Real-IMU clips: 94 5 s cuts 2.65 -> 2.59 % (max 16.5 ->
+# 8.1), 59 16 s clips 1.68 -> 1.65 % (per frame 3.96 -> 3.85 cm), with traffic 2.47 -> 2.43 %; the
+# 10 Hz presets and the KITTI sample unchanged. 1 deg/s changed nothing, 0.3 deg/s took the presets
+# 6.09 / 2.06 -> 6.21 / 2.23 %.
+TURN_ROLL_RATE_GATE = math.radians(0.5)  # rad/s
 # s: how long the suspension's input (_fuse_imu) leaves out the DUKF's accelerometer updates that
 # its excess variance marks as unconverged (an acceleration read as tilt). Kept out for good, they
 # also held out the corrections: the DUKF's accelerometer variance grows with that input, so a
@@ -624,7 +635,8 @@ class BevoOdometry:
             same = prev[2] == epoch
             pull = pull_cum[0] - prev[3][0] if same else road[0] - prev[0]
             kept_out = pull_cum[1] - prev[3][1] if same else 0.0
-            shift = self._pitch_change_shift(road[0], state, epoch, pull, dt, kept_out)
+            turn = abs(yaw_cum - self._prev_yaw_cum) / stamped_dt if stamped_dt > 0 else 0.0
+            shift = self._pitch_change_shift(road[0], state, epoch, pull, dt, kept_out, turn)
             # The gyro's yaw was integrated over the stamped interval: over the frame's, it is that
             # much more or less (frames and a 10 Hz IMU sharing jittered stamps: 10 Hz on-ramp
             # preset with +-10 ms stamps, yaw 0.131 -> 0.027 deg per frame, as with exact stamps).
@@ -695,7 +707,7 @@ class BevoOdometry:
         )
 
     def _pitch_change_shift(self, bev_pitch: float, state: tuple, epoch: int, pull: float, dt: float,
-                            kept_out: float = 0.0) -> float:
+                            kept_out: float = 0.0, yaw_rate: float = 0.0) -> float:
         """Fused mode: the forward shift (m) this frame's correlation reads from the engine's own
         change of the BEV pitch since the previous frame.
 
@@ -716,12 +728,17 @@ class BevoOdometry:
         updates also move the BEV without motion, but telling them from a real pitch change
         needs the pitch gyro's bias, which the DUKF does not estimate. ``pull`` is the pull that
         reached the BEV; ``kept_out``, the share :meth:`_fuse_imu` kept out of the BEV's attitude,
-        is no change of the car either.
+        is no change of the car either. Zero too in a turn while the DUKF's roll is unconverged:
+        ``yaw_rate`` (rad/s, the gyro's over the pair) times the roll's standard deviation above its
+        steady state over TURN_ROLL_RATE_GATE (a roll error turns the yaw rate into a pitch drift).
         """
         prev = self._prev_pitch
         if not self.pitch_change_correction or prev is None or prev[2] != epoch:
             return 0.0
         if abs(pull) > ACCEL_PULL_RATE_GATE * dt:
+            return 0.0
+        roll_excess = math.sqrt(max(0.0, state[1][2] - self._steady_state_variances()[1]))
+        if abs(yaw_rate) * roll_excess > TURN_ROLL_RATE_GATE:
             return 0.0
         return self._shift_per_pitch_change * ((bev_pitch - prev[0]) - (state[0][0] - prev[1] - kept_out))
 
