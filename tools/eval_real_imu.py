@@ -62,11 +62,23 @@ def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = No
     return np.array([s.motion for s in steps[1:]]), pitch
 
 
+def frame_list(text: str) -> list[int]:
+    """``--starts``: comma-separated frame numbers >= 0, sorted, each once."""
+    try:
+        frames = sorted({int(v) for v in text.split(",")})
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated frame numbers, got {text!r}") from None
+    if frames[0] < 0:
+        raise argparse.ArgumentTypeError(f"frame numbers must be >= 0, got {frames[0]}")
+    return frames
+
+
 def print_pairs(name: str, steps: list, gt: np.ndarray, pitch_err_deg: np.ndarray) -> None:
     """One line per frame pair of a clip (``--pairs``): where a bad clip's error comes from. ``gt``
     ``(F-1, 3)`` true motions, ``pitch_err_deg`` ``(F,)`` the BEV's road pitch error per frame."""
     print(f"  {name}: pair; forward motion (m): truth, engine, error; the correlation's own forward reading and the "
-          f"pitch-change correction's shift taken off it (m); yaw truth, engine (deg); BEV pitch error (deg); "
+          f"pitch-change correction's shift taken off it (m); yaw truth, engine (deg); the BEV's pitch error at the "
+          f"pair's second frame (deg); "
           f"translation / rotation accepted by the motion filter")
     for k, s in enumerate(steps[1:]):
         # measured_motion is the filter's measurement, the shift already taken off
@@ -85,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--modes", default="fused,paper")
     p.add_argument("--cache", type=Path, default=REPO_ROOT / "out" / "real_imu_frames", help="rendered frames (.npy)")
     p.add_argument("--verbose", action="store_true", help="print every clip")
-    p.add_argument("--starts", default=None,
+    p.add_argument("--starts", default=None, type=frame_list,
                    help="only the clips starting at these frames (comma-separated), e.g. one bad clip of --verbose")
     p.add_argument("--pairs", action="store_true",
                    help="print every frame pair of every clip: the truth's and the engine's forward motion, the "
@@ -131,8 +143,11 @@ def main(argv: list[str] | None = None) -> int:
             tmp = cache.with_suffix(".partial.npy")
             np.save(tmp, images)
             tmp.replace(cache)  # atomic: a killed run leaves no half cache
-        starts = range(0, d.num_frames - args.length + 1, args.step) if args.starts is None else \
-            [int(v) for v in args.starts.split(",") if 0 <= int(v) <= d.num_frames - args.length]
+        last = d.num_frames - args.length
+        starts = range(0, last + 1, args.step) if args.starts is None else [f for f in args.starts if f <= last]
+        if args.starts is not None and len(starts) < len(args.starts):
+            print(f"eval_real_imu: {drive}: no {args.length}-frame clip starts at {[f for f in args.starts if f > last]} "
+                  f"(the drive has {d.num_frames} frames)", file=sys.stderr)
         for f0 in starts:
             f1 = f0 + args.length
             gt = d.relative_motion[f0:f1 - 1]

@@ -44,13 +44,13 @@ ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceler
 ACCEL_PULL_RATE_GATE = math.radians(1.0)  # rad/s
 # Nor in a turn while the DUKF's roll is unconverged: a roll error e makes the gyro's yaw rate wz
 # move the gravity pitch by -wz e (Euler kinematics), a pitch change of neither the car nor the
-# road. The correction is off over a pair whose yaw rate times the DUKF's roll standard deviation
-# above its steady state exceeds this rate. Found on real drive 0018 cold at frame 102: a braking
+# road. The correction is off over a pair whose yaw rate times sqrt(the DUKF's roll variance less
+# its steady state) exceeds this rate. Found on real drive 0018 cold at frame 102: a braking
 # start left the DUKF 2.5 deg off, a 32 deg/s corner rotated that into roll and back into a 1 deg/s
 # pitch drift, which the correction took off the forward motion (+0.1..+0.2 m of 0.37 m per pair,
 # scale -19.3 -> -8.9 % over those 5 s with this gate). Real-IMU clips: 94 5 s cuts 2.65 -> 2.59 % (max 16.5 ->
 # 8.1), 59 16 s clips 1.68 -> 1.65 % (per frame 3.96 -> 3.85 cm), with traffic 2.47 -> 2.43 %; the
-# 10 Hz presets and the KITTI sample unchanged. 1 deg/s changed nothing, 0.3 deg/s took the presets
+# 10 Hz presets' mean and the KITTI sample unchanged. 1 deg/s changed nothing, 0.3 deg/s took the presets
 # 6.09 / 2.06 -> 6.21 / 2.23 %.
 TURN_ROLL_RATE_GATE = math.radians(0.5)  # rad/s
 # s: how long the suspension's input (_fuse_imu) leaves out the DUKF's accelerometer updates that
@@ -635,7 +635,7 @@ class BevoOdometry:
             same = prev[2] == epoch
             pull = pull_cum[0] - prev[3][0] if same else road[0] - prev[0]
             kept_out = pull_cum[1] - prev[3][1] if same else 0.0
-            turn = abs(yaw_cum - self._prev_yaw_cum) / stamped_dt if stamped_dt > 0 else 0.0
+            turn = abs(yaw_cum - self._prev_yaw_cum) / stamped_dt  # rad/s; add_image keeps stamps increasing
             shift = self._pitch_change_shift(road[0], state, epoch, pull, dt, kept_out, turn)
             # The gyro's yaw was integrated over the stamped interval: over the frame's, it is that
             # much more or less (frames and a 10 Hz IMU sharing jittered stamps: 10 Hz on-ramp
@@ -729,8 +729,8 @@ class BevoOdometry:
         needs the pitch gyro's bias, which the DUKF does not estimate. ``pull`` is the pull that
         reached the BEV; ``kept_out``, the share :meth:`_fuse_imu` kept out of the BEV's attitude,
         is no change of the car either. Zero too in a turn while the DUKF's roll is unconverged:
-        ``yaw_rate`` (rad/s, the gyro's over the pair) times the roll's standard deviation above its
-        steady state over TURN_ROLL_RATE_GATE (a roll error turns the yaw rate into a pitch drift).
+        ``yaw_rate`` (rad/s, the gyro's over the pair) times sqrt(the roll's variance less its steady
+        state) over TURN_ROLL_RATE_GATE (a roll error turns the yaw rate into a pitch drift).
         """
         prev = self._prev_pitch
         if not self.pitch_change_correction or prev is None or prev[2] != epoch:
