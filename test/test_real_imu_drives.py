@@ -364,19 +364,22 @@ def test_a_corner_after_a_braking_start_keeps_the_pitch_change_correction_off(ki
     f0, f1 = 102, 153
     gt = d.relative_motion[f0:f1 - 1]
 
-    def run() -> tuple[float, np.ndarray]:
-        steps = _feed_clip(build_odometry(BevoConfig(), FUSED, camera=d.camera), d, f0, f1, by_stamp=True)
+    def run() -> tuple[float, np.ndarray, int]:
+        odo = build_odometry(BevoConfig(), FUSED, camera=d.camera)
+        steps = _feed_clip(odo, d, f0, f1, by_stamp=True)
         est = np.array([s.motion for s in steps[1:]])
         assert len(est) == len(gt)
-        return float((est[:, 0].sum() - gt[:, 0].sum()) / gt[:, 0].sum() * 100), np.array([s.pitch_shift for s in steps[1:]])
+        return (float((est[:, 0].sum() - gt[:, 0].sum()) / gt[:, 0].sum() * 100),
+                np.array([s.pitch_shift for s in steps[1:]]), odo.counters.pitch_correction_off)
 
-    gated, shifts = run()
+    gated, shifts, off = run()
     monkeypatch.setattr(odometry, "TURN_ROLL_RATE_GATE", math.inf)
-    ungated, shifts_ungated = run()
+    ungated, shifts_ungated, off_ungated = run()
     turning = np.abs(gt[:, 2]) > math.radians(2.0)  # > ~20 deg/s at 10 Hz
     by_the_gate = turning & (shifts == 0) & (shifts_ungated != 0)  # not the pull gate's doing
     print(f"\nscale error {ungated:+.1f} % without the turn gate, {gated:+.1f} % with it; the turn gate took the "
           f"correction off in {int(by_the_gate.sum())} of {int(turning.sum())} turning pairs")
     assert turning.sum() >= 15 and by_the_gate.sum() >= turning.sum() // 2
+    assert off >= by_the_gate.sum() + off_ungated // 2 and off > off_ungated  # counted (Counters, /diagnostics)
     assert ungated < -14.0  # the case
     assert gated > -11.0

@@ -64,6 +64,7 @@ def _run(args: argparse.Namespace) -> int:
           f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
           f"dropped (no imu) {c.dropped_no_imu}; rejected: textureless {c.rejected_textureless}, "
           f"translation {c.rejected_translation}, rotation {c.rejected_rotation}; at rest {c.standstill}; "
-          f"peak off the highest (second motion in view, direction of travel) {c.gated_peak}")
+          f"peak off the highest (second motion in view, direction of travel) {c.gated_peak}; "
+          f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0

@@ -162,6 +162,7 @@ class Counters:
     rejected_rotation: int = 0  # fused: the image rotation disagreed with the gyro beyond the gate
     standstill: int = 0  # fused: frames at rest (zero motion, the yaw gyro's bias observed)
     gated_peak: int = 0  # fused: the highest peak was off the prediction or the direction of travel, the road's taken
+    pitch_correction_off: int = 0  # fused: pairs the pitch-change correction left alone (its DUKF pull or turn gate)
 
 
 def _peak_height(reg) -> float:
@@ -735,10 +736,9 @@ class BevoOdometry:
         prev = self._prev_pitch
         if not self.pitch_change_correction or prev is None or prev[2] != epoch:
             return 0.0
-        if abs(pull) > ACCEL_PULL_RATE_GATE * dt:
-            return 0.0
         roll_excess = math.sqrt(max(0.0, state[1][2] - self._steady_state_variances()[1]))
-        if abs(yaw_rate) * roll_excess > TURN_ROLL_RATE_GATE:
+        if abs(pull) > ACCEL_PULL_RATE_GATE * dt or abs(yaw_rate) * roll_excess > TURN_ROLL_RATE_GATE:
+            self.counters.pitch_correction_off += 1  # a state, not an event (a cold start's first seconds)
             return 0.0
         return self._shift_per_pitch_change * ((bev_pitch - prev[0]) - (state[0][0] - prev[1] - kept_out))
 
