@@ -165,12 +165,12 @@ def main(argv: list[str] | None = None) -> int:
                 # The BEV pitch error of each pair's first frame weighted by the pair's motion: a
                 # pitch error e scales the forward reading by ~(1 - 2 X e / h), so this mean is
                 # what the clip's scale error follows (README: "where the scale error comes from").
-                pitch_err = float(np.degrees(((bev_pitch[:-1] - d.pitch_roll_road[f0:f1 - 1, 0]) * gt[:, 0]).sum()
-                                             / gt[:, 0].sum()))
+                frame_pitch_err = bev_pitch - d.pitch_roll_road[f0:f1, 0]  # (F,) rad
+                pitch_err = float(np.degrees((frame_pitch_err[:-1] * gt[:, 0]).sum() / gt[:, 0].sum()))
                 rows[mode].append((drift, trans, scale, pitch_err))
                 pair_errors[mode].append(est[:, 0] - gt[:, 0])
                 if args.pairs:
-                    print_pairs(f"{drive} {f0} {mode}", steps, gt, np.degrees(bev_pitch - d.pitch_roll_road[f0:f1, 0]))
+                    print_pairs(f"{drive} {f0} {mode}", steps, gt, np.degrees(frame_pitch_err))
                 if args.verbose:
                     print(f"  {drive:>14s} {f0:5d} {mode:5s} {dist:6.1f} m: drift {drift:6.2f} %, scale {scale:+6.2f} %, "
                           f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)

@@ -736,8 +736,9 @@ class BevoOdometry:
         prev = self._prev_pitch
         if not self.pitch_change_correction or prev is None or prev[2] != epoch:
             return 0.0
-        roll_excess = math.sqrt(max(0.0, state[1][2] - self._steady_state_variances()[1]))
-        if abs(pull) > ACCEL_PULL_RATE_GATE * dt or abs(yaw_rate) * roll_excess > TURN_ROLL_RATE_GATE:
+        if (abs(pull) > ACCEL_PULL_RATE_GATE * dt  # the roll's excess only when the pull gate passes
+                or abs(yaw_rate) * math.sqrt(max(0.0, state[1][2] - self._steady_state_variances()[1]))
+                > TURN_ROLL_RATE_GATE):
             self.counters.pitch_correction_off += 1  # a state, not an event (a cold start's first seconds)
             return 0.0
         return self._shift_per_pitch_change * ((bev_pitch - prev[0]) - (state[0][0] - prev[1] - kept_out))
