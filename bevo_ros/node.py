@@ -72,7 +72,6 @@ class BevoNode(Node):
         self.report = report = Report(self.get_logger(), s)
         self.drops, self.events, self.counts, self.log_history = report.drops, report.events, report.counts, \
             report.log_history
-        self.summary = report.summary  # the totals ros_process logs on SIGINT
         self.image_input_topic = s.image_topic.rstrip("/") + "/compressed" if s.image_transport == "compressed" \
             else s.image_topic  # image_transport's naming: <base topic>/compressed
         self.monitors = {kind: SensorMonitor(label, self.resolve_topic_name(topic), timeout, s.sensor_late_factor,
@@ -113,7 +112,7 @@ class BevoNode(Node):
             lambda msg, info: received["image"](msg, info), in_qos(s.image_qos_depth))
         if s.use_camera_info:
             self._info_sub = self.create_subscription(CameraInfo, s.camera_info_topic, self._guard(
-                "camera_info", self.rig.camera_info), in_qos(s.image_qos_depth))
+                "camera_info", self._on_camera_info), in_qos(s.image_qos_depth))
         self.add_on_set_parameters_callback(self._guard("parameters", node_settings.check_live))
         self.add_post_set_parameters_callback(self._guard("parameters", self._on_parameters_applied))
         self.create_service(Trigger, "~/reset", self._guard("reset", self._on_reset))
@@ -135,6 +134,11 @@ class BevoNode(Node):
             f"extrinsics {'from /tf_static when published (' + self.static_tf.backend + ')' if self.static_tf else 'parameters'}, "
             f"BEV {self.config.bev.size}px x {self.config.bev.metres_per_pixel} m, "
             f"learned={self.learned_path}, tf={self.outputs.tf_backend}")
+
+    def summary(self) -> str:
+        """The totals ros_process logs on SIGINT (with images still waiting, never silently lost)."""
+        waiting = self.feed.pending_images + self.rig.held_images
+        return self.report.summary() + (f"; {waiting} image(s) still waiting (for IMU or calibration)" if waiting else "")
 
     @property
     def engine(self):
@@ -206,12 +210,31 @@ class BevoNode(Node):
 
     def _on_image(self, msg, arrival: float | None = None) -> None:  # counted (and monitored) by the intake
         arrival = time.time() if arrival is None else arrival
+        if not self.rig.calibrated_for(msg):
+            self.rig.hold(msg, stamp_to_sec(msg.header.stamp), arrival)
+            return
+        self._release_held()
+        self._image_to_engine(msg, arrival)
+
+    def _image_to_engine(self, msg, arrival: float) -> None:
         t = stamp_to_sec(msg.header.stamp)
         img = self.rig.image(msg, t)
         if img is not None:  # the tag comes back on the image's step: the output stamp, the latency
             self._publish(self.feed.image(t, img, (msg.header.stamp, arrival)))
 
+    def _release_held(self) -> None:
+        """Images held for the calibration, in order, once it is known."""
+        for msg, arrival in self.rig.take_held():
+            self._image_to_engine(msg, arrival)
+
+    def _on_camera_info(self, msg) -> None:
+        self.rig.camera_info(msg)
+        self._release_held()
+
     def _on_flush_timer(self) -> None:
+        if self.rig.held_images:  # the parameters' fallback is due even when no further image comes
+            self.rig.await_calibration()
+            self._release_held()
         if not self.feed.flush_due():
             return
         if self.settings.ordered_intake:
@@ -246,7 +269,7 @@ class BevoNode(Node):
     def _publish_diagnostics(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray
 
-        values = self.report.values(self.feed.pending_images, self.outputs.tf_backend)
+        values = self.report.values(self.feed.pending_images + self.rig.held_images, self.outputs.tf_backend)
         drops, prev_drops = int(values["drops_total"]), self._diag_drops
         self._diag_drops = drops
         self.rig.refresh()  # a /tf_static that arrived (or changed) since

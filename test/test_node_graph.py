@@ -251,14 +251,16 @@ def test_parameters_are_the_fallback_after_camera_info_timeout(graph, drive):
     assert graph.until(lambda: imu_pub.get_subscription_count() and image_pub.get_subscription_count()
                        and info_pub.get_subscription_count())
     messages = drive_messages(drive)
-    _feed(graph, node, imu_pub, image_pub, messages[:2])  # IMU 0 + frame 0: no calibration yet
-    assert node.drops["no_camera_info"] == 1 and node.engine is None
+    _feed(graph, node, imu_pub, image_pub, messages[:2])  # IMU 0 + frame 0: no calibration yet, held
+    assert node.rig.held_images == 1 and node.engine is None and not node.drops
     assert "camera.* parameters after camera_info_timeout=0.3 s" in [t for k, t in node.log_history
-                                                                      if k == "no_camera_info"][0]
-    graph.until(lambda: False, 0.35)
+                                                                      if k == "waiting_for_calibration"][0]
+    # no further image: the flush timer applies the fallback and processes the held frame
+    assert graph.until(lambda: node.events["camera_info_timeout"] == 1 and node.rig.held_images == 0, 3)
+    assert node.rig.calibration.source == "parameters camera.*" and node.counts["odometry_out"] == 1
     _feed(graph, node, imu_pub, image_pub, messages[2:40])
-    assert node.events["camera_info_timeout"] == 1 and node.rig.calibration.source == "parameters camera.*"
     assert graph.until(lambda: len(odom) >= 3)
+    assert odom[0].header.stamp == messages[1][1].header.stamp and not node.drops  # frame 0 not lost
     diag = graph.sub(DiagnosticArray, "/diagnostics", 100)
 
     def calibration_status():

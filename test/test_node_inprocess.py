@@ -393,22 +393,30 @@ def test_camera_info_supplies_the_intrinsics(harness_factory, drive):
     for k in ("camera.fx", "camera.fy", "camera.cx", "camera.cy"):
         ov[k] = 0.0
     ov["camera.width"] = ov["camera.height_px"] = 0
+    ov["max_pending_images"] = 3
     h = harness_factory(ov, subscribe_outputs=False)
     assert h.node.engine is None
     messages = drive_messages(drive)
-    h.send("image", messages[1][1])
-    assert h.node.drops["no_camera_info"] == 1 and "waiting for CameraInfo" in h.logged("no_camera_info")[0]
+    # DDS orders no topic against another: a frame's CameraInfo may come after the frame itself.
+    # The first frames are held for the calibration, the oldest beyond max_pending_images dropped.
+    early = [i for i, (k, _) in enumerate(messages) if k == "image"][:4]
+    h.send_all(messages[:early[-1] + 1])
+    assert h.node.engine is None and h.node.rig.held_images == 3 and h.node.drops["no_camera_info"] == 1
+    assert "waiting for CameraInfo" in h.logged("waiting_for_calibration")[0]
+    assert "max_pending_images=3" in h.logged("no_camera_info")[0]
     K = drive.camera.K.double().numpy()
     info = CameraInfo(width=drive.camera.width, height=drive.camera.height_px)
     info.k = K.reshape(-1).tolist()
     P = np.zeros((3, 4))
     P[:, :3] = K
     info.p = P.reshape(-1).tolist()
-    h.send("info", info)
+    h.send("info", info)  # the held frames are processed at once, in order, with the IMU kept meanwhile
     assert h.node.engine is not None and h.node.rig.camera.width == drive.camera.width
-    h.send_all(messages[2:60])
+    assert h.node.rig.held_images == 0 and h.node.counts["odometry_out"] == 3
+    h.send_all(messages[early[-1] + 1:80])
     h.settle()
-    assert len(h.odom) >= 4
+    assert len(h.odom) >= 6 and sum(h.node.drops.values()) == 1
+    assert [o.header.stamp for o in h.odom[:3]] == [messages[i][1].header.stamp for i in early[1:]]
 
 
 def test_use_sim_time_clock_jump_resets(harness_factory, drive):

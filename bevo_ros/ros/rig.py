@@ -3,12 +3,15 @@ each IMU frame maps into ``base_frame``.
 
 Calibration: CameraInfo first (re-read when it changes; a broken one is a counted drop that keeps
 the last good calibration), the ``camera.*`` parameters as the fallback after
-``camera_info_timeout`` s without it. Extrinsics: /tf_static ``base_frame -> image frame`` when
+``camera_info_timeout`` s without it. Images that arrive before any calibration are held (bounded)
+and handed back once it is known: DDS does not order one topic against another, so a frame's
+CameraInfo may come after the frame itself. Extrinsics: /tf_static ``base_frame -> image frame`` when
 published, else ``camera.base_T_camera``. Every change rebuilds the camera model and hands it to
 ``on_camera`` (the node's engine).
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
 from typing import Any, Callable
@@ -22,7 +25,7 @@ from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from
 from bevo_ros.ros.diagnostics import OK, WARN, Report, SensorState
 from bevo_ros.ros.settings import NodeSettings
 from bevo_ros.ros.tf import StaticTransforms
-from bevo_ros.io.ros_conversions import ImageConversionError, image_to_gray
+from bevo_ros.io.ros_conversions import ImageConversionError, image_to_gray, stamp_to_sec
 
 PARAMETERS_EXTRINSICS = "parameters camera.base_T_camera"
 
@@ -56,6 +59,7 @@ class Rig:
         self._first_image_wait: float | None = None  # steady time of the first image seen without calibration
         self._R_base_imu: dict[str, tuple[int, np.ndarray | None]] = {}  # IMU frame -> (tf version, R_base_imu)
         self._imu_frame_warned: set[str] = set()
+        self._held: collections.deque = collections.deque()  # (msg, arrival) of images before any calibration
 
     def start(self) -> None:
         """The calibration known at start: the parameters when CameraInfo is off or not waited for."""
@@ -97,9 +101,11 @@ class Rig:
             return
         self.apply(calib)
 
-    def _await_calibration(self) -> None:
+    def await_calibration(self) -> None:
         """No camera yet: read a CameraInfo already queued, else fall back to the parameters after
         ``camera_info_timeout`` seconds since the first image."""
+        if self.camera is not None:
+            return
         s = self.settings
         for msg, _ in self._queued_infos():
             self.camera_info(msg)
@@ -177,9 +183,9 @@ class Rig:
         return R
 
     # ------------------------------------------------------------------ images
-    def image(self, msg, t: float) -> np.ndarray | None:
-        """The grey, rectified image of ``msg`` (stamp ``t``), or None when it was dropped (counted):
-        no calibration yet, an undecodable image, or a size other than the calibration's."""
+    def calibrated_for(self, msg) -> bool:
+        """Whether images like ``msg`` can be processed now: its frame's extrinsics are current and a
+        calibration is known (a CameraInfo already queued, or the parameters after the timeout)."""
         frame = msg.header.frame_id
         tf_version = -1
         if self.static_tf is not None:
@@ -188,15 +194,44 @@ class Rig:
         if (frame and frame != self._camera_frame) or tf_version != self._tf_version:
             self._camera_frame, self._tf_version = frame or self._camera_frame, tf_version
             self.refresh()
-        if self.camera is None:
-            self._await_calibration()
-        if self.camera is None:
-            s = self.settings
-            fallback = (f"camera.* parameters after camera_info_timeout={s.camera_info_timeout:g} s"
-                        if self.config.camera.has_intrinsics() else "no camera.* fallback set")
-            self.report.drop("no_camera_info", f"image at {t:.6f}: no calibration yet (waiting for CameraInfo on "
-                                               f"{self.info_topic}; {fallback})")
-            return None
+        self.await_calibration()
+        return self.camera is not None
+
+    @property
+    def held_images(self) -> int:
+        return len(self._held)
+
+    def hold(self, msg, t: float, arrival: float) -> None:
+        """Keep an image (stamp ``t``) that came before any calibration until one is known; beyond
+        ``max_pending_images`` the oldest is dropped (``no_camera_info``, counted)."""
+        self._held.append((msg, arrival))
+        if len(self._held) == 1:
+            self.report.log("waiting_for_calibration", f"image at {t:.6f} held: no calibration yet (waiting for "
+                                                       f"CameraInfo on {self.info_topic}; {self._fallback()})",
+                            level="info")
+        while len(self._held) > self.settings.max_pending_images:
+            old, _ = self._held.popleft()
+            self.report.drop("no_camera_info", f"image at {stamp_to_sec(old.header.stamp):.6f}: no calibration "
+                                               f"while more than max_pending_images={self.settings.max_pending_images} "
+                                               f"images waited for one (CameraInfo on {self.info_topic}; "
+                                               f"{self._fallback()})")
+
+    def take_held(self) -> list:
+        """The held ``(msg, arrival)`` images, oldest first, once a calibration is known (else [])."""
+        if self.camera is None or not self._held:
+            return []
+        out = list(self._held)
+        self._held.clear()
+        return out
+
+    def _fallback(self) -> str:
+        if self.config.camera.has_intrinsics():
+            return f"camera.* parameters after camera_info_timeout={self.settings.camera_info_timeout:g} s"
+        return "no camera.* fallback set"
+
+    def image(self, msg, t: float) -> np.ndarray | None:
+        """The grey, rectified image of ``msg`` (stamp ``t``; :meth:`calibrated_for` said yes), or
+        None when it was dropped (counted): an undecodable image, or a size other than the calibration's."""
         try:
             img = image_to_gray(msg)
         except ImageConversionError as exc:

@@ -91,7 +91,8 @@ DESCRIPTIONS = {
     "image_wait": "seconds an image waits for IMU past its stamp before it is processed anyway",
     "ordered_intake": "take every IMU/image message already received and process them in stamp order "
                       "(offline order, IMU keeps up under load) instead of one per topic per executor turn",
-    "max_pending_images": "images waiting for IMU beyond this are dropped (oldest first, counted)",
+    "max_pending_images": "images waiting for IMU (or, before any calibration, for CameraInfo) beyond this are dropped "
+                          "(oldest first, counted)",
     "max_time_jump_back": "a stamp earlier than the previous by more than this (s) is a time jump back: once "
                           "confirmed (time_jump_confirmations) it resets the odometry",
     "max_time_jump_forward": "a stamp later than the previous by more than this (s) is a time jump forward: held "
