@@ -171,6 +171,7 @@ class BevoNode(Node):
 
     def _reset(self) -> None:
         self.feed.reset()
+        self.rig.drop_held("the odometry was reset (time jump or ~/reset) while they waited for a calibration")
         self.outputs.path.clear()
         self.events["reset"] += 1
 

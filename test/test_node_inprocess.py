@@ -419,6 +419,22 @@ def test_camera_info_supplies_the_intrinsics(harness_factory, drive):
     assert [o.header.stamp for o in h.odom[:3]] == [messages[i][1].header.stamp for i in early[1:]]
 
 
+def test_images_held_for_the_calibration_are_dropped_by_a_reset(harness_factory, drive):
+    """Held images belong to the trajectory a reset ends: dropped and counted, not fed after it."""
+    ov = base_overrides(drive, use_camera_info=True, camera_info_timeout=3600.0)
+    h = harness_factory(ov, subscribe_outputs=False)
+    messages = drive_messages(drive)
+    early = [i for i, (k, _) in enumerate(messages) if k == "image"][:2]
+    h.send_all(messages[:early[-1] + 1])
+    assert h.node.engine is None and h.node.rig.held_images == 2 and not h.node.drops
+    client = h.tester.create_client(Trigger, "/bevo_node/reset")
+    assert client.wait_for_service(timeout_sec=5)
+    future = client.call_async(Trigger.Request())
+    assert spin_until(h.executor, future.done, 5) and future.result().success
+    assert h.node.rig.held_images == 0 and h.node.drops["no_camera_info"] == 2
+    assert "reset" in h.logged("no_camera_info")[0]
+
+
 def test_use_sim_time_clock_jump_resets(harness_factory, drive):
     from rosgraph_msgs.msg import Clock
 

@@ -224,6 +224,14 @@ class Rig:
         self._held.clear()
         return out
 
+    def drop_held(self, why: str) -> None:
+        """Drop the held images (counted ``no_camera_info``): they belong to a trajectory that was reset."""
+        if self._held:
+            n = len(self._held)
+            self.report.drops["no_camera_info"] += n
+            self.report.log("no_camera_info", f"dropped (no_camera_info): {n} held image(s): {why}")
+            self._held.clear()
+
     def _fallback(self) -> str:
         if self.config.camera.has_intrinsics():
             return f"camera.* parameters after camera_info_timeout={self.settings.camera_info_timeout:g} s"
