@@ -128,6 +128,43 @@ def test_odometry_calib_and_camera_model(kitti_root):
     assert model.T_base_cam[2, 3].item() == pytest.approx(0.7299, abs=1e-3)
 
 
+def test_interpolated_oxts_records_are_found_exactly():
+    """Records on the straight line through their neighbours in all six IMU channels (KITTI's fill
+    over lost packets) are flagged; noisy records, the first and the last never are."""
+    rng = np.random.default_rng(3)
+    n = 40
+    data = np.zeros((n, len(kitti.OXTS_FIELDS)))
+    data[:, 11:14] = [0.3, -0.1, 9.8] + 0.05 * rng.standard_normal((n, 3))
+    data[:, 17:20] = 0.01 * rng.standard_normal((n, 3))
+    data[:, 11:20] += np.linspace(0.0, 0.5, n)[:, None]  # a smooth trend is still noisy: never flagged
+
+    def fill(a, b):  # KITTI's linear fill between real records a and b
+        w = np.linspace(0.0, 1.0, b - a + 1)[1:-1, None]
+        data[a + 1:b] = (1 - w) * data[a] + w * data[b]
+
+    fill(0, 6)    # a run from the very first record: records 1-5
+    fill(20, 22)  # one lost packet: record 21
+    fill(30, 39)  # a run up to the last record: records 31-38
+    oxts = kitti.OxtsData(np.arange(n, dtype=np.int64) * 100_000_000, data)
+    assert np.flatnonzero(kitti.interpolated_oxts(oxts)).tolist() == [1, 2, 3, 4, 5, 21, *range(31, 39)]
+    one_channel = data.copy()
+    one_channel[21, 19] += 1e-6  # five channels on the line, the sixth off it: a measurement
+    assert 21 not in np.flatnonzero(kitti.interpolated_oxts(kitti.OxtsData(oxts.stamps_ns, one_channel)))
+    assert not kitti.interpolated_oxts(oxts.slice(0, 2)).any()
+
+
+@pytest.mark.kitti
+def test_interpolated_records_of_the_shared_drives(kitti_root):
+    """The shared drives' synced OXTS: 0020 (the sample's drive) records 1-11 ramp the yaw rate
+    linearly from 2.75 to 0.64 deg/s; 0018 has 14 at 1500 and one at 2162; 0016, 0027 none."""
+    found = {}
+    for drive in ("0016", "0018", "0020", "0027"):
+        oxts = kitti.read_oxts(kitti_root / "raw" / "2011_09_30" / f"2011_09_30_drive_{drive}_sync" / "oxts")
+        found[drive] = np.flatnonzero(kitti.interpolated_oxts(oxts)).tolist()
+    print(found)
+    assert found == {"0016": [], "0018": [*range(1500, 1514), 2162], "0020": list(range(1, 12)), "0027": []}
+
+
 @pytest.mark.kitti
 def test_read_oxts(kitti_root):
     oxts = kitti.read_oxts(_oxts_dir(kitti_root))

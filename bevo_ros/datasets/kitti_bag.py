@@ -50,6 +50,7 @@ class ConversionOptions:
     gyro_var: float = 1e-4
     accel_var: float = 1e-2
     quiet: bool = False
+    keep_interpolated_imu: bool = False
 
 
 @dataclass
@@ -225,6 +226,18 @@ def _load_image(path: Path, colour: bool) -> np.ndarray:
     return img
 
 
+def _ranges(indices: np.ndarray) -> str:
+    """``[1, 2, 3, 7]`` -> ``'1-3, 7'``."""
+    runs, start = [], None
+    for k, i in enumerate(indices):
+        if start is None:
+            start = i
+        if k + 1 == len(indices) or indices[k + 1] != i + 1:
+            runs.append(f"{start}-{i}" if i > start else f"{i}")
+            start = None
+    return ", ".join(runs)
+
+
 def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     """Write frames ``[first, first + count)`` of ``src`` into ``opts.output``; returns message counts."""
     from tqdm import tqdm
@@ -249,6 +262,15 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
             gt = np.full_like(sel, np.nan)
             gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam)
 
+    # Records KITTI's synchronisation interpolated over lost packets are no measurement: left out
+    # of /imu/data (the engine bridges the gap), kept on /ground_truth/imu (the unit's output).
+    interpolated = (np.zeros(n, dtype=bool) if opts.keep_interpolated_imu else kitti.interpolated_oxts(src.oxts))
+    skipped = np.flatnonzero(interpolated[first:stop]) + first
+    if len(skipped) and not opts.quiet:
+        print(f"kitti_to_bag: {len(skipped)} OXTS record(s) {_ranges(skipped)} are KITTI's linear interpolation over "
+              f"lost packets (all six IMU channels exactly on the line through their neighbours): left out of "
+              f"{opts.imu_topic}, kept on {opts.gt_imu_topic} (--keep-interpolated-imu keeps them)", file=sys.stderr)
+
     # Every message as (stamp, rank, kind, index): same-stamp ties keep the IMU before the image,
     # so a consumer has the IMU sample of a frame when the frame arrives.
     events = []
@@ -268,8 +290,9 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
         for stamp, _, kind, i in tqdm(events, desc="kitti_to_bag", unit="msg", disable=opts.quiet, file=sys.stderr):
             if kind == "imu":
                 gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
-                writer.write_imu(stamp, gyro, accel, opts.imu_frame, topic=opts.imu_topic,
-                                 gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
+                if not interpolated[i]:
+                    writer.write_imu(stamp, gyro, accel, opts.imu_frame, topic=opts.imu_topic,
+                                     gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
                 writer.write_imu_attitude(stamp, src.oxts.roll[i], src.oxts.pitch[i], src.oxts.yaw[i], gyro=gyro,
                                           accel=accel, frame_id=opts.imu_frame, topic=opts.gt_imu_topic,
                                           orientation_covariance=np.radians(0.03) ** 2,
