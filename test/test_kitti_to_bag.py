@@ -19,9 +19,6 @@ REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.kitti
 DRIVE = "2011_09_30_drive_0020"
 N_FRAMES = 51
-# records KITTI's synchronisation interpolated over lost packets (kitti.interpolated_oxts): not on /imu/data
-INTERPOLATED = list(range(1, 12))
-KEPT = [i for i in range(N_FRAMES) if i not in INTERPOLATED]
 
 
 def convert(*args: str) -> int:
@@ -77,7 +74,7 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
         counts = {t: c for t, (_, c) in rec.topics.items()}
         size = sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
         print(f"{storage}: {counts}, {size / 1e6:.2f} MB")
-        assert counts == {bag.IMU_TOPIC: len(KEPT), bag.IMAGE_TOPIC: N_FRAMES, bag.CAMERA_INFO_TOPIC: N_FRAMES,
+        assert counts == {bag.IMU_TOPIC: N_FRAMES, bag.IMAGE_TOPIC: N_FRAMES, bag.CAMERA_INFO_TOPIC: N_FRAMES,
                           bag.GT_ODOMETRY_TOPIC: N_FRAMES, bag.GT_IMU_TOPIC: N_FRAMES, bag.TF_STATIC_TOPIC: 1}
         # /tf_static: the rig (base = IMU, camera = the calibration chain), offered latched
         (_, _, tf), = bag.iter_messages(path, [bag.TF_STATIC_TOPIC])
@@ -88,9 +85,9 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
         assert np.allclose(matrix_from_transform(frames[("base_link", "imu_link")]), np.eye(4))
         qos = bag.topic_qos(path)
         assert qos[bag.TF_STATIC_TOPIC].transient_local and not qos[bag.IMU_TOPIC].transient_local
-        # IMU: exact values and exact nanosecond stamps, the interpolated records left out.
-        assert np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns[KEPT])
-        assert np.array_equal(rec.gyro, oxts.gyro[KEPT]) and np.array_equal(rec.accel, oxts.accel[KEPT])
+        # IMU: exact values and exact nanosecond stamps.
+        assert np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns)
+        assert np.array_equal(rec.gyro, oxts.gyro) and np.array_equal(rec.accel, oxts.accel)
         # Frames: no times.txt in the sample -> the OXTS stamps; images byte-exact.
         assert np.array_equal(rec.frame_stamps_ns, oxts.stamps_ns)
         assert rec.images.shape == (N_FRAMES, 370, 1226) and rec.image_encoding == "mono8"
@@ -113,41 +110,43 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
 
 def test_sensor_imu_carries_no_orientation(bags):
     msgs = [m for _, _, m in bag.iter_messages(bags["sqlite3"], [bag.IMU_TOPIC])]
-    assert len(msgs) == len(KEPT)
+    assert len(msgs) == N_FRAMES
     assert all(m.orientation_covariance[0] == -1.0 for m in msgs)
     assert all(m.angular_velocity_covariance[0] > 0 and m.linear_acceleration_covariance[0] > 0 for m in msgs)
     gt = [m for _, _, m in bag.iter_messages(bags["sqlite3"], [bag.GT_IMU_TOPIC])]
-    assert len(gt) == N_FRAMES and all(m.orientation_covariance[0] > 0 for m in gt)
+    assert all(m.orientation_covariance[0] > 0 for m in gt)
 
 
 def test_both_storages_hold_identical_messages(bags):
     a = list(bag.iter_raw_messages(bags["sqlite3"]))
     b = list(bag.iter_raw_messages(bags["mcap"]))
     print(f"{len(a)} messages per storage; first: {a[0].topic} at {a[0].stamp_ns}")
-    assert len(a) == len(b) == 5 * N_FRAMES + 1 - len(INTERPOLATED)  # + the one /tf_static
+    assert len(a) == len(b) == 5 * N_FRAMES + 1  # + the one /tf_static
     assert [(m.topic, m.stamp_ns, m.data) for m in a] == [(m.topic, m.stamp_ns, m.data) for m in b]
     stamps = [m.stamp_ns for m in a]
     assert stamps == sorted(stamps)
     # At equal stamps the IMU sample precedes the image of the same frame.
     order = [m.topic for m in a if m.topic in (bag.IMU_TOPIC, bag.IMAGE_TOPIC)]
-    assert order[-4:] == [bag.IMU_TOPIC, bag.IMAGE_TOPIC, bag.IMU_TOPIC, bag.IMAGE_TOPIC]
+    assert order[:4] == [bag.IMU_TOPIC, bag.IMAGE_TOPIC, bag.IMU_TOPIC, bag.IMAGE_TOPIC]
 
 
 def test_first_and_count(kitti_root, tmp_path, capsys):
     out = tmp_path / "short"
     assert kitti_to_bag.main(["--odometry", str(kitti_root / "odometry"), "-o", str(out), "--first", "10",
                               "--count", "5", "--storage", "mcap"]) == 0
-    err = capsys.readouterr().err
-    assert "2 OXTS record(s) 10-11 are KITTI's linear interpolation" in err  # judged with their neighbours
+    # records 10-11 are KITTI's interpolation over lost packets (judged with their neighbours 9, 12)
+    assert "2 OXTS record(s) 10-11 are KITTI's linear interpolation" in capsys.readouterr().err
     rec = bag.read_recording(out)
     oxts = kitti.read_oxts(kitti_root / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts")
-    assert len(rec.frame_stamps_ns) == 5 and np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns[12:15])
+    assert len(rec.frame_stamps_ns) == 5 and np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns[10:15])
     assert np.allclose(rec.gt_poses[0], np.eye(4), atol=1e-9)  # odom = base at the first written frame
     assert rec.gt_poses[-1][0, 3] > 4.0  # ~12 m/s over 0.4 s, along base x
-    kept = tmp_path / "kept"
-    assert kitti_to_bag.main(["--odometry", str(kitti_root / "odometry"), "-o", str(kept), "--first", "10",
-                              "--count", "5", "--keep-interpolated-imu", "-q"]) == 0
-    assert np.array_equal(bag.read_recording(kept).imu_stamps_ns, oxts.stamps_ns[10:15])
+    left_out = tmp_path / "left_out"
+    assert kitti_to_bag.main(["--odometry", str(kitti_root / "odometry"), "-o", str(left_out), "--first", "10",
+                              "--count", "5", "--leave-out-interpolated-imu"]) == 0
+    assert "left out of /imu/data" in capsys.readouterr().err
+    short = bag.read_recording(left_out)
+    assert np.array_equal(short.imu_stamps_ns, oxts.stamps_ns[12:15]) and len(short.gt_roll) == 5
 
 
 def _expect_error(capsys, argv, *fragments) -> str:
@@ -246,9 +245,7 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     print(capsys.readouterr().out)
     assert rc == 0
     rec = bag.read_recording(out)
-    assert np.array_equal(rec.frame_stamps_ns, stamps)
-    oxts_rec = kitti.read_oxts(oxts)  # records 1-3 are interpolated; 4, the last, has no neighbour to judge it by
-    assert np.array_equal(rec.imu_stamps_ns, oxts_rec.stamps_ns[[0, 4]])
+    assert np.array_equal(rec.frame_stamps_ns, stamps) and len(rec.imu_stamps_ns) == 5
     assert rec.camera_info.K[0, 0] == pytest.approx(721.5377)  # P_rect_00 of the raw calibration
     assert rec.gt_poses.shape == (5, 4, 4)
     # One timestamp short: a clear count error.

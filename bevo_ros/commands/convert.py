@@ -33,7 +33,7 @@ notes:
   is looked up in --raw-root, or given with --oxts.
   OXTS records that KITTI's synchronisation filled in by linear interpolation over lost packets
   (all six IMU channels exactly on the line through their neighbours; e.g. drive 0020's records
-  1-11, the sample's start) are left out of the IMU topic: a gap the engine bridges.
+  1-11, the sample's start) are reported; --leave-out-interpolated-imu leaves them out.
   The sample's 2011_09_30 drives have no raw calibration; the 2011_09_26 files describe the same
   rig and are found by the default search (override with --raw-calib).
 
@@ -86,9 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="do not write /tf_static (base -> IMU identity, base -> camera optical frame)")
     p.add_argument("--gyro-var", type=float, default=1e-4, help="angular_velocity variance, (rad/s)^2")
     p.add_argument("--accel-var", type=float, default=1e-2, help="linear_acceleration variance, (m/s^2)^2")
-    p.add_argument("--keep-interpolated-imu", action="store_true",
-                   help="also write the OXTS records KITTI's synchronisation interpolated over lost packets to "
-                        "the IMU topic (default: left out, an IMU gap; they are no measurement)")
+    p.add_argument("--leave-out-interpolated-imu", action="store_true",
+                   help="leave the OXTS records KITTI's synchronisation interpolated over lost packets out of the "
+                        "IMU topic (an IMU gap; default: written as they are, and reported)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or notes")
     return p
 

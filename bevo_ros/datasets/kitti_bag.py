@@ -50,7 +50,7 @@ class ConversionOptions:
     gyro_var: float = 1e-4
     accel_var: float = 1e-2
     quiet: bool = False
-    keep_interpolated_imu: bool = False
+    leave_out_interpolated_imu: bool = False
 
 
 @dataclass
@@ -262,14 +262,19 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
             gt = np.full_like(sel, np.nan)
             gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam)
 
-    # Records KITTI's synchronisation interpolated over lost packets are no measurement: left out
-    # of /imu/data (the engine bridges the gap), kept on /ground_truth/imu (the unit's output).
-    interpolated = (np.zeros(n, dtype=bool) if opts.keep_interpolated_imu else kitti.interpolated_oxts(src.oxts))
-    skipped = np.flatnonzero(interpolated[first:stop]) + first
-    if len(skipped) and not opts.quiet:
-        print(f"kitti_to_bag: {len(skipped)} OXTS record(s) {_ranges(skipped)} are KITTI's linear interpolation over "
-              f"lost packets (all six IMU channels exactly on the line through their neighbours): left out of "
-              f"{opts.imu_topic}, kept on {opts.gt_imu_topic} (--keep-interpolated-imu keeps them)", file=sys.stderr)
+    # Records KITTI's synchronisation interpolated over lost packets are no measurement, but the
+    # line between the real rates on either side is the best bridge an IMU-only engine has (a gap
+    # with the images' rotation alone was worse: README): written unless asked, and reported.
+    interpolated = kitti.interpolated_oxts(src.oxts)
+    found = np.flatnonzero(interpolated[first:stop]) + first
+    if not opts.leave_out_interpolated_imu:
+        interpolated[:] = False
+    if len(found) and not opts.quiet:
+        where = (f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})" if opts.leave_out_interpolated_imu
+                 else f"written to {opts.imu_topic} as they are (--leave-out-interpolated-imu leaves them out)")
+        print(f"kitti_to_bag: {len(found)} OXTS record(s) {_ranges(found)} are KITTI's linear interpolation over "
+              f"lost packets (all six IMU channels exactly on the line through their neighbours): {where}",
+              file=sys.stderr)
 
     # Every message as (stamp, rank, kind, index): same-stamp ties keep the IMU before the image,
     # so a consumer has the IMU sample of a frame when the frame arrives.
