@@ -112,7 +112,7 @@ class BevoNode(Node):
             lambda msg, info: received["image"](msg, info), in_qos(s.image_qos_depth))
         if s.use_camera_info:
             self._info_sub = self.create_subscription(CameraInfo, s.camera_info_topic, self._guard(
-                "camera_info", self._on_camera_info), in_qos(s.image_qos_depth))
+                "camera_info", self.rig.camera_info), in_qos(s.image_qos_depth))
         self.add_on_set_parameters_callback(self._guard("parameters", node_settings.check_live))
         self.add_post_set_parameters_callback(self._guard("parameters", self._on_parameters_applied))
         self.create_service(Trigger, "~/reset", self._guard("reset", self._on_reset))
@@ -145,10 +145,18 @@ class BevoNode(Node):
         return self.feed.engine
 
     def _set_camera(self, engine_factory: Callable, camera) -> None:
-        if self.feed.engine is None:
-            self.feed.start(engine_factory(self.config, self.learned, camera))
-        else:
+        if self.feed.engine is not None:
             self.feed.engine.set_camera(camera)
+            return
+        # The first calibration: the images held for it go in with the IMU that waited, by stamp.
+        # They wait for IMU past their stamps (image_wait) from now, not from their arrival.
+        now, images = time.time(), []
+        for msg, arrival in self.rig.take_held():
+            t = stamp_to_sec(msg.header.stamp)
+            img = self.rig.image(msg, t)
+            if img is not None:
+                images.append((t, img, (msg.header.stamp, arrival, now)))
+        self._publish(self.feed.start(engine_factory(self.config, self.learned, camera), images))
 
     def _guard(self, name: str, fn: Callable) -> Callable:
         """Wrap a callback: an unexpected exception is logged (throttled) and counted, never raised."""
@@ -211,31 +219,20 @@ class BevoNode(Node):
 
     def _on_image(self, msg, arrival: float | None = None) -> None:  # counted (and monitored) by the intake
         arrival = time.time() if arrival is None else arrival
-        if not self.rig.calibrated_for(msg):
+        if not self.rig.calibrated_for(msg):  # held; the first calibration hands them to the engine (_set_camera)
             self.rig.hold(msg, stamp_to_sec(msg.header.stamp), arrival)
             return
-        self._release_held()
         self._image_to_engine(msg, arrival)
 
     def _image_to_engine(self, msg, arrival: float) -> None:
         t = stamp_to_sec(msg.header.stamp)
         img = self.rig.image(msg, t)
-        if img is not None:  # the tag comes back on the image's step: the output stamp, the latency
-            self._publish(self.feed.image(t, img, (msg.header.stamp, arrival)))
-
-    def _release_held(self) -> None:
-        """Images held for the calibration, in order, once it is known."""
-        for msg, arrival in self.rig.take_held():
-            self._image_to_engine(msg, arrival)
-
-    def _on_camera_info(self, msg) -> None:
-        self.rig.camera_info(msg)
-        self._release_held()
+        if img is not None:  # the tag comes back on the image's step: the output stamp, the latency, image_wait's start
+            self._publish(self.feed.image(t, img, (msg.header.stamp, arrival, arrival)))
 
     def _on_flush_timer(self) -> None:
         if self.rig.held_images:  # the parameters' fallback is due even when no further image comes
             self.rig.await_calibration()
-            self._release_held()
         if not self.feed.flush_due():
             return
         if self.settings.ordered_intake:
@@ -262,7 +259,7 @@ class BevoNode(Node):
     # ------------------------------------------------------------------ outputs
     def _publish(self, steps: list | None) -> None:
         for step in steps or ():
-            stamp, arrival = step.tag
+            stamp, arrival, _ = step.tag
             odom = self.outputs.odometry(step, stamp)
             self.report.published(arrival, float(step.peak_quality))
             self.outputs.extras(step, odom)

@@ -417,6 +417,11 @@ def test_camera_info_supplies_the_intrinsics(harness_factory, drive):
     h.settle()
     assert len(h.odom) >= 6 and sum(h.node.drops.values()) == 1
     assert [o.header.stamp for o in h.odom[:3]] == [messages[i][1].header.stamp for i in early[1:]]
+    # the held frames went in with the IMU that waited, by stamp: the offline order, the same poses
+    expected = offline_steps([m for i, m in enumerate(messages[:80]) if i != early[0]], base_overrides(drive))
+    assert len(h.odom) == len(expected)
+    for msg, step in zip(h.odom, expected):
+        assert np.allclose(_odom_arrays(msg)[0], step.position, atol=1e-6, rtol=0)
 
 
 def test_images_held_for_the_calibration_are_dropped_by_a_reset(harness_factory, drive):

@@ -192,16 +192,26 @@ class EngineFeed:
         self._states_seen = dict.fromkeys(ENGINE_STATES, 0)  # the engine's state counters already reported
         self._imu_backlog: collections.deque = collections.deque(maxlen=max(settings.imu_qos_depth, 1000))
 
-    def start(self, engine) -> None:
-        """Use ``engine`` from now on and fuse the IMU that arrived before it, in order."""
+    def start(self, engine, images: list | None = None) -> list:
+        """Use ``engine`` from now on: the IMU that arrived before it and the ``images``
+        ``(stamp, image, tag)`` held for the calibration, merged by stamp (IMU first on equal
+        stamps: the offline order, so the held frames see the IMU they would have). -> the steps."""
         self.engine = engine
         self._states_seen = self._state_counts()
         engine.max_pending_images = self.settings.max_pending_images
-        backlog = list(self._imu_backlog)
+        backlog = [(t, 0, (gyro, accel)) for t, gyro, accel in self._imu_backlog]
         self._imu_backlog.clear()
-        for t, gyro, accel in backlog:
-            if self._call("imu", t, lambda: engine.add_imu(t, gyro, accel)) is not None:
-                self.last_imu_stamp = t
+        steps: list = []
+        for t, rank, item in sorted(backlog + [(t, 1, (img, tag)) for t, img, tag in images or ()],
+                                    key=lambda e: (e[0], e[1])):
+            if rank == 0:
+                out = self._call("imu", t, lambda: engine.add_imu(t, *item))
+                if out is not None:
+                    self.last_imu_stamp = t
+            else:
+                out = self.image(t, *item)
+            steps += out or []
+        return steps
 
     def reset(self) -> None:
         if self.engine is not None:
@@ -215,6 +225,9 @@ class EngineFeed:
 
     def imu(self, t: float, gyro, accel) -> list | None:
         if self.engine is None:  # kept (bounded) and fused once the camera is known: the filter warms up
+            if len(self._imu_backlog) == self._imu_backlog.maxlen:
+                self.report.drop("no_camera_info", f"IMU at {self._imu_backlog[0][0]:.6f}: more than "
+                                                   f"{self._imu_backlog.maxlen} IMU samples waited for the calibration")
             self._imu_backlog.append((t, gyro, accel))
             return None
         self._last_gap = 0.0 if self.last_imu_stamp is None else t - self.last_imu_stamp
@@ -230,7 +243,7 @@ class EngineFeed:
         """Images have waited for IMU past their stamp longer than ``image_wait``."""
         if not self.pending_images:
             return False
-        oldest = min(arrived for _, arrived in self.engine.pending_tags)
+        oldest = min(tag[-1] for tag in self.engine.pending_tags)  # (stamp, arrival, waiting since)
         return time.time() - oldest >= self.settings.image_wait
 
     def flush(self) -> list:

@@ -104,12 +104,12 @@ class Rig:
     def await_calibration(self) -> None:
         """No camera yet: read a CameraInfo already queued, else fall back to the parameters after
         ``camera_info_timeout`` seconds since the first image."""
-        if self.camera is not None:
+        if self.calibration is not None:  # known (a camera model failing on its extrinsics is not a missing one)
             return
         s = self.settings
         for msg, _ in self._queued_infos():
             self.camera_info(msg)
-        if self.camera is not None:
+        if self.calibration is not None:
             return
         now = time.monotonic()
         if self._first_image_wait is None:
@@ -217,8 +217,9 @@ class Rig:
                                                f"{self._fallback()})")
 
     def take_held(self) -> list:
-        """The held ``(msg, arrival)`` images, oldest first, once a calibration is known (else [])."""
-        if self.camera is None or not self._held:
+        """The held ``(msg, arrival)`` images, oldest first: for the first camera model, as
+        :meth:`refresh` hands it over (``on_camera``)."""
+        if not self._held:
             return []
         out = list(self._held)
         self._held.clear()
