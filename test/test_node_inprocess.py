@@ -432,12 +432,13 @@ def test_images_held_for_the_calibration_are_dropped_by_a_reset(harness_factory,
     early = [i for i, (k, _) in enumerate(messages) if k == "image"][:2]
     h.send_all(messages[:early[-1] + 1])
     assert h.node.engine is None and h.node.rig.held_images == 2 and not h.node.drops
+    assert h.node.summary().endswith("; 2 image(s) still waiting (for IMU or calibration)")  # the stop's log line
     client = h.tester.create_client(Trigger, "/bevo_node/reset")
     assert client.wait_for_service(timeout_sec=5)
     future = client.call_async(Trigger.Request())
     assert spin_until(h.executor, future.done, 5) and future.result().success
     assert h.node.rig.held_images == 0 and h.node.drops["no_camera_info"] == 2
-    assert "reset" in h.logged("no_camera_info")[0]
+    assert "reset" in h.logged("no_camera_info")[0] and "still waiting" not in h.node.summary()
 
 
 def test_use_sim_time_clock_jump_resets(harness_factory, drive):
