@@ -424,6 +424,30 @@ def test_camera_info_supplies_the_intrinsics(harness_factory, drive):
         assert np.allclose(_odom_arrays(msg)[0], step.position, atol=1e-6, rtol=0)
 
 
+def test_held_images_wait_for_their_imu_from_their_release(harness_factory, drive):
+    """Held images still ahead of the IMU wait image_wait from when the calibration released them,
+    not from their arrival (a bag's CameraInfo may come seconds late, its IMU later still)."""
+    ov = base_overrides(drive, use_camera_info=True, camera_info_timeout=3600.0, image_wait=1.5)
+    h = harness_factory(ov, subscribe_outputs=False)
+    messages = drive_messages(drive)
+    h.send("imu", messages[0][1])
+    frames = [m for k, m in messages if k == "image"][1:4]  # all after the one IMU sample
+    for m in frames:
+        h.send("image", m)
+    spin_until(h.executor, lambda: False, 2.0)  # held longer than image_wait
+    assert h.node.rig.held_images == 3 and h.node.engine is None
+    info = CameraInfo(width=drive.camera.width, height=drive.camera.height_px)
+    K = drive.camera.K.double().numpy()
+    info.k = K.reshape(-1).tolist()
+    info.p = np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist()
+    h.send("info", info)
+    assert h.node.engine is not None and h.node.engine.pending_images == 3
+    spin_until(h.executor, lambda: False, 0.5)
+    assert h.node.engine.pending_images == 3 and h.node.events["flushed_images"] == 0  # not due yet
+    assert spin_until(h.executor, lambda: h.node.engine.pending_images == 0, 3)
+    assert h.node.events["flushed_images"] == 3 and not h.node.drops
+
+
 def test_images_held_for_the_calibration_are_dropped_by_a_reset(harness_factory, drive):
     """Held images belong to the trajectory a reset ends: dropped and counted, not fed after it."""
     ov = base_overrides(drive, use_camera_info=True, camera_info_timeout=3600.0)
