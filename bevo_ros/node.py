@@ -222,9 +222,6 @@ class BevoNode(Node):
         if not self.rig.calibrated_for(msg):  # held; the first calibration hands them to the engine (_set_camera)
             self.rig.hold(msg, stamp_to_sec(msg.header.stamp), arrival)
             return
-        self._image_to_engine(msg, arrival)
-
-    def _image_to_engine(self, msg, arrival: float) -> None:
         t = stamp_to_sec(msg.header.stamp)
         img = self.rig.image(msg, t)
         if img is not None:  # the tag comes back on the image's step: the output stamp, the latency, image_wait's start

@@ -267,8 +267,6 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     # with the images' rotation alone was worse: README): written unless asked, and reported.
     interpolated = kitti.interpolated_oxts(src.oxts)
     found = np.flatnonzero(interpolated[first:stop]) + first
-    if not opts.leave_out_interpolated_imu:
-        interpolated[:] = False
     if len(found) and not opts.quiet:
         where = (f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})" if opts.leave_out_interpolated_imu
                  else f"written to {opts.imu_topic} as they are (--leave-out-interpolated-imu leaves them out)")
@@ -295,7 +293,7 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
         for stamp, _, kind, i in tqdm(events, desc="kitti_to_bag", unit="msg", disable=opts.quiet, file=sys.stderr):
             if kind == "imu":
                 gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
-                if not interpolated[i]:
+                if not (opts.leave_out_interpolated_imu and interpolated[i]):
                     writer.write_imu(stamp, gyro, accel, opts.imu_frame, topic=opts.imu_topic,
                                      gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
                 writer.write_imu_attitude(stamp, src.oxts.roll[i], src.oxts.pitch[i], src.oxts.yaw[i], gyro=gyro,

@@ -132,8 +132,9 @@ class Report:
         else:
             self.logger.warning(text)
 
-    def drop(self, reason: str, text: str, level: str = "warning") -> None:
-        self.drops[reason] += 1
+    def drop(self, reason: str, text: str, level: str = "warning", count: int = 1) -> None:
+        """``count`` inputs dropped for ``reason``: counted and logged (throttled)."""
+        self.drops[reason] += count
         self.log(reason, f"dropped ({reason}): {text}", level)
 
     def published(self, arrival: float | None, quality: float) -> None:

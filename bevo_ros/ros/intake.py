@@ -305,8 +305,7 @@ class EngineFeed:
             return
         for kind, reason, why in ENGINE_DROPS:
             if d[kind] > 0:
-                self.report.drops[reason] += d[kind]
-                self.report.log(reason, f"dropped ({reason}): {d[kind]} image(s) " + why.format(s=self.settings))
+                self.report.drop(reason, f"{d[kind]} image(s) " + why.format(s=self.settings), count=d[kind])
         for kind, why in ENGINE_REJECTIONS:
             if d[kind] > 0:
                 self.report.events[kind] += d[kind]

@@ -219,8 +219,6 @@ class Rig:
     def take_held(self) -> list:
         """The held ``(msg, arrival)`` images, oldest first: for the first camera model, as
         :meth:`refresh` hands it over (``on_camera``)."""
-        if not self._held:
-            return []
         out = list(self._held)
         self._held.clear()
         return out
@@ -228,9 +226,7 @@ class Rig:
     def drop_held(self, why: str) -> None:
         """Drop the held images (counted ``no_camera_info``): they belong to a trajectory that was reset."""
         if self._held:
-            n = len(self._held)
-            self.report.drops["no_camera_info"] += n
-            self.report.log("no_camera_info", f"dropped (no_camera_info): {n} held image(s): {why}")
+            self.report.drop("no_camera_info", f"{len(self._held)} held image(s): {why}", count=len(self._held))
             self._held.clear()
 
     def _fallback(self) -> str:
