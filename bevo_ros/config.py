@@ -64,6 +64,9 @@ class BevSettings:
     forward_offset: float = 7.5
 
 
+MOUNTING_REFERENCES = ("base", "camera")  # filter.mounting_reference
+
+
 @dataclass
 class FilterSettings:
     # "euler": exact Euler-angle kinematics (default); "additive": the paper's rates-added model.
@@ -78,6 +81,14 @@ class FilterSettings:
     # the low-pass on: without it the gravity-referenced attitude already holds the mounting).
     mounting_pitch: float = 0.0
     mounting_roll: float = 0.0
+    # What the mounting holds when the camera's extrinsics come from elsewhere than camera.base_T_camera
+    # (the node's /tf_static). "base": the base's attitude on the road, as given. "camera": the camera's
+    # tilt to the road that the mounting makes through camera.base_T_camera (what `bevo calibrate`
+    # measures: the road plane as the camera sees it); with other extrinsics the base's is re-derived
+    # (core/geometry.mounting_for_extrinsics). KITTI's raw calibrations differ by ~1 deg of camera pitch
+    # from day to day: a mounting calibrated through one day's files, used as "base" with another's,
+    # tilts the BEV by that much (the sample: 21.6 % drift instead of 2.5 %).
+    mounting_reference: str = "base"
     # Remove speed x turn rate (centripetal acceleration) from the accelerometer before the DUKF
     # update, with the visual odometry's latest speed. Off by default: it cuts the synthetic roll
     # error from 5.7 to 0.6 deg RMS, but the odometry got worse there (pitch), see the issue notes.
@@ -459,6 +470,13 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     if config.kernels not in KERNEL_MODES:
         raise ConfigError(f"kernels must be one of {', '.join(KERNEL_MODES)}, got {config.kernels!r}")
 
+    if config.filter.mounting_reference not in MOUNTING_REFERENCES:
+        raise ConfigError(f"filter.mounting_reference must be one of {', '.join(MOUNTING_REFERENCES)}, "
+                          f"got {config.filter.mounting_reference!r}")
+    # "camera": the mounting was calibrated through camera.base_T_camera; with a camera whose
+    # extrinsics differ (the node's /tf_static) the engine keeps the camera's tilt to the road.
+    mounting_extrinsics = (np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
+                           if config.filter.mounting_reference == "camera" else None)
     if config.odometry.mode not in MODES:
         raise ConfigError(f"odometry.mode must be one of {', '.join(MODES)}, got {config.odometry.mode!r}")
     from bevo_ros.core.rate_integration import GYRO_SAMPLING
@@ -477,6 +495,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         dukf=dukf,
         road_tilt_time_constant=config.filter.road_tilt_time_constant,
         mounting_attitude=(config.filter.mounting_pitch, config.filter.mounting_roll),
+        mounting_extrinsics=mounting_extrinsics,
         dpc=config.dpc,
         max_imu_gap=config.filter.max_imu_gap,
         turn_compensation=config.filter.turn_compensation,

@@ -17,6 +17,7 @@ and ``diagnostics``; this module only connects them.
 """
 from __future__ import annotations
 
+import math
 import sys
 import time
 import traceback
@@ -83,6 +84,7 @@ class BevoNode(Node):
         self.intake = Intake(s, report, self.monitors, self._dispatch, self._reset)
         self.static_tf = StaticTransforms(self) if s.extrinsics_from_tf else None
         self._info_sub = None
+        self._mounting_logged: tuple[float, float] | None = None  # the re-derived mounting last logged
         self.rig = Rig(s, self.config, report, self.get_logger(), self.static_tf,
                        self.resolve_topic_name(s.camera_info_topic),
                        lambda: self.intake.take_all(self._info_sub) if self._info_sub is not None else [],
@@ -147,6 +149,7 @@ class BevoNode(Node):
     def _set_camera(self, engine_factory: Callable, camera) -> None:
         if self.feed.engine is not None:
             self.feed.engine.set_camera(camera)
+            self._log_mounting()
             return
         # The first calibration: the images held for it go in with the IMU that waited, by stamp.
         # They wait for IMU past their stamps (image_wait) from now, not from their arrival.
@@ -156,7 +159,23 @@ class BevoNode(Node):
             img = self.rig.image(msg, t)
             if img is not None:
                 images.append((t, img, (msg.header.stamp, arrival, now)))
-        self._publish(self.feed.start(engine_factory(self.config, self.learned, camera), images))
+        engine = engine_factory(self.config, self.learned, camera)
+        self._log_mounting(engine)
+        self._publish(self.feed.start(engine, images))
+
+    def _log_mounting(self, engine=None) -> None:
+        """Say so when the mounting in use is not the configured one (``filter.mounting_reference:
+        camera`` with extrinsics from /tf_static that differ from ``camera.base_T_camera``)."""
+        engine = engine or self.feed.engine
+        f = self.config.filter
+        used = engine.mounting_attitude
+        if max(abs(used[0] - f.mounting_pitch), abs(used[1] - f.mounting_roll)) > 1e-5 and used != self._mounting_logged:
+            self.get_logger().info(
+                f"camera extrinsics ({self.rig.extrinsics_source}) differ from camera.base_T_camera, through which "
+                f"filter.mounting_pitch/roll were calibrated: the base's mounting {math.degrees(f.mounting_pitch):+.3f} / "
+                f"{math.degrees(f.mounting_roll):+.3f} deg becomes {math.degrees(used[0]):+.3f} / "
+                f"{math.degrees(used[1]):+.3f} deg, keeping the camera's tilt to the road")
+            self._mounting_logged = used
 
     def _guard(self, name: str, fn: Callable) -> Callable:
         """Wrap a callback: an unexpected exception is logged (throttled) and counted, never raised."""

@@ -218,3 +218,76 @@ def test_projection_mask_is_every_sub_sample_valid():
     a = torch.tensor([1.0, 0.5, 1e-38, 3e-39, 1.0000001])
     b = torch.tensor([1.0, 0.50000006, 1e-38, 2e-39, 1.0])
     assert torch.equal((a - b) <= 0, a <= b)  # ties, neighbours, subnormals
+
+
+def _rotated(T: torch.Tensor, pitch: float = 0.0, roll: float = 0.0, yaw: float = 0.0) -> torch.Tensor:
+    """``T_base_cam`` with the camera turned in the base frame by ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    from bevo_ros.core.geometry import rotation_x, rotation_y
+
+    t = torch.tensor
+    R = (torch.tensor([[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]],
+                      dtype=torch.float64)
+         @ rotation_y(t(pitch, dtype=torch.float64)) @ rotation_x(t(roll, dtype=torch.float64)))
+    out = T.clone().double()
+    out[:3, :3] = R @ out[:3, :3]
+    return out
+
+
+def test_mounting_for_extrinsics_keeps_the_road_plane_in_the_camera():
+    """Another calibration of the same camera (KITTI: ~1 deg of pitch between days' files): the
+    re-derived base mounting puts the road's normal where the calibrated one had it in the camera
+    frame (the plane the BEV projects onto), a pure pitch of the camera moves the mounting's pitch
+    back by as much, and equal extrinsics give the mounting itself."""
+    from bevo_ros.core.geometry import camera_pose_on_road, mounting_for_extrinsics
+
+    base = syn.kitti_like_camera(scale=0.5)
+    T_cal = base.T_base_cam.double()
+    mounting = (0.0270, -0.0177)
+    T_new = _rotated(T_cal, pitch=math.radians(1.0), roll=math.radians(0.4), yaw=math.radians(0.7))
+    m = mounting_for_extrinsics(mounting, T_cal, T_new)
+
+    def road_normal_in_camera(T, att):
+        cam = CameraModel(base.K.double(), base.width, base.height_px, T, base.mount_height)
+        R, _ = camera_pose_on_road(cam, torch.tensor([att[0]], dtype=torch.float64),
+                                   torch.tensor([att[1]], dtype=torch.float64))
+        return R[0, 2]  # the road's z axis in camera coordinates
+
+    assert torch.allclose(road_normal_in_camera(T_new, m), road_normal_in_camera(T_cal, mounting), atol=1e-12)
+    # without the re-derivation the plane is 1.1 deg off
+    off = torch.acos((road_normal_in_camera(T_new, mounting) * road_normal_in_camera(T_cal, mounting)).sum().clamp(max=1))
+    assert math.degrees(float(off)) > 1.0
+    # a pure pitch of the camera by d about the base's y axis: the base's pitch on the road drops by d
+    d = math.radians(0.97)
+    p, r = mounting_for_extrinsics((0.03, 0.0), T_cal, _rotated(T_cal, pitch=d))
+    assert p == pytest.approx(0.03 - d, abs=1e-12) and r == pytest.approx(0.0, abs=1e-12)
+    assert mounting_for_extrinsics(mounting, T_cal, T_cal.float()) == mounting  # float32 copy: the same
+    assert mounting_for_extrinsics(mounting, T_cal.numpy(), T_new.numpy()) == m  # arrays or tensors
+
+
+def test_mounting_reference_camera_rederives_the_mounting_for_other_extrinsics():
+    """``filter.mounting_reference``: ``camera`` keeps the camera's tilt when the engine's camera has
+    other extrinsics than ``camera.base_T_camera`` (at construction and on ``set_camera``), ``base``
+    keeps the mounting; an unknown value is a ConfigError."""
+    import dataclasses
+
+    import numpy as np
+
+    from bevo_ros.config import BevoConfig, ConfigError, build_odometry, camera_model
+    from bevo_ros.io.learned_params import LearnedParams
+
+    config = BevoConfig()
+    config.filter.mounting_pitch, config.filter.mounting_roll = 0.027, -0.0177
+    T_cal = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
+    T_new = _rotated(torch.from_numpy(T_cal), pitch=math.radians(1.0)).numpy()
+    config.camera = dataclasses.replace(config.camera, fx=300.0, fy=300.0, cx=160.0, cy=50.0, width=320, height_px=100)
+    other = camera_model(dataclasses.replace(config.camera, base_T_camera=T_new.reshape(-1).tolist()))
+    config.filter.mounting_reference = "base"
+    assert build_odometry(config, LearnedParams(), other).mounting_attitude == (0.027, -0.0177)
+    config.filter.mounting_reference = "camera"
+    odo = build_odometry(config, LearnedParams(), other)
+    assert math.degrees(odo.mounting_attitude[0] - 0.027) == pytest.approx(-1.0, abs=0.01)
+    odo.set_camera(camera_model(config.camera))  # back to the calibrated extrinsics: the mounting as given
+    assert odo.mounting_attitude == pytest.approx((0.027, -0.0177), abs=1e-7)
+    config.filter.mounting_reference = "road"
+    with pytest.raises(ConfigError, match="mounting_reference"):
+        build_odometry(config, LearnedParams(), other)

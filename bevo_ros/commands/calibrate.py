@@ -10,7 +10,8 @@ ground truth (a "calibration drive"):
   roll:  bisection until the summed BEV yaw matches the ground truth's (a roll error shears the BEV).
 
 Both use a constant attitude (no filter), so the result is the rig's, not the road's.
-Prints the two YAML lines for params/*.yaml.
+Prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera` (they
+were fitted through `camera.base_T_camera`, so the camera's tilt to the road is what was measured).
 """
 from __future__ import annotations
 
@@ -53,4 +54,6 @@ def main(argv: list[str] | None = None) -> int:
     print(f"calibrated on frames {args.frames} ({float(seq.gt_motion()[:, 0].sum()):.1f} m):")
     print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, nose down")
     print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, left side up")
+    # Fitted through camera.base_T_camera: the camera's tilt to the road is what was measured.
+    print("    filter.mounting_reference: camera   # calibrated through camera.base_T_camera (kept with /tf_static extrinsics)")
     return 0

@@ -115,6 +115,40 @@ def camera_pose_on_road(camera: CameraModel, pitch: Tensor, roll: Tensor) -> tup
     return R_road_cam, t_road_cam
 
 
+def mounting_for_extrinsics(mounting: tuple[float, float], T_base_cam_calibrated, T_base_cam) -> tuple[float, float]:
+    """The base's (pitch, roll) on the road that keeps the camera's tilt to the road when the
+    camera's extrinsics are ``T_base_cam`` instead of ``T_base_cam_calibrated``, the ones the
+    ``mounting`` was calibrated with. ``(4, 4)`` (or ``(3, 3)``) arrays or tensors; rad in, rad out.
+
+    A mounting calibration (``bevo calibrate``) fits the images' scale: what it measures is the
+    road plane as the camera sees it, its normal in the camera frame. Written as the base's
+    attitude it holds only together with the extrinsics it was fitted through. KITTI's raw
+    calibrations differ by about 1 deg in the camera's pitch from day to day (the optical axis
+    +0.48 deg above the IMU's x axis through the 2011_09_26 files, -0.49 deg through 2011_09_30's),
+    while the odometry ground truth shows the camera looking 1.19 deg (2011_09_30 sequences) and
+    0.97 deg (2011_10_03) down at the road: a mounting fitted through one day's files and used with
+    another's tilts the BEV by that degree, 20 % of scale. The road normal is kept in the camera
+    frame; a yaw between the two extrinsics stays the camera's (it does not tilt the road plane).
+    Returns ``mounting`` itself when the two rotations agree to 1e-6.
+    """
+    import numpy as np
+
+    def rot(T) -> "np.ndarray":
+        T = T.detach().cpu().numpy() if isinstance(T, Tensor) else T
+        return np.asarray(T, dtype=np.float64)[:3, :3]
+
+    R_cal, R_new = rot(T_base_cam_calibrated), rot(T_base_cam)
+    if np.abs(R_cal - R_new).max() < 1e-6:
+        return float(mounting[0]), float(mounting[1])
+    p, r = float(mounting[0]), float(mounting[1])
+    cp, sp, cr, sr = np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    up_in_base = np.array([-sp, cp * sr, cp * cr])  # the road normal in the base: Ry(p) Rx(r)'s third row
+    up_in_camera = R_cal.T @ up_in_base
+    n = R_new @ up_in_camera
+    n = n / np.linalg.norm(n)
+    return float(-np.arcsin(np.clip(n[0], -1.0, 1.0))), float(np.arctan2(n[1], n[2]))
+
+
 @dataclass(frozen=True)
 class BevSpec:
     """The bird's-eye-view grid on the road plane.

@@ -22,7 +22,7 @@ import torch
 from .compiled import EngineKernels
 from .dukf import DUKF, steady_state_variance
 from .frame_clock import FrameClock
-from .geometry import BevSpec, CameraModel
+from .geometry import BevSpec, CameraModel, mounting_for_extrinsics
 from .motion import pitch_change_shift, pitch_scale_sensitivity, registration_from_vehicle_motion, roll_yaw_sensitivity
 from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
 from .pose import compose_se2_floats, propagate_covariance_se2_floats
@@ -186,6 +186,12 @@ class BevoOdometry:
         mounting_attitude: static (pitch, roll) of the base relative to the road at rest, rad; added to
             the road-relative attitude when the road-tilt low-pass is on (it removes every
             constant); with it off the gravity-referenced attitude already holds the mounting.
+        mounting_extrinsics: the camera's ``T_base_cam (4, 4)`` that ``mounting_attitude`` was
+            calibrated with (the configured ``camera.base_T_camera``), or None. With a camera whose
+            extrinsics differ (from ``/tf_static``, another day's calibration), the mounting used
+            keeps the camera's tilt to the road that the calibration measured
+            (:func:`~bevo_ros.core.geometry.mounting_for_extrinsics`); ``mounting_attitude`` is the
+            one in use. None: the mounting is the base's, whatever the camera.
         max_imu_gap: longer IMU gaps re-initialise the filter from the accelerometer.
         turn_compensation: remove ``speed x turn rate`` from the accelerometer before the DUKF
             update, with the speed of the latest visual odometry step (see
@@ -242,6 +248,7 @@ class BevoOdometry:
         dpc: DpcConfig | None = None,
         road_tilt_time_constant: float = 1.0,
         mounting_attitude: tuple[float, float] = (0.0, 0.0),
+        mounting_extrinsics=None,
         max_imu_gap: float = 0.5,
         turn_compensation: bool = False,
         device: str | torch.device = "cpu",
@@ -274,7 +281,8 @@ class BevoOdometry:
         self.device = torch.device(device)
         self.dtype = torch.float32
         self.spec = spec
-        self.mounting_attitude = (float(mounting_attitude[0]), float(mounting_attitude[1]))
+        self._mounting_calibration = ((float(mounting_attitude[0]), float(mounting_attitude[1])), mounting_extrinsics)
+        self.mounting_attitude = self._mounting_calibration[0]
         self._standstill = StandstillDetector(camera, self.mounting_attitude, standstill_max_speed)
         self.set_camera(camera)
         self.dukf = dukf
@@ -339,6 +347,17 @@ class BevoOdometry:
     def set_camera(self, camera: CameraModel) -> None:
         """Replace the camera model (e.g. from the first CameraInfo); keeps the trajectory."""
         self.camera = camera.to(self.device, self.dtype)
+        mounting, calibrated_with = self._mounting_calibration
+        if calibrated_with is not None:
+            self.mounting_attitude = mounting_for_extrinsics(mounting, calibrated_with, camera.T_base_cam)
+            self._standstill.attitude = self.mounting_attitude
+            if hasattr(self, "_road_tilt"):  # after __init__: reset() sets it from the attitude otherwise
+                old = self._mounting
+                self._mounting = self.mounting_attitude if self._road_tilt.enabled else (0.0, 0.0)
+                dp, dr = self._mounting[0] - old[0], self._mounting[1] - old[1]
+                if dp or dr:  # the attitudes waiting for frames (a node's IMU before /tf_static) move with it
+                    self._history = deque(((t, (road[0] + dp, road[1] + dr), *rest) for t, road, *rest in self._history),
+                                          maxlen=self._history.maxlen)
         self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
         self._shift_per_pitch_change = pitch_change_shift(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
         self._yaw_per_roll = roll_yaw_sensitivity(camera.mount_height)

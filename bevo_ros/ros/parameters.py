@@ -50,6 +50,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "undistort": ("auto", "on", "off"),
     "image_transport": ("raw", "compressed"),
     "filter.motion_model": ("euler", "additive"),
+    "filter.mounting_reference": ("base", "camera"),  # bevo_ros.config.MOUNTING_REFERENCES
     "filter.gyro_sampling": ("interval_mean", "instantaneous"),  # bevo_ros.core.rate_integration.GYRO_SAMPLING
     "odometry.mode": ("fused", "paper"),  # bevo_ros.core.odometry.MODES
     "kernels": ("eager", "compiled", "auto"),  # bevo_ros.core.compiled.KERNEL_MODES

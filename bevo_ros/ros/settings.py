@@ -124,6 +124,9 @@ DESCRIPTIONS = {
     "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
     "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
     "filter.mounting_roll": "static roll (rad, left side up +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",
+    "filter.mounting_reference": "'base' (mounting_pitch/roll are the base's attitude on the road, whatever the "
+                                 "extrinsics) or 'camera' (they were calibrated through camera.base_T_camera: with "
+                                 "extrinsics from /tf_static that differ, the camera's tilt to the road they make is kept)",
     "filter.max_acceleration": "IMU samples whose specific-force norm exceeds this (m/s^2) are dropped (imu_accel_range)",
     "filter.max_angular_rate": "IMU samples with a gyro axis above this (rad/s) are dropped (imu_gyro_range)",
     "odometry.standstill_max_speed": "fused mode: below this speed (m/s, the small motion over a frame interval read on "
