@@ -169,13 +169,18 @@ class BevoNode(Node):
         engine = engine or self.feed.engine
         f = self.config.filter
         used = engine.mounting_attitude
-        if max(abs(used[0] - f.mounting_pitch), abs(used[1] - f.mounting_roll)) > 1e-5 and used != self._mounting_logged:
+        configured = (f.mounting_pitch, f.mounting_roll)
+        if used == (self._mounting_logged or configured):
+            return
+        if max(abs(used[0] - configured[0]), abs(used[1] - configured[1])) > 1e-5:
             self.get_logger().info(
                 f"camera extrinsics ({self.rig.extrinsics_source}) differ from camera.base_T_camera, through which "
-                f"filter.mounting_pitch/roll were calibrated: the base's mounting {math.degrees(f.mounting_pitch):+.3f} / "
-                f"{math.degrees(f.mounting_roll):+.3f} deg becomes {math.degrees(used[0]):+.3f} / "
+                f"filter.mounting_pitch/roll were calibrated: the base's mounting {math.degrees(configured[0]):+.3f} / "
+                f"{math.degrees(configured[1]):+.3f} deg becomes {math.degrees(used[0]):+.3f} / "
                 f"{math.degrees(used[1]):+.3f} deg, keeping the camera's tilt to the road")
-            self._mounting_logged = used
+        else:
+            self.get_logger().info(f"camera extrinsics ({self.rig.extrinsics_source}): the configured mounting again")
+        self._mounting_logged = used
 
     def _guard(self, name: str, fn: Callable) -> Callable:
         """Wrap a callback: an unexpected exception is logged (throttled) and counted, never raised."""

@@ -291,3 +291,53 @@ def test_mounting_reference_camera_rederives_the_mounting_for_other_extrinsics()
     config.filter.mounting_reference = "road"
     with pytest.raises(ConfigError, match="mounting_reference"):
         build_odometry(config, LearnedParams(), other)
+
+
+def test_other_extrinsics_mid_drive_keep_the_trajectory():
+    """The node's case: frames already processed with the params' extrinsics, then /tf_static's
+    (1 deg of pitch apart, the mounting calibrated through the params'): with
+    ``mounting_reference: camera`` the switch leaves the camera's tilt, and the frame after it reads
+    what it reads with /tf_static's extrinsics from the start (the last frame's BEV pitch moves
+    with the mounting: kept, the pitch-change correction took the switch for a 1.46 m shift and the
+    motion filter rejected the frame)."""
+    import dataclasses
+
+    import numpy as np
+
+    from bevo_ros.config import BevoConfig, build_odometry, camera_model
+    from bevo_ros.core.geometry import mounting_for_extrinsics
+    from bevo_ros.io.learned_params import LearnedParams
+
+    d = syn.make_drive(seed=5, duration=1.5, camera=syn.kitti_like_camera(scale=0.25), render=True)
+    T_true = d.camera.T_base_cam.double()
+    T_params = _rotated(T_true, pitch=math.radians(1.0))
+    config = BevoConfig()
+    config.camera = dataclasses.replace(
+        config.camera, fx=float(d.camera.K[0, 0]), fy=float(d.camera.K[1, 1]), cx=float(d.camera.K[0, 2]),
+        cy=float(d.camera.K[1, 2]), width=d.camera.width, height_px=d.camera.height_px,
+        mount_height=d.camera.mount_height, base_T_camera=T_params.reshape(-1).tolist())
+    config.filter.mounting_pitch, config.filter.mounting_roll = mounting_for_extrinsics((0.0, 0.0), T_true, T_params)
+    config.filter.mounting_reference = "camera"
+    true_camera = camera_model(dataclasses.replace(config.camera, base_T_camera=T_true.reshape(-1).tolist()))
+    switch = 8
+
+    def run(switch_at: int | None) -> list:
+        odo = build_odometry(config, LearnedParams(), true_camera if switch_at is None else camera_model(config.camera))
+        steps, frames = [], {int(i): k for k, i in enumerate(d.frame_imu_index)}
+        for i, t in enumerate(d.imu_stamps):
+            odo.add_imu(float(t), d.gyro[i], d.accel[i])
+            if i in frames:
+                if frames[i] == switch_at:
+                    odo.set_camera(true_camera)
+                steps += odo.add_image(float(t), d.images[frames[i]])
+        return steps
+
+    want, got = run(None), run(switch)
+    a, b = want[switch], got[switch]
+    print(f"frame {switch}, the first with /tf_static's extrinsics: pitch-change shift {a.pitch_shift:+.4f} / "
+          f"{b.pitch_shift:+.4f} m, accepted {a.accepted} / {b.accepted}")
+    assert abs(b.pitch_shift - a.pitch_shift) < 0.005 and b.accepted == a.accepted == (True, True)
+    # the camera sits 1.3 cm further forward on the road and the DUKF started from the params' mounting:
+    # millimetres per frame, before the switch as after it
+    dx = np.array([s.motion[0] for s in got]) - np.array([s.motion[0] for s in want])
+    assert np.abs(dx).max() < 0.02 and sum(s.motion[0] for s in want) > 8.0

@@ -355,9 +355,11 @@ class BevoOdometry:
                 old = self._mounting
                 self._mounting = self.mounting_attitude if self._road_tilt.enabled else (0.0, 0.0)
                 dp, dr = self._mounting[0] - old[0], self._mounting[1] - old[1]
-                if dp or dr:  # the attitudes waiting for frames (a node's IMU before /tf_static) move with it
+                if dp or dr:  # the attitudes waiting for frames (a node's IMU before /tf_static) move with it,
                     self._history = deque(((t, (road[0] + dp, road[1] + dr), *rest) for t, road, *rest in self._history),
                                           maxlen=self._history.maxlen)
+                    if self._prev_pitch is not None:  # and so does the last frame's: the camera's tilt did not change
+                        self._prev_pitch = (self._prev_pitch[0] + dp, *self._prev_pitch[1:])
         self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
         self._shift_per_pitch_change = pitch_change_shift(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
         self._yaw_per_roll = roll_yaw_sensitivity(camera.mount_height)
