@@ -102,3 +102,21 @@ def test_dump_config_to_a_file_and_run_as_a_module(tmp_path):
     assert r.returncode == 0, r.stderr
     assert load_config(out)[0].bev == BevoConfig().bev
     assert "imu_topic" not in out.read_text()  # --engine-only
+
+
+def test_calibrate_prints_the_params_lines_with_their_reference(tmp_path, capsys):
+    """``bevo calibrate`` on a level synthetic drive (no mounting tilt, no road tilt): the pitch
+    comes back ~0, and the lines say the mounting was fitted through camera.base_T_camera
+    (``filter.mounting_reference: camera``); the three lines paste into a params file as YAML."""
+    from bevo_ros.datasets.rosbag import write_drive_bag
+    from bevo_ros.datasets.synthetic import make_drive
+
+    drive = make_drive(seed=3, duration=2.0, bumps=0.0, road_tilt=False, render="lazy")
+    bag_path = write_drive_bag(drive, tmp_path / "bag")
+    assert cli.main(["calibrate", str(bag_path), "--params", str(REPO_ROOT / "params" / "synthetic.yaml"),
+                     "--frames", "0:11"]) == 0
+    lines = [ln.strip() for ln in capsys.readouterr().out.splitlines() if ln.strip().startswith("filter.")]
+    params = yaml.safe_load("\n".join(lines))
+    assert set(params) == {"filter.mounting_pitch", "filter.mounting_roll", "filter.mounting_reference"}
+    assert params["filter.mounting_reference"] == "camera"
+    assert abs(params["filter.mounting_pitch"]) < 0.001  # rad: the drive's rig sits level on the road
