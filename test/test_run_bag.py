@@ -109,6 +109,20 @@ def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path):
     assert abs(math.degrees(roll)) < 0.5  # roll only shows through a small yaw bias: weakly observable
 
 
+def test_calibrate_on_a_stretch_no_attitude_matches_says_which_and_what_to_do(tmp_path):
+    """Images that match the ground truth at no constant attitude (here a frozen camera: every BEV
+    reads no motion, as heavy bumps leave it no consistent one): a ValueError naming the angle and
+    asking for a straight, smooth stretch."""
+    drive = make_drive(seed=4, duration=1.2, bumps=0.0, road_tilt=False, noise=False, render="lazy")
+    path = tmp_path / "bag"
+    write_drive_bag(drive, path)
+    config, _ = load_config(SYNTH_PARAMS)
+    seq = load_sequence(path, config)
+    seq.images = seq.images[:1].expand_as(seq.images).clone()
+    with pytest.raises(ValueError, match=r"^pitch: no attitude .* straight, smooth stretch"):
+        calibrate(seq, BevSpec())
+
+
 @pytest.mark.kitti
 def test_kitti_sample_end_to_end(kitti_root, tmp_path):
     """KITTI sample -> bag -> run_bag -> evaluate: trajectory, metrics and plots; prints RPE and drift."""
