@@ -299,12 +299,25 @@ def _tf_static(transforms):
     return msg
 
 
+def _node_on_tf_static(graph, params: dict, transforms):
+    """A node on ``params`` with ``transforms`` latched on /tf_static before it starts (a robot's
+    /tf_static is up before its sensors), their edges received before the data flows.
+    -> ``(node, imu_pub, image_pub, odometry received)``."""
+    from tf2_msgs.msg import TFMessage
+
+    graph.pub(TFMessage, "/tf_static", LATCHED).publish(_tf_static(transforms))
+    node = graph.node(params)
+    imu_pub, image_pub = graph.pub(Imu, "/imu/data"), graph.pub(Image, "/camera/image_rect")
+    odom = graph.sub(Odometry, "/bevo/odometry")
+    assert graph.until(lambda: imu_pub.get_subscription_count() and image_pub.get_subscription_count())
+    assert graph.until(lambda: len(node.static_tf.tree.edges) == len(transforms))
+    return node, imu_pub, image_pub, odom
+
+
 def test_tf_static_extrinsics_and_a_z_down_imu(graph, drive):
     """The params' extrinsics are wrong on purpose and the IMU is mounted z down: with the rig on
     /tf_static the node equals the offline engine fed the true extrinsics and base-frame IMU."""
     pytest.importorskip("tf2_msgs.msg")
-    from tf2_msgs.msg import TFMessage
-
     truth = overrides(drive)
     wrong = dict(truth)
     wrong["camera.base_T_camera"] = [0.0, 0.0, 1.0, 2.0, -1.0, 0.0, 0.0, 0.5, 0.0, -1.0, 0.0, 1.2, 0.0, 0.0, 0.0, 1.0]
@@ -313,15 +326,8 @@ def test_tf_static_extrinsics_and_a_z_down_imu(graph, drive):
     T_imu[:3, :3] = R_base_imu
     T_imu[:3, 3] = (0.2, 0.0, 0.1)
     T_cam = drive.camera.T_base_cam.double().numpy()
-    tf_pub = graph.pub(TFMessage, "/tf_static", LATCHED)
-    tf_pub.publish(_tf_static([("base_link", "imu_zdown", T_imu), ("base_link", "cam_optical", T_cam)]))
-
-    node = graph.node(wrong)
-    imu_pub, image_pub = graph.pub(Imu, "/imu/data"), graph.pub(Image, "/camera/image_rect")
-    odom = graph.sub(Odometry, "/bevo/odometry")
-    assert graph.until(lambda: imu_pub.get_subscription_count() and image_pub.get_subscription_count())
-    # the rig is latched before the data flows (a robot's /tf_static is up before its sensors)
-    assert graph.until(lambda: len(node.static_tf.tree.edges) == 2)
+    node, imu_pub, image_pub, odom = _node_on_tf_static(
+        graph, wrong, [("base_link", "imu_zdown", T_imu), ("base_link", "cam_optical", T_cam)])
     base_messages = drive_messages(drive)
     sent = []
     for kind, msg in base_messages:
@@ -373,13 +379,7 @@ def test_tf_static_extrinsics_keep_the_calibrated_cameras_tilt(graph, drive, ref
     params = dict(truth, **{"camera.base_T_camera": [float(v) for v in T_params.reshape(-1)],
                             "filter.mounting_pitch": calibrated[0], "filter.mounting_roll": calibrated[1],
                             "filter.mounting_reference": reference})
-    tf_pub = graph.pub(_tf_msg_type(), "/tf_static", LATCHED)
-    tf_pub.publish(_tf_static([("base_link", "cam_optical", T_true)]))
-    node = graph.node(params)
-    imu_pub, image_pub = graph.pub(Imu, "/imu/data"), graph.pub(Image, "/camera/image_rect")
-    odom = graph.sub(Odometry, "/bevo/odometry")
-    assert graph.until(lambda: imu_pub.get_subscription_count() and image_pub.get_subscription_count())
-    assert graph.until(lambda: len(node.static_tf.tree.edges) == 1)
+    node, imu_pub, image_pub, odom = _node_on_tf_static(graph, params, [("base_link", "cam_optical", T_true)])
     messages = drive_messages(drive)
     for kind, msg in messages:
         if kind == "image":
@@ -403,12 +403,6 @@ def test_tf_static_extrinsics_keep_the_calibrated_cameras_tilt(graph, drive, ref
     else:
         assert abs(used[0] - np.degrees(calibrated[0])) < 1e-9
         assert error > 0.05  # 1 deg of camera pitch: ~14 % of the BEV's scale at this geometry
-
-
-def _tf_msg_type():
-    from tf2_msgs.msg import TFMessage
-
-    return TFMessage
 
 
 # ------------------------------------------------------------------------------ compressed images

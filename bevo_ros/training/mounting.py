@@ -60,18 +60,17 @@ def calibrate(seq: Recording, spec: BevSpec, roll0: float = 0.0, dpc: DpcConfig 
     gt = seq.gt_motion()
     dist, yaw = float(gt[:, 0].sum()), float(gt[:, 2].sum())
     span = math.radians(3)
-    # The attitude is held constant: over bumps or in a bend the BEVs do not match at any one attitude.
-    hint = "; use a straight, smooth stretch of a few seconds at a steady speed (--frames)"
-    try:
-        pitches = find_roots(lambda p: float(constant_attitude_motion(seq, spec, p, roll0, dpc)[0][:, 0].sum()) - dist,
-                             -span, span)
-    except ValueError as exc:
-        raise ValueError(f"pitch: {exc} (distance {dist:.1f} m){hint}") from None
+    def solve(f, name: str, context: str) -> list[float]:
+        try:
+            return find_roots(f, -span, span)
+        except ValueError as exc:  # the attitude is held constant: over bumps or in a bend no one attitude fits
+            raise ValueError(f"{name}: {exc} ({context}); use a straight, smooth stretch of a few seconds at a "
+                             "steady speed (--frames)") from None
+
+    pitches = solve(lambda p: float(constant_attitude_motion(seq, spec, p, roll0, dpc)[0][:, 0].sum()) - dist,
+                    "pitch", f"distance {dist:.1f} m")
     pitch = max(pitches, key=lambda p: constant_attitude_motion(seq, spec, p, roll0, dpc)[1])
-    try:
-        rolls = find_roots(lambda r: float(constant_attitude_motion(seq, spec, pitch, r, dpc)[0][:, 2].sum()) - yaw,
-                           -span, span)
-    except ValueError as exc:
-        raise ValueError(f"roll: {exc} (yaw {math.degrees(yaw):+.1f} deg){hint}") from None
+    rolls = solve(lambda r: float(constant_attitude_motion(seq, spec, pitch, r, dpc)[0][:, 2].sum()) - yaw,
+                  "roll", f"yaw {math.degrees(yaw):+.1f} deg")
     roll = max(rolls, key=lambda r: constant_attitude_motion(seq, spec, pitch, r, dpc)[1])
     return pitch, roll
