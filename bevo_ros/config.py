@@ -270,16 +270,22 @@ def yaml_error_line(exc: Exception) -> str:
 
 
 def load_params_file(path: str | os.PathLike, node_name: str = "bevo_node") -> dict[str, Any]:
-    """Read a ROS 2 parameters YAML and return the node's parameters flattened to "a.b" keys."""
+    """Read a ROS 2 parameters YAML and return the node's parameters flattened to "a.b" keys: the
+    wildcard sections' (``/**``) with the node's own section over them, as ROS 2 applies a file."""
     path = Path(path)
     doc = read_yaml(path, "parameters file")
     if not isinstance(doc, dict):
         raise ConfigError(f"parameters file {path}: expected a mapping at the top level")
-    for key in (node_name, f"/{node_name}", "/**", "**"):
+    flat: dict[str, Any] = {}
+    found = False
+    for key in ("/**", "**", f"/{node_name}", node_name):  # the more specific last: it wins
         section = doc.get(key)
         if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
-            return _flatten(section["ros__parameters"])
-    raise ConfigError(f"parameters file {path}: no '{node_name}: ros__parameters:' section")
+            flat.update(_flatten(section["ros__parameters"]))
+            found = True
+    if not found:
+        raise ConfigError(f"parameters file {path}: no '{node_name}: ros__parameters:' section")
+    return flat
 
 
 def load_config(path: str | os.PathLike, node_name: str = "bevo_node") -> tuple[BevoConfig, dict[str, Any]]:
@@ -416,6 +422,19 @@ def resolve_path(name: str, base_dir: Path | None = None) -> Path:
 
 
 # --------------------------------------------------------------------------- engine factory
+def extrinsics_problem(T) -> str | None:
+    """Why ``T (4, 4)`` is no rigid transform (camera extrinsics), or None."""
+    T = np.asarray(T, dtype=np.float64).reshape(4, 4)
+    if not np.all(np.isfinite(T)):
+        return "not finite"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        return "last row must be [0, 0, 0, 1]"
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), rtol=0, atol=1e-4):
+        return "rotation part is not orthonormal"
+    return None
+
+
 def camera_model(settings: CameraSettings, K=None, width: int | None = None, height_px: int | None = None):
     """CameraModel from settings; ``K``/size (e.g. from CameraInfo) override the settings."""
     import torch
@@ -429,11 +448,8 @@ def camera_model(settings: CameraSettings, K=None, width: int | None = None, hei
         K = [[settings.fx, 0.0, settings.cx], [0.0, settings.fy, settings.cy], [0.0, 0.0, 1.0]]
         width, height_px = settings.width, settings.height_px
     T = torch.tensor(settings.base_T_camera, dtype=torch.float64).reshape(4, 4)
-    if not torch.allclose(T[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)):
-        raise ConfigError("camera.base_T_camera: last row must be [0, 0, 0, 1]")
-    R = T[:3, :3]
-    if not torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-4):
-        raise ConfigError("camera.base_T_camera: rotation part is not orthonormal")
+    if (problem := extrinsics_problem(T.numpy())) is not None:
+        raise ConfigError(f"camera.base_T_camera: {problem}")
     if settings.mount_height <= 0:
         raise ConfigError(f"camera.mount_height must be > 0 m, got {settings.mount_height}")
     from bevo_ros.core.validation import intrinsics_problem
@@ -449,6 +465,22 @@ def bev_spec(config: BevoConfig):
     from bevo_ros.core.geometry import BevSpec
 
     return BevSpec(config.bev.size, config.bev.metres_per_pixel, config.bev.forward_offset)
+
+
+def mounting_in_use(config: BevoConfig, T_base_cam) -> tuple[float, float]:
+    """The base's (pitch, roll) on the road the engine uses with a camera whose extrinsics are
+    ``T_base_cam (4, 4)``: ``filter.mounting_*`` as given (``mounting_reference: base``, or the
+    extrinsics are ``camera.base_T_camera``'s), else re-derived to keep the camera's tilt to the
+    road they were calibrated with (:func:`~bevo_ros.core.geometry.mounting_for_extrinsics`, as
+    :class:`~bevo_ros.core.odometry.BevoOdometry` does with ``mounting_extrinsics``). For the code
+    that runs the core without the engine (training)."""
+    from bevo_ros.core.geometry import mounting_for_extrinsics
+
+    mounting = (float(config.filter.mounting_pitch), float(config.filter.mounting_roll))
+    if config.filter.mounting_reference != "camera":
+        return mounting
+    calibrated = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
+    return mounting_for_extrinsics(mounting, calibrated, T_base_cam)
 
 
 def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):

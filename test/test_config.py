@@ -177,3 +177,51 @@ def test_phase_correlation_settings_reach_the_engine_from_the_parameters_file(tm
     p.write_text(yaml.safe_dump({"bevo_node": {"ros__parameters": {"dpc": {"radial_range": [0.3, 0.1]}}}}))
     with pytest.raises(ConfigError, match="dpc.*radial_range"):
         load_config(p)
+
+
+def test_params_file_sections_merge_as_ros_applies_them(tmp_path):
+    """A wildcard section ``/**`` and the node's own: both apply, the node's winning (ROS 2 loads a
+    file that way; the offline commands read the same file)."""
+    path = tmp_path / "p.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    base_frame: vehicle\n    bev.size: 64\n"
+                    "bevo_node:\n  ros__parameters:\n    bev.size: 80\n")
+    flat = load_params_file(path)
+    assert flat == {"base_frame": "vehicle", "bev.size": 80}
+    with pytest.raises(ConfigError, match="no 'bevo_node: ros__parameters:' section"):
+        path.write_text("other_node:\n  ros__parameters:\n    bev.size: 80\n")
+        load_params_file(path)
+
+
+def test_rig_frames_follow_the_nodes_settings_and_rules():
+    """The offline commands' rig frames: the node's parameters, defaults and coercion rule."""
+    from bevo_ros.datasets.rosbag import RigFrames
+    from bevo_ros.ros.settings import NodeSettings
+
+    node = NodeSettings()
+    assert RigFrames() == RigFrames.from_params({}) == RigFrames(node.base_frame, node.extrinsics_from_tf)
+    assert RigFrames.from_params({"base_frame": "vehicle", "extrinsics_from_tf": False}) == RigFrames("vehicle", False)
+    with pytest.raises(ConfigError, match="extrinsics_from_tf"):
+        RigFrames.from_params({"extrinsics_from_tf": "false"})  # a string is no bool (it would read as True)
+    with pytest.raises(ConfigError, match="base_frame"):
+        RigFrames.from_params({"base_frame": ""})
+
+
+def test_bad_tf_static_extrinsics_name_their_source():
+    """A bag whose /tf_static camera is no rigid transform: a ConfigError that names /tf_static, not
+    the parameter the user never set."""
+    import numpy as np
+
+    from bevo_ros.datasets.rosbag import camera_for_recording
+    from bevo_ros.io.bag import BagContents
+
+    config = BevoConfig()
+    config.camera = dataclasses.replace(config.camera, fx=700.0, fy=700.0, cx=600.0, cy=180.0, width=1226, height_px=370)
+    rec = BagContents("bag", np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64), None,
+                      image_frame_id="cam")
+    T = np.eye(4)
+    T[:3, :3] *= 2.0  # scaled: not a rotation
+    rec.static_tf.add("base_link", "cam", T)
+    with pytest.raises(ConfigError, match="camera extrinsics from /tf_static base_link -> cam unusable"):
+        camera_for_recording(rec, config)
+    rec.static_tf.add("base_link", "cam", np.eye(4))  # rigid: taken
+    assert np.allclose(camera_for_recording(rec, config).T_base_cam.numpy(), np.eye(4))

@@ -80,9 +80,12 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
         (_, _, tf), = bag.iter_messages(path, [bag.TF_STATIC_TOPIC])
         frames = {(t.header.frame_id, t.child_frame_id): t.transform for t in tf.transforms}
         assert set(frames) == {("base_link", "imu_link"), ("base_link", "camera_optical_frame")}
-        from bevo_ros.ros.tf import matrix_from_transform
-        assert np.allclose(matrix_from_transform(frames[("base_link", "camera_optical_frame")]), T_base_cam, atol=1e-6)  # KITTI rotations: 7 digits
+        from bevo_ros.io.static_tf import matrix_from_transform
+        # the chain is a rotation (KITTI's 7-digit product taken to the nearest one): the quaternion gives it back
+        assert np.allclose(matrix_from_transform(frames[("base_link", "camera_optical_frame")]), T_base_cam, atol=1e-12)
         assert np.allclose(matrix_from_transform(frames[("base_link", "imu_link")]), np.eye(4))
+        # ... and the offline commands' lookup in it (read_recording's tree), as the node's
+        assert np.allclose(rec.static_tf.lookup("base_link", rec.image_frame_id), T_base_cam, atol=1e-12)
         qos = bag.topic_qos(path)
         assert qos[bag.TF_STATIC_TOPIC].transient_local and not qos[bag.IMU_TOPIC].transient_local
         # IMU: exact values and exact nanosecond stamps.

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from bevo_ros.commands import run
-from helpers.node_support import KITTI_PARAMS, VENV_BIN, replay_into_node, write_params  # noqa: E402
+from helpers.node_support import KITTI_PARAMS, VENV_BIN, replay_into_node  # noqa: E402
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -56,20 +56,17 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path):
     drive = _drive(size)
     bag_path = write_drive_bag(drive, tmp_path / "bag", storage="mcap")
     assert bag.TF_STATIC_TOPIC in bag.bag_topics(bag_path)
-    # the offline engine with the rig the bag describes: CameraInfo (run_bag reads it) + the /tf_static camera,
-    # and the mounting the node re-derives for that camera (params/kitti.yaml's was calibrated through its own
-    # camera.base_T_camera, filter.mounting_reference: camera)
-    from bevo_ros.config import load_config
-    from bevo_ros.core.geometry import mounting_for_extrinsics
+    # `bevo run` with the same params takes the rig as the node does: CameraInfo, the /tf_static camera (not
+    # params/kitti.yaml's camera.base_T_camera) and the mounting re-derived for it (mounting_reference: camera)
+    from bevo_ros.config import load_config, mounting_in_use
 
     kitti, _ = load_config(KITTI_PARAMS)
     assert kitti.filter.mounting_reference == "camera"
-    T_bag = drive.camera.T_base_cam.double().numpy()
-    pitch, roll = mounting_for_extrinsics((kitti.filter.mounting_pitch, kitti.filter.mounting_roll),
-                                          np.asarray(kitti.camera.base_T_camera).reshape(4, 4), T_bag)
-    rig = write_params(tmp_path / "rig.yaml", {"camera.base_T_camera": [float(v) for v in T_bag.reshape(-1)],
-                                               "filter.mounting_pitch": pitch, "filter.mounting_roll": roll})
-    assert run.main([str(bag_path), "--out", str(tmp_path / "offline"), "--params", str(rig), "-q"]) == 0
+    assert not np.allclose(drive.camera.T_base_cam.double().numpy(), np.reshape(kitti.camera.base_T_camera, (4, 4)),
+                           atol=1e-3)  # another rig than the params'
+    pitch, _ = mounting_in_use(kitti, drive.camera.T_base_cam.double().numpy())
+    assert abs(pitch - kitti.filter.mounting_pitch) > 1e-3
+    assert run.main([str(bag_path), "--out", str(tmp_path / "offline"), "--params", str(KITTI_PARAMS), "-q"]) == 0
     expected = np.loadtxt(tmp_path / "offline" / "trajectory_tum.txt")
 
     play_args = ["--rate", "1.0", "--wait-for-subscribers", "30",  # the README's command
@@ -89,8 +86,7 @@ def test_readme_replay_command_works_for_every_kitti_image_size(size, tmp_path):
         w, h = KITTI_CAMERAS[size][:2]
         assert f"camera calibration from CameraInfo on /camera/camera_info: {w}x{h}" in out, out
         assert "camera extrinsics from /tf_static base_link -> camera_optical_frame" in out, out
-        if abs(pitch - kitti.filter.mounting_pitch) > 1e-5:  # the node says it re-derived the mounting
-            assert "keeping the camera's tilt to the road" in out, out
+        assert "keeping the camera's tilt to the road" in out, out  # the node says it re-derived the mounting
         got = listener.positions()
         # reliable inputs: every frame, each equal to run_bag's
         np.testing.assert_allclose(got[:, 0], expected[:, 0], atol=1e-9)

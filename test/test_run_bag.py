@@ -7,14 +7,16 @@ import math
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from bevo_ros.io import bag
 from bevo_ros.datasets import kitti
+from bevo_ros.commands import calibrate as calibrate_cmd
 from bevo_ros.commands import convert, evaluate, run
 from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry, load_config
 from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core.geometry import BevSpec
-from bevo_ros.datasets.rosbag import feed_engine, load_sequence, split_frames, write_drive_bag
+from bevo_ros.datasets.rosbag import RigFrames, feed_engine, load_sequence, split_frames, write_drive_bag
 from bevo_ros.training.mounting import calibrate
 from bevo_ros.datasets.synthetic import kitti_like_camera, make_drive
 
@@ -89,24 +91,118 @@ def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):
     assert (ev / "trajectory.png").stat().st_size > 1000
 
 
+def _pitched(T: np.ndarray, degrees: float) -> np.ndarray:
+    """``T_base_cam`` with the camera pitched ``degrees`` more nose down about the base's y axis."""
+    a = math.radians(degrees)
+    out = T.copy()
+    out[:3, :3] = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]) @ T[:3, :3]
+    return out
+
+
+def _positions(steps) -> np.ndarray:
+    return np.array([s.position for s in steps])
+
+
+def test_run_bag_takes_the_rig_from_tf_static_as_the_node_does(synthetic_bag):
+    """The params' camera is 1 deg of pitch off the bag's /tf_static one. ``bevo run`` takes the bag's
+    (bevo_node's ``extrinsics_from_tf``): the same trajectory as with the true camera in the params.
+    With ``mounting_reference: camera`` and a mounting calibrated through the params' camera, the
+    mounting is re-derived for the bag's camera, as in the node. Off (``extrinsics_from_tf: false``),
+    the params' camera tilts the BEV by that degree."""
+    import dataclasses
+
+    from bevo_ros.config import mounting_in_use
+    from bevo_ros.core.geometry import mounting_for_extrinsics
+    from bevo_ros.pipeline import run_bag
+
+    drive, path = synthetic_bag
+    truth, _ = load_config(SYNTH_PARAMS)
+    T_true = drive.camera.T_base_cam.double().numpy()
+    assert np.allclose(np.reshape(truth.camera.base_T_camera, (4, 4)), T_true, atol=1e-9)
+    T_params = _pitched(T_true, 1.0)
+
+    def config_with(reference: str, mounting: tuple[float, float]) -> BevoConfig:
+        c, _ = load_config(SYNTH_PARAMS)
+        c.camera = dataclasses.replace(c.camera, base_T_camera=T_params.reshape(-1).tolist())
+        c.filter = dataclasses.replace(c.filter, mounting_reference=reference, mounting_pitch=mounting[0],
+                                       mounting_roll=mounting[1])
+        return c
+
+    def run_it(config, frames=RigFrames()):
+        steps, _, odo = run_bag(path, config, config.learned_params_file, frames=frames)
+        return _positions(steps), odo
+
+    want, _ = run_it(truth)
+    path_length = float(np.linalg.norm(np.diff(want[:, :2], axis=0), axis=1).sum())
+    # base reference, mounting as given (the true one, level): the bag's camera is all that counts
+    got, odo = run_it(config_with("base", (0.0, 0.0)))
+    assert np.allclose(odo.camera.T_base_cam.double().numpy(), T_true, atol=1e-6)  # the engine's camera: float32
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    off, _ = run_it(config_with("base", (0.0, 0.0)), RigFrames(extrinsics_from_tf=False))
+    off_by = float(np.linalg.norm(off[-1, :2] - want[-1, :2])) / path_length
+    # camera reference: the mounting calibrated through the params' camera, re-derived for the bag's
+    calibrated = mounting_for_extrinsics((0.0, 0.0), T_true, T_params)
+    config = config_with("camera", calibrated)
+    assert np.abs(mounting_in_use(config, T_true)).max() < 1e-9
+    rederived, odo = run_it(config)
+    assert np.abs(odo.mounting_attitude).max() < 1e-9
+    print(f"\n/tf_static camera vs params 1 deg off: base reference equal to the true rig's run to "
+          f"{np.abs(got - want).max():.1e} m; camera reference {np.abs(rederived - want).max():.1e} m; "
+          f"extrinsics_from_tf false: endpoint {100 * off_by:.1f} % of {path_length:.1f} m off")
+    np.testing.assert_allclose(rederived, want, atol=1e-6)
+    assert off_by > 0.05  # 1 deg of camera pitch: ~14 % of the BEV's scale
+
+
+def test_run_bag_and_load_sequence_rotate_an_imu_in_other_axes(tmp_path, synthetic_bag):
+    """An IMU mounted z down (its axes on /tf_static): ``bevo run`` and the training loader rotate its
+    vectors into the base's axes as the node does, the same run as with a base-aligned IMU."""
+    from bevo_ros.pipeline import run_bag
+
+    drive, base_path = synthetic_bag
+    R = np.diag([1.0, -1.0, -1.0])  # x forward, y right, z down
+    path = write_drive_bag(drive, tmp_path / "zdown", imu_axes=R)
+    config, _ = load_config(SYNTH_PARAMS)
+    raw = bag.read_recording(path, load_images=False)
+    assert np.allclose(raw.gyro, bag.read_recording(base_path, load_images=False).gyro @ R)  # written in its axes
+    want = _positions(run_bag(base_path, config, config.learned_params_file)[0])
+    got = _positions(run_bag(path, config, config.learned_params_file)[0])
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    seq, base_seq = load_sequence(path, config), load_sequence(base_path, config)
+    assert torch.equal(seq.gyro, base_seq.gyro) and torch.equal(seq.accel, base_seq.accel)
+    unrotated = _positions(run_bag(path, config, config.learned_params_file, frames=RigFrames(extrinsics_from_tf=False))[0])
+    assert np.abs(unrotated - want).max() > 0.1  # upside-down gravity: the attitude and the BEV go
+
+
 def test_run_bag_reports_user_errors(tmp_path, capsys):
     assert run.main([str(tmp_path / "absent"), "--out", str(tmp_path / "o"), "-q"]) == 2
     assert "error" in capsys.readouterr().err
 
 
-def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path):
-    """Render with the camera pitched 1 deg down on the base; calibrate against a level model."""
+def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path, capsys):
+    """Render with the camera pitched 1 deg down on the base; calibrate against a level model (the
+    params' camera), and through the bag's rig (its /tf_static holds the tilted camera: nothing left
+    to calibrate). ``bevo calibrate`` fits through the bag's rig and prints the angles for the
+    params' camera: the tilt again."""
     tilt = math.radians(1.0)
     drive = make_drive(seed=4, duration=2.5, bumps=0.0, road_tilt=False, noise=False, render="lazy",
                        camera=kitti_like_camera(mount_pitch=tilt), curvature=0.3)
     path = tmp_path / "tilted"
     write_drive_bag(drive, path)
     config, _ = load_config(SYNTH_PARAMS)  # level camera on the base
-    seq = load_sequence(path, config)
+    seq = load_sequence(path, config, frames=RigFrames(extrinsics_from_tf=False))
     pitch, roll = calibrate(seq, BevSpec())
-    print(f"\ncalibrated mounting pitch {math.degrees(pitch):+.3f} deg (true +1.000), roll {math.degrees(roll):+.3f} deg (true 0)")
+    rig_pitch, _ = calibrate(load_sequence(path, config), BevSpec())  # the bag's /tf_static: the tilted camera
+    capsys.readouterr()
+    assert calibrate_cmd.main([str(path), "--params", str(SYNTH_PARAMS), "--frames", f"0:{len(seq)}"]) == 0
+    printed = yaml.safe_load("\n".join(line for line in capsys.readouterr().out.splitlines()[1:]))
+    with capsys.disabled():
+        print(f"\ncalibrated mounting pitch {math.degrees(pitch):+.3f} deg (true +1.000), roll {math.degrees(roll):+.3f} "
+              f"deg (true 0); through the bag's rig {math.degrees(rig_pitch):+.3f} deg (true 0); bevo calibrate "
+              f"{math.degrees(printed['filter.mounting_pitch']):+.3f} deg for the params' camera")
     assert abs(math.degrees(pitch) - 1.0) < 0.15
     assert abs(math.degrees(roll)) < 0.5  # roll only shows through a small yaw bias: weakly observable
+    assert abs(math.degrees(rig_pitch)) < 0.15
+    assert abs(math.degrees(printed["filter.mounting_pitch"]) - math.degrees(rig_pitch) - 1.0) < 0.01
 
 
 def test_calibrate_on_a_stretch_no_attitude_matches_says_which_and_what_to_do(tmp_path):

@@ -95,13 +95,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _ablation(args: argparse.Namespace) -> int:
     from bevo_ros.config import load_config
+    from bevo_ros.datasets.rosbag import RigFrames
 
     out = Path(args.out)
     t_start = time.perf_counter()
     if not args.bags and args.synthetic is None:
         raise ValueError("give at least one BAG or --synthetic SECONDS")
     out.mkdir(parents=True, exist_ok=True)
-    config, _ = load_config(args.params)
+    config, flat = load_config(args.params)
     options = AblationOptions(
         params=args.params, learned=args.learned, train=args.train, fused_learned=args.fused_learned,
         epochs=args.epochs, lr=args.lr, seed=args.seed, init=tuple(args.init) if args.init else None,
@@ -109,7 +110,8 @@ def _ablation(args: argparse.Namespace) -> int:
         empirical_q=args.empirical_Q, synthetic=args.synthetic, synthetic_seed=args.synthetic_seed,
         bumps=args.bumps, noise=args.noise, image_scale=args.image_scale, device=args.device, quiet=args.quiet)
     result = run_ablation(args.bags, config, options, out,
-                          warn=lambda msg: print(f"ablation: warning: {msg}", file=sys.stderr))
+                          warn=lambda msg: print(f"ablation: warning: {msg}", file=sys.stderr),
+                          frames=RigFrames.from_params(flat))
     print(result.notes)
     print(f"wrote {out / 'ablation.md'}, {out / 'ablation.json'} and the plots in {time.perf_counter() - t_start:.0f} s")
     return 0

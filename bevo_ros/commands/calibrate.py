@@ -10,8 +10,10 @@ ground truth (a "calibration drive"):
   roll:  bisection until the summed BEV yaw matches the ground truth's (a roll error shears the BEV).
 
 Both use a constant attitude (no filter), so the result is the rig's, not the road's.
-Prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera` (they
-were fitted through `camera.base_T_camera`, so the camera's tilt to the road is what was measured).
+Prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera`. The
+fit runs through the bag's rig as bevo_node takes it (its /tf_static, else `camera.base_T_camera`);
+what it measures is the camera's tilt to the road, and the angles are printed for
+`camera.base_T_camera`, the extrinsics the params file pairs them with.
 """
 from __future__ import annotations
 
@@ -19,9 +21,12 @@ import argparse
 import math
 import sys
 
+import numpy as np
+
 from bevo_ros.commands import add_params_option, new_parser
 from bevo_ros.config import ConfigError, bev_spec, load_config
-from bevo_ros.datasets.rosbag import load_sequence
+from bevo_ros.datasets.rosbag import RigFrames, load_sequence
+from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.training.mounting import calibrate
 
 
@@ -36,8 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        config, _ = load_config(args.params)
-        seq = load_sequence(args.bag, config)
+        config, flat = load_config(args.params)
+        seq = load_sequence(args.bag, config, frames=RigFrames.from_params(flat))
         start, stop = (int(v) for v in args.frames.split(":"))
         if not 0 <= start < stop - 1 < len(seq):
             raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)}")
@@ -51,9 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"calibrate_mounting: error: {exc}", file=sys.stderr)
         return 1
+    # Measured through the bag's rig (its /tf_static, as the node takes it): the camera's tilt to the
+    # road. Written for camera.base_T_camera, with which the params lines below go.
+    params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
+    pitch, roll = mounting_for_extrinsics((pitch, roll), seq.camera.T_base_cam, params_chain)
     print(f"calibrated on frames {args.frames} ({float(seq.gt_motion()[:, 0].sum()):.1f} m):")
     print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, nose down")
     print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, left side up")
-    # Fitted through camera.base_T_camera: the camera's tilt to the road is what was measured.
-    print("    filter.mounting_reference: camera   # calibrated through camera.base_T_camera (kept with /tf_static extrinsics)")
+    # Written for camera.base_T_camera: the camera's tilt to the road is what was measured.
+    print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
     return 0

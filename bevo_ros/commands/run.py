@@ -16,11 +16,10 @@ import argparse
 import time
 from pathlib import Path
 
-import numpy as np
-
 from bevo_ros.commands import DEFAULT_PARAMS  # noqa: F401 (re-exported: tests load the default parameters)
 from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
 from bevo_ros.config import load_config
+from bevo_ros.datasets.rosbag import RigFrames, extrinsics_for_recording
 from bevo_ros.io import bag
 from bevo_ros.pipeline import run_bag, write_outputs
 
@@ -47,17 +46,18 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    config, _ = load_config(args.params)
+    config, flat = load_config(args.params)
+    frames = RigFrames.from_params(flat)
     if args.mode:
         config.odometry.mode = args.mode
     learned = args.learned or config.learned_params_file
     t0 = time.perf_counter()
     steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
-                              progress=not args.quiet)
+                              progress=not args.quiet, frames=frames)
     elapsed = time.perf_counter() - t0
     if len(steps) < 2:
         raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
-    T_base_cam = np.array(config.camera.base_T_camera, dtype=float).reshape(4, 4)
+    T_base_cam, _ = extrinsics_for_recording(rec, config, frames)  # the extrinsics the engine used (float64)
     paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
     c = odo.counters
     print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "

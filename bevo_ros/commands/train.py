@@ -107,7 +107,7 @@ def _checkpoint(args: argparse.Namespace) -> Path:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from bevo_ros.datasets.rosbag import load_sequence
+    from bevo_ros.datasets.rosbag import RigFrames, load_sequence
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, train
     from bevo_ros.training.suspension import fit_suspension_on_sequences
@@ -121,7 +121,7 @@ def _train(args: argparse.Namespace) -> int:
         sigma_angle=math.radians(args.sigma_angle), sigma_shift=args.sigma_shift, seed=args.seed,
         init=tuple(args.init) if args.init else None, init_search=args.init_search, device=args.device)
     options.check()
-    config, _ = load_config(args.params)
+    config, flat = load_config(args.params)
     # What O/Q training does not learn comes from the configuration's learned file: the suspension
     # gradients and the vehicle noise as the starts of their own fits (else a trained file would
     # silently drop the suspension model the engine uses). Read before training, so a bad
@@ -130,7 +130,7 @@ def _train(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     seqs = []
     for b in args.bags:
-        s = load_sequence(b, config)
+        s = load_sequence(b, config, frames=RigFrames.from_params(flat))
         seqs.append(s)
         print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
               f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")

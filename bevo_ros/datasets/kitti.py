@@ -339,6 +339,11 @@ def imu_to_camera_extrinsics(raw_calib_dir: PathLike, cam: int = 0) -> np.ndarra
     cameras share ``R_rect_00`` and are offset by ``P_rect_0i``'s translation
     (``t = K^-1 P[:, 3]``). Camera 0 is the frame of the odometry poses.
     ``T_base_cam = inv(T_cam_imu)`` (base = IMU).
+
+    The product of KITTI's matrices (7 digits) is orthonormal only to ~5e-8: its rotation is taken
+    to the nearest one, so that the chain is rigid (``invert_rigid`` exact) and equals what a bag's
+    ``/tf_static`` quaternion of it gives back (``bevo run`` and bevo_node take the rig from there;
+    otherwise the ground truth converted through it moves by ~3e-6 m on the way back).
     """
     d = _require_dir(raw_calib_dir, "raw calibration")
     T_velo_imu = raw_rigid_transform(d / "calib_imu_to_velo.txt")
@@ -353,6 +358,12 @@ def imu_to_camera_extrinsics(raw_calib_dir: PathLike, cam: int = 0) -> np.ndarra
         shift = np.eye(4)
         shift[:3, 3] = np.linalg.solve(P[:, :3], P[:, 3])
         T = shift @ T
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt  # the nearest orthonormal matrix
+    if np.linalg.det(R) < 0 or np.abs(R - T[:3, :3]).max() > 1e-4:
+        raise ValueError(f"{d}: the calibration chain's rotation is no rotation (det {np.linalg.det(T[:3, :3]):.6f}, "
+                         f"{np.abs(R - T[:3, :3]).max():.1e} off the nearest orthonormal matrix): a broken file?")
+    T[:3, :3] = R
     return T
 
 

@@ -6,7 +6,7 @@ so every tool reads a recording the same way.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -14,7 +14,8 @@ import numpy as np
 import torch
 
 from bevo_ros.io import bag
-from bevo_ros.config import BevoConfig, camera_model
+from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS
+from bevo_ros.config import BevoConfig, ConfigError, camera_model, coerce_setting, extrinsics_problem
 from bevo_ros.core.geometry import CameraModel, rpy_from_rotation
 
 PathLike = str | os.PathLike
@@ -22,14 +23,16 @@ PathLike = str | os.PathLike
 
 # --------------------------------------------------------------------------- synthetic -> bag
 def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: bool = False,
-                    frame_range: tuple[int, int] | None = None) -> Path:
+                    frame_range: tuple[int, int] | None = None, imu_axes: np.ndarray | None = None) -> Path:
     """Write a :class:`bevo_ros.datasets.synthetic.drive.SyntheticDrive` as a rosbag2 with KITTI-like topics.
 
     Sensor topics carry only what sensors give (raw IMU, images, CameraInfo) plus the rig on
     ``/tf_static`` (base_link -> imu_link, base_link -> camera_optical_frame); ground truth goes to
     ``/ground_truth/odometry`` (base pose in ``odom``, identity at the first written frame) and
     ``/ground_truth/imu`` (gravity-referenced attitude). ``frame_range`` = (first, stop) frames;
-    the IMU is cut to the same time span.
+    the IMU is cut to the same time span. ``imu_axes``: ``R_base_imu (3, 3)`` of an IMU mounted in
+    other axes (e.g. z down): its rates and accelerations are written in them, the rotation on
+    ``/tf_static`` (default: the base's axes).
     """
     from bevo_ros.datasets.synthetic.drive import base_poses_4x4
 
@@ -44,13 +47,21 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
         imu_sel = np.nonzero((drive.imu_stamps >= t_lo - 0.5) & (drive.imu_stamps <= t_hi))[0]
         t_first = float(drive.imu_stamps[imu_sel[0]]) if len(imu_sel) else float(t_lo)
         # the rig, latched: the synthetic IMU is the base frame; the camera is T_base_cam
-        w.write_tf_static(t_first, [("base_link", "imu_link", np.eye(4)),
+        T_base_imu = np.eye(4)
+        R_imu_base = np.eye(3)
+        if imu_axes is not None:
+            T_base_imu[:3, :3] = imu_axes
+            R_imu_base = np.asarray(imu_axes, dtype=np.float64).T
+        w.write_tf_static(t_first, [("base_link", "imu_link", T_base_imu),
                                     ("base_link", "camera_optical_frame", cam.T_base_cam.double().numpy())])
         for i in range(f0, f1):
             s = drive.frame_stamps[i]
             while k < len(imu_sel) and drive.imu_stamps[imu_sel[k]] <= s:
                 j = imu_sel[k]
-                w.write_imu(float(drive.imu_stamps[j]), drive.gyro[j], drive.accel[j], frame_id="imu_link")
+                gyro, accel = drive.gyro[j], drive.accel[j]
+                if imu_axes is not None:
+                    gyro, accel = R_imu_base @ np.asarray(gyro, np.float64), R_imu_base @ np.asarray(accel, np.float64)
+                w.write_imu(float(drive.imu_stamps[j]), gyro, accel, frame_id="imu_link")
                 k += 1
             w.write_camera_info(float(s), K, cam.width, cam.height_px, frame_id="camera_optical_frame")
             w.write_image(float(s), np.asarray(drive.images[i]), frame_id="camera_optical_frame")
@@ -99,18 +110,67 @@ class Recording:
                          None if self.gt_pitch_roll is None else self.gt_pitch_roll[start:stop], self.name)
 
 
-def camera_for_recording(rec: bag.BagContents, config: BevoConfig) -> CameraModel:
-    """Intrinsics from the bag's CameraInfo (else the parameters), extrinsics from the parameters.
+@dataclass(frozen=True)
+class RigFrames:
+    """Where the offline commands take the rig from: as bevo_node does, with its parameters of the
+    same names (a params file's values, :meth:`from_params`). ``extrinsics_from_tf``: the camera's
+    extrinsics from the bag's ``/tf_static`` ``base_frame -> image frame`` and the IMU's axes from
+    ``base_frame -> IMU frame`` when there (else ``camera.base_T_camera`` and IMU axes = base axes)."""
+
+    base_frame: str = "base_link"
+    extrinsics_from_tf: bool = True
+
+    @classmethod
+    def from_params(cls, flat: dict, source: str | None = None) -> "RigFrames":
+        """From a params file's flat parameters (``bevo_ros.config.load_config``'s second value), by
+        the node's rules (a bool only from a bool; ``base_frame`` not empty)."""
+        base = coerce_setting(flat.get("base_frame", cls.base_frame), cls.base_frame, "base_frame", source)
+        from_tf = coerce_setting(flat.get("extrinsics_from_tf", cls.extrinsics_from_tf), cls.extrinsics_from_tf,
+                                 "extrinsics_from_tf", source)
+        if not base.strip("/ "):
+            raise ConfigError("base_frame must not be empty" + (f" ({source})" if source else ""))
+        return cls(base, from_tf)
+
+
+def extrinsics_for_recording(rec: bag.BagContents, config: BevoConfig,
+                             frames: RigFrames = RigFrames()) -> tuple[np.ndarray, str]:
+    """``(base_T_camera (4, 4), source)``: the bag's ``/tf_static`` ``base_frame -> image frame``
+    when it has it (and ``frames.extrinsics_from_tf``), else ``camera.base_T_camera``: bevo_node's
+    choice (``bevo_ros.ros.rig``), so that ``bevo run`` equals the node replaying the bag."""
+    if frames.extrinsics_from_tf and rec.image_frame_id:
+        T = rec.static_tf.lookup(frames.base_frame, rec.image_frame_id)
+        if T is not None:
+            return T, f"/tf_static {frames.base_frame} -> {rec.image_frame_id.lstrip('/')}"
+    return np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4), PARAMETERS_EXTRINSICS
+
+
+def imu_rotation_for_recording(rec: bag.BagContents, frame_id: str, frames: RigFrames = RigFrames()) -> np.ndarray | None:
+    """Rotation taking the IMU's ``frame_id`` axes into ``base_frame``'s (the bag's ``/tf_static``),
+    None for the same axes or no such transform (the node then takes the IMU axes as the base's)."""
+    frame = frame_id.lstrip("/")
+    if not frames.extrinsics_from_tf or not frame or frame == frames.base_frame.lstrip("/"):
+        return None
+    T = rec.static_tf.lookup(frames.base_frame, frame)
+    return None if T is None else T[:3, :3].copy()
+
+
+def camera_for_recording(rec: bag.BagContents, config: BevoConfig, frames: RigFrames = RigFrames()) -> CameraModel:
+    """Intrinsics from the bag's CameraInfo (else the parameters), extrinsics as
+    :func:`extrinsics_for_recording` (the bag's ``/tf_static``, else the parameters).
 
     Uses ``P[:3, :3]``, the rectified camera matrix, as bevo_node does by default
     (``camera_info_use_p``): the images are rectified, and for them K and P can differ.
     """
+    T, source = extrinsics_for_recording(rec, config, frames)
+    if source != PARAMETERS_EXTRINSICS and (problem := extrinsics_problem(T)) is not None:
+        raise ConfigError(f"{rec.path}: camera extrinsics from {source} unusable: {problem}")
+    settings = replace(config.camera, base_T_camera=T.reshape(-1).tolist())
     if rec.camera_info is not None:
         ci = rec.camera_info
         P = np.asarray(ci.P, dtype=np.float64).reshape(3, 4)
         K = P[:, :3] if P[0, 0] > 0 else ci.K
-        return camera_model(config.camera, K=K, width=ci.width, height_px=ci.height)
-    return camera_model(config.camera)
+        return camera_model(settings, K=K, width=ci.width, height_px=ci.height)
+    return camera_model(settings)
 
 
 def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
@@ -123,15 +183,24 @@ def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np
     return gt_poses[idx]
 
 
-def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = True) -> Recording:
+def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = True,
+                  frames: RigFrames = RigFrames()) -> Recording:
     """Read a bag written by ``bevo convert`` or :func:`write_drive_bag` into a :class:`Recording`.
 
-    Frames before the first IMU sample are dropped (the filter has nothing to say about them).
+    Frames before the first IMU sample are dropped (the filter has nothing to say about them). The
+    rig as bevo_node takes it (:class:`RigFrames`): the camera from the bag's ``/tf_static`` when
+    there, the IMU's vectors rotated into ``base_frame``'s axes.
     """
     rec = bag.read_recording(bag_path)
     if rec.images is None or len(rec.frame_stamps_ns) < 2:
         raise ValueError(f"{bag_path}: needs at least 2 images")
-    camera = camera_for_recording(rec, config)
+    camera = camera_for_recording(rec, config, frames)
+    ids = np.asarray(rec.imu_frame_ids, dtype=object)
+    for frame in dict.fromkeys(rec.imu_frame_ids):  # each IMU frame's samples, as the node rotates each message
+        R = imu_rotation_for_recording(rec, frame, frames)
+        if R is not None:
+            rows = ids == frame
+            rec.gyro[rows], rec.accel[rows] = rec.gyro[rows] @ R.T, rec.accel[rows] @ R.T
     fs = rec.frame_stamps
     keep = fs >= rec.imu_stamps[0]
     gt = gt_pr = None

@@ -25,6 +25,7 @@ from typing import Any, Iterator, Sequence
 import numpy as np
 
 from bevo_ros.io.ros_conversions import ns_to_seconds, quaternion_from_rpy, stamp_to_ns  # noqa: F401 - one place
+from bevo_ros.io.static_tf import StaticTree
 
 PathLike = str | Path
 
@@ -612,6 +613,8 @@ class BagContents:
         camera_info: the first CameraInfo message, or None.
         gt_stamps: ``(G,)``; gt_poses: ``(G, 4, 4)`` base poses in ``gt_frame_id``, or None.
         gt_att_stamps, gt_roll, gt_pitch, gt_yaw: ``(A,)`` attitude of the ground-truth Imu, or None.
+        static_tf: the transforms of every ``/tf_static`` message (the rig, as bevo_node reads it).
+        imu_frame_id, image_frame_id: the last non-empty ``frame_id``; imu_frame_ids: each IMU sample's.
     """
 
     path: Path
@@ -633,6 +636,8 @@ class BagContents:
     gt_pitch: np.ndarray | None = None
     gt_yaw: np.ndarray | None = None
     topics: dict[str, tuple[str, int]] = field(default_factory=dict)
+    static_tf: StaticTree = field(default_factory=StaticTree)
+    imu_frame_ids: list[str] = field(default_factory=list)  # per IMU sample
 
     @property
     def imu_stamps(self) -> np.ndarray:
@@ -677,6 +682,8 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
         raise BagError(f"{path}: required topic(s) {', '.join(missing)} missing "
                        f"(the bag has: {', '.join(sorted(topics)) or 'none'})")
     wanted = [t for t in names.values() if t in topics]
+    if TF_STATIC_TOPIC in topics and topics[TF_STATIC_TOPIC][0] == TF_MSG:
+        wanted.append(TF_STATIC_TOPIC)
 
     imu_t, gyro, accel = [], [], []
     frame_t, images = [], []
@@ -690,10 +697,11 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
             imu_t.append(stamp_to_ns(msg.header.stamp))
             gyro.append((msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z))
             accel.append((msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z))
-            rec.imu_frame_id = msg.header.frame_id
+            rec.imu_frame_ids.append(msg.header.frame_id)
+            rec.imu_frame_id = msg.header.frame_id or rec.imu_frame_id
         elif topic == image_topic:
             frame_t.append(stamp_to_ns(msg.header.stamp))
-            rec.image_frame_id = msg.header.frame_id
+            rec.image_frame_id = msg.header.frame_id or rec.image_frame_id  # an empty one keeps the last (the node's rig)
             rec.image_encoding = getattr(msg, "encoding", None) or getattr(msg, "format", "")  # CompressedImage: format
             if load_images:
                 try:
@@ -719,6 +727,8 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
             gt_t.append(stamp_to_ns(msg.header.stamp))
             gt_T.append(T)
             rec.gt_frame_id, rec.gt_child_frame_id = msg.header.frame_id, msg.child_frame_id
+        elif topic == TF_STATIC_TOPIC:
+            rec.static_tf.add_message(msg)
         elif topic == gt_imu_topic:
             if msg.orientation_covariance[0] == -1.0:
                 continue  # no attitude in this message

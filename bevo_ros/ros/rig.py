@@ -20,6 +20,7 @@ import numpy as np
 
 from bevo_ros.config import BevoConfig, ConfigError, camera_model
 from bevo_ros.core.validation import intrinsics_problem
+from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS
 from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from_camera_info,
                                  calibration_from_parameters, same_camera_info)
 from bevo_ros.ros.diagnostics import OK, WARN, Report, SensorState
@@ -27,7 +28,6 @@ from bevo_ros.ros.settings import NodeSettings
 from bevo_ros.ros.tf import StaticTransforms
 from bevo_ros.io.ros_conversions import ImageConversionError, image_to_gray, stamp_to_sec
 
-PARAMETERS_EXTRINSICS = "parameters camera.base_T_camera"
 
 
 class Rig:

@@ -6,61 +6,12 @@ publisher sends its whole set once, and a tree of rigid transforms answers every
 """
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
+
+from bevo_ros.io.static_tf import StaticTree, matrix_from_transform
 
 # tf2_ros's static listener QoS: a late subscriber still gets every latched transform.
 TF_STATIC_DEPTH = 100
-
-
-def matrix_from_transform(t: Any) -> np.ndarray:
-    """geometry_msgs/Transform -> ``(4, 4)`` (pose of the child in the parent)."""
-    from bevo_ros.io.bag import matrix_from_quaternion
-
-    q, p = t.rotation, t.translation
-    T = np.eye(4)
-    T[:3, :3] = matrix_from_quaternion((q.x, q.y, q.z, q.w))
-    T[:3, 3] = (p.x, p.y, p.z)
-    return T
-
-
-class StaticTree:
-    """The static transforms received so far: ``child -> (parent, T_parent_child)``."""
-
-    def __init__(self) -> None:
-        self.edges: dict[str, tuple[str, np.ndarray]] = {}
-        self.version = 0  # bumped whenever an edge changes (callers re-read what they derived)
-
-    def add(self, parent: str, child: str, T: np.ndarray) -> None:
-        parent, child = parent.lstrip("/"), child.lstrip("/")
-        old = self.edges.get(child)
-        if old is None or old[0] != parent or not np.allclose(old[1], T, rtol=0, atol=1e-12):
-            self.edges[child] = (parent, np.asarray(T, dtype=np.float64))
-            self.version += 1
-
-    def _to_root(self, frame: str) -> tuple[str, np.ndarray]:
-        """``(root, T_root_frame)``: up the tree from ``frame`` (cycle-safe)."""
-        T, seen = np.eye(4), {frame}
-        while frame in self.edges:
-            parent, T_pc = self.edges[frame]
-            if parent in seen:
-                break
-            T = T_pc @ T
-            seen.add(parent)
-            frame = parent
-        return frame, T
-
-    def lookup(self, target: str, source: str) -> np.ndarray | None:
-        """``T_target_source`` (pose of ``source`` in ``target``), None when not connected."""
-        target, source = target.lstrip("/"), source.lstrip("/")
-        if target == source:
-            return np.eye(4)
-        root_s, T_rs = self._to_root(source)
-        root_t, T_rt = self._to_root(target)
-        if root_s != root_t:
-            return None
-        return np.linalg.inv(T_rt) @ T_rs
 
 
 class StaticTransforms:
@@ -113,8 +64,7 @@ class StaticTransforms:
             self._sub_poll_broken = True
 
     def _on_tf_static(self, msg) -> None:
-        for t in msg.transforms:
-            self.tree.add(t.header.frame_id, t.child_frame_id, matrix_from_transform(t.transform))
+        self.tree.add_message(msg)
 
     @property
     def version(self) -> int:

@@ -45,7 +45,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from bevo_ros.config import BevoConfig, bev_spec, read_yaml
+from bevo_ros.config import BevoConfig, bev_spec, mounting_in_use, read_yaml
 from bevo_ros.io.learned_params import LearnedParams, provenance, save_learned_params
 from bevo_ros.io.files import atomic_write_text
 from bevo_ros.core.device import resolve_device
@@ -182,7 +182,8 @@ def sequence_pass(
     need_grad = backward and source == "dukf" and dukf is not None
     if turn_compensation is None:
         turn_compensation = bool(getattr(config.filter, "turn_compensation", False))
-    mounting = (float(getattr(config.filter, "mounting_pitch", 0.0)), float(getattr(config.filter, "mounting_roll", 0.0)))
+    # the engine's mounting for this recording's camera (re-derived for other extrinsics, e.g. the bag's /tf_static)
+    mounting = mounting_in_use(config, seq.camera.T_base_cam)
     gt = seq.gt_motion() if seq.gt_poses is not None else None
     targets = registration_targets(gt.to(dev), spec) if gt is not None else None
 
