@@ -29,8 +29,8 @@ from bevo_ros.core.mosaic import mosaic_to_map
 from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
 from bevo_ros.datasets import kitti
-from bevo_ros.datasets.rosbag import (PARAMETERS_EXTRINSICS, RigFrames, camera_for_recording, extrinsics_for_recording, gt_at,
-                                      imu_rotation_for_recording)
+from bevo_ros.datasets.rosbag import (PARAMETERS_EXTRINSICS, RigSettings, calibration_for_recording, camera_for_recording,
+                                      extrinsics_for_recording, gt_at, imu_rotation_for_recording)
 from bevo_ros.evaluation.metrics import evaluate_trajectories, pitch_roll_errors, read_pitch_roll_csv
 from bevo_ros.evaluation.report import write_report
 from bevo_ros.io import bag
@@ -41,18 +41,20 @@ from bevo_ros.io.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_
 
 def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
         image_topic: str = bag.IMAGE_TOPIC, first_frame: int = 0, progress: bool = False,
-        frames: RigFrames = RigFrames()) -> tuple[list[OdometryStep], bag.BagContents, BevoOdometry]:
+        rig: RigSettings = RigSettings()) -> tuple[list[OdometryStep], bag.BagContents, BevoOdometry]:
     """Feed a bag through the engine; returns the per-frame results, the recording (no images) and the engine.
 
-    The rig as bevo_node takes it (``frames``: its ``base_frame`` and ``extrinsics_from_tf``): the
-    camera's extrinsics and the IMU's axes from the bag's ``/tf_static`` when there
+    The rig and calibration as bevo_node takes them (``rig``: its parameters of the same names): the
+    camera's intrinsics from the bag's CameraInfo (images undistorted where it says so), its
+    extrinsics and the IMU's axes from the bag's ``/tf_static`` when there
     (:func:`~bevo_ros.datasets.rosbag.extrinsics_for_recording` of the recording returned says which)."""
     rec = bag.read_recording(bag_path, imu_topic=imu_topic, image_topic=image_topic, load_images=False)
-    T_base_cam, source = extrinsics_for_recording(rec, config, frames)
-    odo = build_odometry(config, load_learned_params(learned_path), camera=camera_for_recording(rec, config, frames))
-    if progress or source != PARAMETERS_EXTRINSICS:
-        print(f"run_bag: camera extrinsics from {source}: camera at {np.round(T_base_cam[:3, 3], 3).tolist()} m in "
-              f"{frames.base_frame}", file=sys.stderr)
+    T_base_cam, source = extrinsics_for_recording(rec, config, rig)
+    calib = calibration_for_recording(rec, config, rig)
+    odo = build_odometry(config, load_learned_params(learned_path), camera=camera_for_recording(rec, config, rig, calib))
+    if progress or source != PARAMETERS_EXTRINSICS or calib.maps is not None:
+        print(f"run_bag: camera calibration from {calib.describe()}; extrinsics from {source}: camera at "
+              f"{np.round(T_base_cam[:3, 3], 3).tolist()} m in {rig.base_frame}", file=sys.stderr)
     rotations: dict[str, np.ndarray | None] = {}  # IMU frame -> R_base_imu (the node's Rig.imu_rotation)
     first_stamp = rec.frame_stamps_ns[first_frame] if first_frame else None
     steps: list[OdometryStep] = []
@@ -71,8 +73,8 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
                 a, g = msg.linear_acceleration, msg.angular_velocity
                 frame = msg.header.frame_id
                 if frame not in rotations:
-                    rotations[frame] = imu_rotation_for_recording(rec, frame, frames)
-                    _log_imu_frame(frame, rotations[frame], frames)
+                    rotations[frame] = imu_rotation_for_recording(rec, frame, rig)
+                    _log_imu_frame(frame, rotations[frame], rig)
                 R = rotations[frame]
                 if R is None:
                     out = odo.add_imu(stamp, (g.x, g.y, g.z), (a.x, a.y, a.z))
@@ -83,7 +85,7 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
                     bar.update(1)
                 if first_stamp is not None and stamp_ns < first_stamp:
                     continue
-                out = odo.add_image(stamp, bag.decode_image(msg))
+                out = odo.add_image(stamp, calib.rectify(bag.decode_image(msg)))
         except (ValueError, OutOfOrderError) as exc:  # the node drops and counts these too
             reason = getattr(exc, "reason", type(exc).__name__)
             drops[reason] = drops.get(reason, 0) + 1
@@ -100,15 +102,15 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
     return steps, rec, odo
 
 
-def _log_imu_frame(frame: str, R: np.ndarray | None, frames: RigFrames) -> None:
+def _log_imu_frame(frame: str, R: np.ndarray | None, rig: RigSettings) -> None:
     """One stderr line per IMU frame that is not the base's axes, as the node logs it."""
-    base = frames.base_frame
+    base = rig.base_frame
     if R is not None and not np.allclose(R, np.eye(3), rtol=0, atol=1e-12):
         print(f"run_bag: IMU frame '{frame}': rates and accelerations rotated into '{base}' (/tf_static), "
               f"rotation {np.round(R, 4).tolist()}", file=sys.stderr)
     elif R is None and frame.lstrip("/") and frame.lstrip("/") != base.lstrip("/"):
         print(f"run_bag: IMU frame '{frame}' is not base_frame '{base}' and "
-              f"{'/tf_static has no ' + base + ' -> ' + frame if frames.extrinsics_from_tf else 'extrinsics_from_tf is off'}"
+              f"{'/tf_static has no ' + base + ' -> ' + frame if rig.extrinsics_from_tf else 'extrinsics_from_tf is off'}"
               ": the IMU axes are taken as the base axes (REP-103 x forward, y left, z up)", file=sys.stderr)
 
 

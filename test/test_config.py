@@ -192,18 +192,23 @@ def test_params_file_sections_merge_as_ros_applies_them(tmp_path):
         load_params_file(path)
 
 
-def test_rig_frames_follow_the_nodes_settings_and_rules():
-    """The offline commands' rig frames: the node's parameters, defaults and coercion rule."""
-    from bevo_ros.datasets.rosbag import RigFrames
+def test_rig_settings_follow_the_nodes_settings_and_rules():
+    """How the offline commands take a bag's rig and calibration: the node's parameters, defaults and
+    coercion rule."""
+    from bevo_ros.datasets.rosbag import RigSettings
     from bevo_ros.ros.settings import NodeSettings
 
     node = NodeSettings()
-    assert RigFrames() == RigFrames.from_params({}) == RigFrames(node.base_frame, node.extrinsics_from_tf)
-    assert RigFrames.from_params({"base_frame": "vehicle", "extrinsics_from_tf": False}) == RigFrames("vehicle", False)
+    assert RigSettings() == RigSettings.from_params({}) == RigSettings(
+        node.base_frame, node.extrinsics_from_tf, node.use_camera_info, node.camera_info_use_p, node.undistort)
+    assert (RigSettings.from_params({"base_frame": "vehicle", "extrinsics_from_tf": False, "undistort": "off"})
+            == RigSettings("vehicle", False, undistort="off"))
+    with pytest.raises(ConfigError, match="undistort"):
+        RigSettings.from_params({"undistort": "sometimes"})
     with pytest.raises(ConfigError, match="extrinsics_from_tf"):
-        RigFrames.from_params({"extrinsics_from_tf": "false"})  # a string is no bool (it would read as True)
+        RigSettings.from_params({"extrinsics_from_tf": "false"})  # a string is no bool (it would read as True)
     with pytest.raises(ConfigError, match="base_frame"):
-        RigFrames.from_params({"base_frame": ""})
+        RigSettings.from_params({"base_frame": ""})
 
 
 def test_bad_tf_static_extrinsics_name_their_source():

@@ -98,9 +98,9 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
             assert np.array_equal(rec.images[i], cv2.imread(str(pngs[i]), cv2.IMREAD_UNCHANGED))
         assert all(np.array_equal(rec.images[i], cv2.imread(str(p), cv2.IMREAD_UNCHANGED)) for i, p in enumerate(pngs))
         # Camera info: rectified, K/P from calib.txt.
-        ci = rec.camera_info
-        assert np.array_equal(ci.K, P0[:, :3]) and np.array_equal(ci.P, P0)
-        assert (ci.width, ci.height, ci.distortion_model) == (1226, 370, "plumb_bob") and not ci.D.any()
+        ci = rec.camera_info  # the message as read
+        assert np.array_equal(np.reshape(ci.k, (3, 3)), P0[:, :3]) and np.array_equal(np.reshape(ci.p, (3, 4)), P0)
+        assert (ci.width, ci.height, ci.distortion_model) == (1226, 370, "plumb_bob") and not np.any(ci.d)
         # Ground truth: base poses in odom, first = identity; OXTS attitude.
         pose_err = np.abs(rec.gt_poses - gt_base).max()
         att_err = max(np.abs(rec.gt_roll - oxts.roll).max(), np.abs(rec.gt_pitch - oxts.pitch).max())
@@ -249,7 +249,7 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     assert rc == 0
     rec = bag.read_recording(out)
     assert np.array_equal(rec.frame_stamps_ns, stamps) and len(rec.imu_stamps_ns) == 5
-    assert rec.camera_info.K[0, 0] == pytest.approx(721.5377)  # P_rect_00 of the raw calibration
+    assert rec.camera_info.k[0] == pytest.approx(721.5377)  # P_rect_00 of the raw calibration
     assert rec.gt_poses.shape == (5, 4, 4)
     # One timestamp short: a clear count error.
     (cam / "timestamps.txt").write_text("".join((cam / "timestamps.txt").read_text().splitlines(True)[:4]))

@@ -292,3 +292,31 @@ def test_offline_decoder_takes_the_same_camera_encodings():
     ros_msg = _image(packed, "uyvy")
     ros_msg.width = grey.shape[1]
     assert np.array_equal(rc.image_to_gray(ros_msg), bag.decode_image(yuv))
+
+
+def test_static_lookups_strip_a_leading_slash_for_tf2_and_the_tree():
+    """ROS 1 bags name frames '/base_link': tf2's buffer strips the slash from the transforms but
+    refuses it in a lookup, so the node strips it before asking (as its own tree does)."""
+    from types import SimpleNamespace
+
+    from bevo_ros.io.static_tf import StaticTree
+    from bevo_ros.ros.tf import StaticTransforms
+
+    T = np.eye(4)
+    T[:3, 3] = (1.0, 2.0, 3.0)
+    tree = StaticTree()
+    tree.add("/base_link", "/camera", T)
+    assert np.allclose(tree.lookup("/base_link", "camera"), T) and np.allclose(tree.lookup("base_link", "/camera"), T)
+
+    class Tf2Buffer:  # tf2's rule: no leading '/' in a lookup
+        def lookup_transform(self, target, source, _time):
+            if target.startswith("/") or source.startswith("/"):
+                raise ValueError("in tf2 frame_ids cannot start with a '/'")
+            tr = SimpleNamespace(translation=SimpleNamespace(x=1.0, y=2.0, z=3.0),
+                                 rotation=SimpleNamespace(x=0.0, y=0.0, z=0.0, w=1.0))
+            return SimpleNamespace(transform=tr)
+
+    static = StaticTransforms.__new__(StaticTransforms)  # the tf2_ros backend without a node
+    static._buffer, static.tree = Tf2Buffer(), StaticTree()
+    assert np.allclose(static.lookup("/base_link", "/camera"), T)
+    assert static.lookup("/", "/camera") is None

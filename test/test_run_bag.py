@@ -16,7 +16,7 @@ from bevo_ros.commands import convert, evaluate, run
 from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry, load_config
 from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core.geometry import BevSpec
-from bevo_ros.datasets.rosbag import RigFrames, feed_engine, load_sequence, split_frames, write_drive_bag
+from bevo_ros.datasets.rosbag import RigSettings, feed_engine, load_sequence, split_frames, write_drive_bag
 from bevo_ros.training.mounting import calibrate
 from bevo_ros.datasets.synthetic import kitti_like_camera, make_drive
 
@@ -128,8 +128,8 @@ def test_run_bag_takes_the_rig_from_tf_static_as_the_node_does(synthetic_bag):
                                        mounting_roll=mounting[1])
         return c
 
-    def run_it(config, frames=RigFrames()):
-        steps, _, odo = run_bag(path, config, config.learned_params_file, frames=frames)
+    def run_it(config, rig=RigSettings()):
+        steps, _, odo = run_bag(path, config, config.learned_params_file, rig=rig)
         return _positions(steps), odo
 
     want, _ = run_it(truth)
@@ -138,7 +138,7 @@ def test_run_bag_takes_the_rig_from_tf_static_as_the_node_does(synthetic_bag):
     got, odo = run_it(config_with("base", (0.0, 0.0)))
     assert np.allclose(odo.camera.T_base_cam.double().numpy(), T_true, atol=1e-6)  # the engine's camera: float32
     np.testing.assert_allclose(got, want, atol=1e-9)
-    off, _ = run_it(config_with("base", (0.0, 0.0)), RigFrames(extrinsics_from_tf=False))
+    off, _ = run_it(config_with("base", (0.0, 0.0)), RigSettings(extrinsics_from_tf=False))
     off_by = float(np.linalg.norm(off[-1, :2] - want[-1, :2])) / path_length
     # camera reference: the mounting calibrated through the params' camera, re-derived for the bag's
     calibrated = mounting_for_extrinsics((0.0, 0.0), T_true, T_params)
@@ -169,8 +169,74 @@ def test_run_bag_and_load_sequence_rotate_an_imu_in_other_axes(tmp_path, synthet
     np.testing.assert_allclose(got, want, atol=1e-12)
     seq, base_seq = load_sequence(path, config), load_sequence(base_path, config)
     assert torch.equal(seq.gyro, base_seq.gyro) and torch.equal(seq.accel, base_seq.accel)
-    unrotated = _positions(run_bag(path, config, config.learned_params_file, frames=RigFrames(extrinsics_from_tf=False))[0])
+    unrotated = _positions(run_bag(path, config, config.learned_params_file, rig=RigSettings(extrinsics_from_tf=False))[0])
     assert np.abs(unrotated - want).max() > 0.1  # upside-down gravity: the attitude and the BEV go
+
+
+def _copy_bag(src, dst, image_topic: str, image=lambda img: img, camera_info: dict | None = None):
+    """``src`` rewritten to ``dst``: its images through ``image`` onto ``image_topic``, its CameraInfo
+    with the fields of ``camera_info`` (``K``, ``D``) replaced; everything else as it is."""
+    types = {t: kind for t, (kind, _) in bag.bag_topics(src).items()}
+    with bag.BagWriter(dst) as w:
+        for topic, t_ns, msg in bag.iter_messages(src):
+            if topic == bag.IMAGE_TOPIC:
+                out = bag.image_message(0, image(bag.decode_image(msg)), msg.header.frame_id)
+                out.header = msg.header
+                w.write(image_topic, bag.IMAGE_MSG, out, t_ns)
+            elif topic == bag.CAMERA_INFO_TOPIC and camera_info:
+                K = camera_info.get("K", np.reshape(msg.k, (3, 3)))
+                out = bag.camera_info_message(0, K, msg.width, msg.height, msg.header.frame_id, D=camera_info.get("D"))
+                out.header = msg.header
+                w.write(topic, bag.CAMERA_INFO_MSG, out, t_ns)
+            else:
+                w.write(topic, types[topic], msg, t_ns)
+    return dst
+
+
+def test_run_bag_undistorts_as_the_node_does(tmp_path, synthetic_bag):
+    """Images on an unrectified topic whose CameraInfo has a lens model (D non-zero): ``bevo run``
+    and the training loader undistort them with the node's maps (``undistort: auto``): the run equals
+    the one on a bag of the undistorted images with the undistorted camera; ``undistort: off`` does not."""
+    from bevo_ros.pipeline import run_bag
+    from bevo_ros.ros.camera import calibration_from_camera_info
+
+    _, base_path = synthetic_bag
+    config, _ = load_config(SYNTH_PARAMS)
+    D = [-0.08, 0.01, 0.0, 0.0, 0.0]
+    raw = _copy_bag(base_path, tmp_path / "raw", "/camera/image_raw", camera_info={"D": D})
+    info = bag.read_recording(raw, image_topic="/camera/image_raw", load_images=False).camera_info
+    calib = calibration_from_camera_info(info, image_topic="/camera/image_raw")
+    assert calib.maps is not None
+    rectified = _copy_bag(base_path, tmp_path / "rect", bag.IMAGE_TOPIC, image=calib.rectify, camera_info={"K": calib.K})
+    want = _positions(run_bag(rectified, config, config.learned_params_file)[0])
+    got = _positions(run_bag(raw, config, config.learned_params_file, image_topic="/camera/image_raw")[0])
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    plain = _positions(run_bag(raw, config, config.learned_params_file, image_topic="/camera/image_raw",
+                               rig=RigSettings(undistort="off"))[0])
+    print(f"\nundistorting run_bag vs the undistorted bag: {np.abs(got - want).max():.1e} m; undistort off: "
+          f"{np.abs(plain - want).max():.2e} m")
+    assert np.abs(plain - want).max() > 1e-3  # the lens model matters
+    assert np.array_equal(load_sequence(raw, config).images.numpy(), load_sequence(rectified, config).images.numpy())
+
+
+def test_run_bag_names_an_unusable_camera_info(tmp_path, synthetic_bag, capsys):
+    """A lens model OpenCV cannot undo on an unrectified topic: a clear error, and the way out."""
+    _, base_path = synthetic_bag
+    raw = tmp_path / "raw"
+    types = {t: kind for t, (kind, _) in bag.bag_topics(base_path).items()}
+    with bag.BagWriter(raw) as w:
+        for topic, t_ns, msg in bag.iter_messages(base_path):
+            if topic == bag.CAMERA_INFO_TOPIC:
+                out = bag.camera_info_message(0, np.reshape(msg.k, (3, 3)), msg.width, msg.height, msg.header.frame_id,
+                                              D=[0.1, 0.0, 0.0, 0.0, 0.0], distortion_model="kannala_brandt_x")
+                out.header = msg.header
+                msg = out
+            w.write("/camera/image_raw" if topic == bag.IMAGE_TOPIC else topic, types[topic], msg, t_ns)
+    capsys.readouterr()
+    assert run.main([str(raw), "--out", str(tmp_path / "o"), "--params", SYNTH_PARAMS, "--image-topic",
+                     "/camera/image_raw", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "CameraInfo is unusable" in err and "kannala_brandt_x" in err and "use_camera_info: false" in err, err
 
 
 def test_run_bag_reports_user_errors(tmp_path, capsys):
@@ -189,7 +255,7 @@ def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path, capsys):
     path = tmp_path / "tilted"
     write_drive_bag(drive, path)
     config, _ = load_config(SYNTH_PARAMS)  # level camera on the base
-    seq = load_sequence(path, config, frames=RigFrames(extrinsics_from_tf=False))
+    seq = load_sequence(path, config, rig=RigSettings(extrinsics_from_tf=False))
     pitch, roll = calibrate(seq, BevSpec())
     rig_pitch, _ = calibrate(load_sequence(path, config), BevSpec())  # the bag's /tf_static: the tilted camera
     capsys.readouterr()

@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _ablation(args: argparse.Namespace) -> int:
     from bevo_ros.config import load_config
-    from bevo_ros.datasets.rosbag import RigFrames
+    from bevo_ros.datasets.rosbag import RigSettings
 
     out = Path(args.out)
     t_start = time.perf_counter()
@@ -111,7 +111,7 @@ def _ablation(args: argparse.Namespace) -> int:
         bumps=args.bumps, noise=args.noise, image_scale=args.image_scale, device=args.device, quiet=args.quiet)
     result = run_ablation(args.bags, config, options, out,
                           warn=lambda msg: print(f"ablation: warning: {msg}", file=sys.stderr),
-                          frames=RigFrames.from_params(flat))
+                          rig=RigSettings.from_params(flat, str(args.params)))
     print(result.notes)
     print(f"wrote {out / 'ablation.md'}, {out / 'ablation.json'} and the plots in {time.perf_counter() - t_start:.0f} s")
     return 0

@@ -25,7 +25,7 @@ import numpy as np
 
 from bevo_ros.commands import add_params_option, new_parser
 from bevo_ros.config import ConfigError, bev_spec, load_config
-from bevo_ros.datasets.rosbag import RigFrames, load_sequence
+from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.training.mounting import calibrate
 
@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         config, flat = load_config(args.params)
-        seq = load_sequence(args.bag, config, frames=RigFrames.from_params(flat))
+        seq = load_sequence(args.bag, config, rig=RigSettings.from_params(flat, str(args.params)))
         start, stop = (int(v) for v in args.frames.split(":"))
         if not 0 <= start < stop - 1 < len(seq):
             raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)}")

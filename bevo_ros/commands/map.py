@@ -17,7 +17,7 @@ import torch
 
 from bevo_ros.commands import add_params_option, bag_errors, guarded, new_parser
 from bevo_ros.config import bev_spec, load_config
-from bevo_ros.datasets.rosbag import RigFrames
+from bevo_ros.datasets.rosbag import RigSettings
 from bevo_ros.io.maps import save_map
 from bevo_ros.pipeline import map_from_steps, run_bag
 
@@ -45,7 +45,7 @@ def _map(args: argparse.Namespace) -> int:
         raise ValueError("--resolution must be > 0 and --every >= 1")
     config, flat = load_config(args.params)
     steps, rec, _ = run_bag(args.bag, config, args.learned or config.learned_params_file,
-                            frames=RigFrames.from_params(flat))
+                            rig=RigSettings.from_params(flat, str(args.params)))
     if rec.gt_poses is None:
         raise ValueError(f"{args.bag}: no /ground_truth/odometry messages: a map needs ground-truth poses")
     first, _, stop = args.frames.partition(":")

@@ -1,8 +1,11 @@
 """``bevo run``: BEVO offline over a rosbag2, with the very engine bevo_node runs, and no DDS
 (bevo_ros.pipeline).
 
-Messages are fed to the engine in bag order, exactly as the node feeds them, so the trajectory
-equals the node's. Writes into --out:
+Messages are fed to the engine in bag order, exactly as the node feeds them, and the rig and
+calibration are taken as the node takes them with the same --params (the bag's CameraInfo, images
+undistorted where it says so, /tf_static camera extrinsics and IMU axes; base_frame,
+extrinsics_from_tf, use_camera_info, camera_info_use_p, undistort), so the trajectory equals the
+node's. Writes into --out:
 
   trajectory_kitti.txt  camera-0 poses, 3x4 row-major per line, one per frame, first = identity
                         (directly comparable with KITTI poses/NN.txt)
@@ -19,7 +22,7 @@ from pathlib import Path
 from bevo_ros.commands import DEFAULT_PARAMS  # noqa: F401 (re-exported: tests load the default parameters)
 from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
 from bevo_ros.config import load_config
-from bevo_ros.datasets.rosbag import RigFrames, extrinsics_for_recording
+from bevo_ros.datasets.rosbag import RigSettings, extrinsics_for_recording
 from bevo_ros.io import bag
 from bevo_ros.pipeline import run_bag, write_outputs
 
@@ -47,17 +50,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     config, flat = load_config(args.params)
-    frames = RigFrames.from_params(flat)
+    rig = RigSettings.from_params(flat, str(args.params))
     if args.mode:
         config.odometry.mode = args.mode
     learned = args.learned or config.learned_params_file
     t0 = time.perf_counter()
     steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
-                              progress=not args.quiet, frames=frames)
+                              progress=not args.quiet, rig=rig)
     elapsed = time.perf_counter() - t0
     if len(steps) < 2:
         raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
-    T_base_cam, _ = extrinsics_for_recording(rec, config, frames)  # the extrinsics the engine used (float64)
+    T_base_cam, _ = extrinsics_for_recording(rec, config, rig)  # the extrinsics the engine used (float64)
     paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
     c = odo.counters
     print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "

@@ -107,7 +107,7 @@ def _checkpoint(args: argparse.Namespace) -> Path:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from bevo_ros.datasets.rosbag import RigFrames, load_sequence
+    from bevo_ros.datasets.rosbag import RigSettings, load_sequence
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, train
     from bevo_ros.training.suspension import fit_suspension_on_sequences
@@ -130,7 +130,7 @@ def _train(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     seqs = []
     for b in args.bags:
-        s = load_sequence(b, config, frames=RigFrames.from_params(flat))
+        s = load_sequence(b, config, rig=RigSettings.from_params(flat, str(args.params)))
         seqs.append(s)
         print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
               f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")

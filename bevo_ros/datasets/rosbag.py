@@ -6,7 +6,7 @@ so every tool reads a recording the same way.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -111,66 +111,94 @@ class Recording:
 
 
 @dataclass(frozen=True)
-class RigFrames:
-    """Where the offline commands take the rig from: as bevo_node does, with its parameters of the
-    same names (a params file's values, :meth:`from_params`). ``extrinsics_from_tf``: the camera's
-    extrinsics from the bag's ``/tf_static`` ``base_frame -> image frame`` and the IMU's axes from
-    ``base_frame -> IMU frame`` when there (else ``camera.base_T_camera`` and IMU axes = base axes)."""
+class RigSettings:
+    """How the offline commands take a bag's rig and calibration: as bevo_node does, with its
+    parameters of the same names (a params file's values, :meth:`from_params`).
+
+    ``extrinsics_from_tf``: the camera's extrinsics from the bag's ``/tf_static`` ``base_frame ->
+    image frame`` and the IMU's axes from ``base_frame -> IMU frame`` when there (else
+    ``camera.base_T_camera`` and the IMU's axes as the base's). ``use_camera_info``,
+    ``camera_info_use_p``, ``undistort``: the intrinsics from the bag's first CameraInfo (``P`` or
+    ``K``; distorted images undistorted with OpenCV maps, ``bevo_ros.ros.camera``), else the
+    ``camera.*`` parameters."""
 
     base_frame: str = "base_link"
     extrinsics_from_tf: bool = True
+    use_camera_info: bool = True
+    camera_info_use_p: bool = True
+    undistort: str = "auto"
 
     @classmethod
-    def from_params(cls, flat: dict, source: str | None = None) -> "RigFrames":
+    def from_params(cls, flat: dict, source: str | None = None) -> "RigSettings":
         """From a params file's flat parameters (``bevo_ros.config.load_config``'s second value), by
-        the node's rules (a bool only from a bool; ``base_frame`` not empty)."""
-        base = coerce_setting(flat.get("base_frame", cls.base_frame), cls.base_frame, "base_frame", source)
-        from_tf = coerce_setting(flat.get("extrinsics_from_tf", cls.extrinsics_from_tf), cls.extrinsics_from_tf,
-                                 "extrinsics_from_tf", source)
-        if not base.strip("/ "):
-            raise ConfigError("base_frame must not be empty" + (f" ({source})" if source else ""))
-        return cls(base, from_tf)
+        the node's rules (a bool only from a bool; ``base_frame`` not empty; ``undistort`` one of
+        its modes)."""
+        from bevo_ros.ros.camera import UNDISTORT_MODES
+
+        values = {f.name: coerce_setting(flat.get(f.name, f.default), f.default, f.name, source) for f in fields(cls)}
+        where = f" ({source})" if source else ""
+        if not values["base_frame"].strip("/ "):
+            raise ConfigError(f"base_frame must not be empty{where}")
+        if values["undistort"] not in UNDISTORT_MODES:
+            raise ConfigError(f"undistort must be one of {', '.join(UNDISTORT_MODES)}, got {values['undistort']!r}{where}")
+        return cls(**values)
 
 
 def extrinsics_for_recording(rec: bag.BagContents, config: BevoConfig,
-                             frames: RigFrames = RigFrames()) -> tuple[np.ndarray, str]:
+                             rig: RigSettings = RigSettings()) -> tuple[np.ndarray, str]:
     """``(base_T_camera (4, 4), source)``: the bag's ``/tf_static`` ``base_frame -> image frame``
-    when it has it (and ``frames.extrinsics_from_tf``), else ``camera.base_T_camera``: bevo_node's
+    when it has it (and ``rig.extrinsics_from_tf``), else ``camera.base_T_camera``: bevo_node's
     choice (``bevo_ros.ros.rig``), so that ``bevo run`` equals the node replaying the bag."""
-    if frames.extrinsics_from_tf and rec.image_frame_id:
-        T = rec.static_tf.lookup(frames.base_frame, rec.image_frame_id)
+    if rig.extrinsics_from_tf and rec.image_frame_id:
+        T = rec.static_tf.lookup(rig.base_frame, rec.image_frame_id)
         if T is not None:
-            return T, f"/tf_static {frames.base_frame} -> {rec.image_frame_id.lstrip('/')}"
+            return T, f"/tf_static {rig.base_frame} -> {rec.image_frame_id.lstrip('/')}"
     return np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4), PARAMETERS_EXTRINSICS
 
 
-def imu_rotation_for_recording(rec: bag.BagContents, frame_id: str, frames: RigFrames = RigFrames()) -> np.ndarray | None:
+def imu_rotation_for_recording(rec: bag.BagContents, frame_id: str, rig: RigSettings = RigSettings()) -> np.ndarray | None:
     """Rotation taking the IMU's ``frame_id`` axes into ``base_frame``'s (the bag's ``/tf_static``),
     None for the same axes or no such transform (the node then takes the IMU axes as the base's)."""
     frame = frame_id.lstrip("/")
-    if not frames.extrinsics_from_tf or not frame or frame == frames.base_frame.lstrip("/"):
+    if not rig.extrinsics_from_tf or not frame or frame == rig.base_frame.lstrip("/"):
         return None
-    T = rec.static_tf.lookup(frames.base_frame, frame)
+    T = rec.static_tf.lookup(rig.base_frame, frame)
     return None if T is None else T[:3, :3].copy()
 
 
-def camera_for_recording(rec: bag.BagContents, config: BevoConfig, frames: RigFrames = RigFrames()) -> CameraModel:
-    """Intrinsics from the bag's CameraInfo (else the parameters), extrinsics as
-    :func:`extrinsics_for_recording` (the bag's ``/tf_static``, else the parameters).
+def calibration_for_recording(rec: bag.BagContents, config: BevoConfig, rig: RigSettings = RigSettings()):
+    """The images' calibration (``bevo_ros.ros.camera.Calibration``: ``K``, size, undistortion maps
+    or None) as bevo_node takes it: the bag's first CameraInfo (with ``use_camera_info``), else the
+    ``camera.*`` parameters (the node's fallback). A CameraInfo it cannot use is an error that says
+    why (the node would wait for a usable one, then fall back to the parameters)."""
+    from bevo_ros.ros.camera import CalibrationError, calibration_from_camera_info, calibration_from_parameters
 
-    Uses ``P[:3, :3]``, the rectified camera matrix, as bevo_node does by default
-    (``camera_info_use_p``): the images are rectified, and for them K and P can differ.
-    """
-    T, source = extrinsics_for_recording(rec, config, frames)
+    if rig.use_camera_info and rec.camera_info is not None:
+        topic = next((t for t, (kind, _) in rec.topics.items() if kind == bag.CAMERA_INFO_MSG), "CameraInfo")
+        try:
+            return calibration_from_camera_info(rec.camera_info, rig.camera_info_use_p, rig.undistort, rec.image_topic,
+                                                source=f"CameraInfo on {topic}")
+        except CalibrationError as exc:
+            raise ConfigError(f"{rec.path}: its CameraInfo is unusable: {exc} (or set use_camera_info: false and the "
+                              "camera.* parameters)") from None
+    if not config.camera.has_intrinsics():
+        raise ConfigError(f"{rec.path}: no CameraInfo{' read' if rig.use_camera_info else ' (use_camera_info false)'} and "
+                          "the camera intrinsics are not set (camera.fx, fy, cx, cy, width, height_px)")
+    return calibration_from_parameters(config.camera)
+
+
+def camera_for_recording(rec: bag.BagContents, config: BevoConfig, rig: RigSettings = RigSettings(),
+                         calibration=None) -> CameraModel:
+    """The engine's camera for a bag: intrinsics as :func:`calibration_for_recording` (or the
+    ``calibration`` given), extrinsics as :func:`extrinsics_for_recording`. By default
+    (``camera_info_use_p``) ``P[:3, :3]``, the rectified camera matrix, as bevo_node: the images
+    are rectified, and for them K and P can differ."""
+    T, source = extrinsics_for_recording(rec, config, rig)
     if source != PARAMETERS_EXTRINSICS and (problem := extrinsics_problem(T)) is not None:
         raise ConfigError(f"{rec.path}: camera extrinsics from {source} unusable: {problem}")
+    calib = calibration if calibration is not None else calibration_for_recording(rec, config, rig)
     settings = replace(config.camera, base_T_camera=T.reshape(-1).tolist())
-    if rec.camera_info is not None:
-        ci = rec.camera_info
-        P = np.asarray(ci.P, dtype=np.float64).reshape(3, 4)
-        K = P[:, :3] if P[0, 0] > 0 else ci.K
-        return camera_model(settings, K=K, width=ci.width, height_px=ci.height)
-    return camera_model(settings)
+    return camera_model(settings, K=calib.K, width=calib.width, height_px=calib.height)
 
 
 def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
@@ -184,20 +212,24 @@ def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np
 
 
 def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = True,
-                  frames: RigFrames = RigFrames()) -> Recording:
+                  rig: RigSettings = RigSettings()) -> Recording:
     """Read a bag written by ``bevo convert`` or :func:`write_drive_bag` into a :class:`Recording`.
 
     Frames before the first IMU sample are dropped (the filter has nothing to say about them). The
-    rig as bevo_node takes it (:class:`RigFrames`): the camera from the bag's ``/tf_static`` when
-    there, the IMU's vectors rotated into ``base_frame``'s axes.
+    rig and calibration as bevo_node takes them (:class:`RigSettings`): the camera from the bag's
+    CameraInfo and ``/tf_static`` when there (distorted images undistorted), the IMU's vectors
+    rotated into ``base_frame``'s axes.
     """
     rec = bag.read_recording(bag_path)
     if rec.images is None or len(rec.frame_stamps_ns) < 2:
         raise ValueError(f"{bag_path}: needs at least 2 images")
-    camera = camera_for_recording(rec, config, frames)
+    calib = calibration_for_recording(rec, config, rig)
+    camera = camera_for_recording(rec, config, rig, calib)
+    if calib.maps is not None:  # distorted images: undistorted as the node does
+        rec.images = np.stack([calib.rectify(img) for img in rec.images])
     ids = np.asarray(rec.imu_frame_ids, dtype=object)
     for frame in dict.fromkeys(rec.imu_frame_ids):  # each IMU frame's samples, as the node rotates each message
-        R = imu_rotation_for_recording(rec, frame, frames)
+        R = imu_rotation_for_recording(rec, frame, rig)
         if R is not None:
             rows = ids == frame
             rec.gyro[rows], rec.accel[rows] = rec.gyro[rows] @ R.T, rec.accel[rows] @ R.T

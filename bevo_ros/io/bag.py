@@ -589,19 +589,6 @@ def decode_image(msg: Any) -> np.ndarray:
 
 
 @dataclass
-class CameraInfo:
-    """The parts of sensor_msgs/CameraInfo the commands use."""
-
-    K: np.ndarray  # (3, 3)
-    P: np.ndarray  # (3, 4)
-    D: np.ndarray  # (n,)
-    width: int
-    height: int
-    frame_id: str
-    distortion_model: str
-
-
-@dataclass
 class BagContents:
     """A bag's raw contents in numpy arrays (what :func:`read_recording` returns; the tensors the
     engine and training run on are :class:`bevo_ros.datasets.rosbag.Recording`). Stamps are header
@@ -610,7 +597,8 @@ class BagContents:
     Attributes:
         imu_stamps: ``(N,)``; gyro, accel: ``(N, 3)`` float64 (rad/s, m/s^2).
         frame_stamps: ``(F,)``; images: ``(F, H, W)`` uint8 (grey), or None if not loaded.
-        camera_info: the first CameraInfo message, or None.
+        camera_info: the first sensor_msgs/CameraInfo message as read (rosbags), or None.
+        image_topic: the topic the images were read from.
         gt_stamps: ``(G,)``; gt_poses: ``(G, 4, 4)`` base poses in ``gt_frame_id``, or None.
         gt_att_stamps, gt_roll, gt_pitch, gt_yaw: ``(A,)`` attitude of the ground-truth Imu, or None.
         static_tf: the transforms of every ``/tf_static`` message (the rig, as bevo_node reads it).
@@ -626,7 +614,8 @@ class BagContents:
     image_encoding: str = ""
     imu_frame_id: str = ""
     image_frame_id: str = ""
-    camera_info: CameraInfo | None = None
+    camera_info: Any = None
+    image_topic: str = ""
     gt_stamps_ns: np.ndarray | None = None
     gt_poses: np.ndarray | None = None
     gt_frame_id: str = ""
@@ -691,6 +680,7 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
     att_t, att = [], []
     rec = BagContents(path, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64),
                     None, topics=topics)
+    rec.image_topic = image_topic
     shape = None
     for topic, _, msg in iter_messages(path, wanted):
         if topic == imu_topic:
@@ -715,10 +705,7 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
                                    f"the first was {shape[1]}x{shape[0]}")
                 images.append(img)
         elif topic == camera_info_topic and rec.camera_info is None:
-            rec.camera_info = CameraInfo(np.asarray(msg.k, np.float64).reshape(3, 3),
-                                         np.asarray(msg.p, np.float64).reshape(3, 4),
-                                         np.asarray(msg.d, np.float64).copy(), int(msg.width), int(msg.height),
-                                         msg.header.frame_id, msg.distortion_model)
+            rec.camera_info = msg
         elif topic == gt_odometry_topic:
             p = msg.pose.pose
             T = np.eye(4)

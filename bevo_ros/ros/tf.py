@@ -76,6 +76,9 @@ class StaticTransforms:
         return self.tree.version
 
     def lookup(self, target: str, source: str) -> np.ndarray | None:
+        # tf2 refuses frame ids with a leading '/' (ROS 1 bags carry them) where its buffer strips
+        # them from the transforms: stripped here, as the tree (and the offline commands) do.
+        target, source = target.lstrip("/"), source.lstrip("/")
         if not target or not source:
             return None
         if self._buffer is not None:

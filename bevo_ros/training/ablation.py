@@ -285,12 +285,12 @@ class AblationResult:
 
 def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: str | Path,
                  log: Callable[[str], None] = print, warn: Callable[[str], None] = print,
-                 frames=None) -> AblationResult:
+                 rig=None) -> AblationResult:
     """The whole study: (optional synthetic drive,) load the bags, (train or load O/Q,) every variant per bag;
     writes OUT/ablation.md, OUT/ablation.json and OUT/<bag>_ablation.png. Progress goes to ``log``,
-    a diverged training's message to ``warn``. ``frames``: the rig's frames (``RigFrames``, the params'
-    ``base_frame`` and ``extrinsics_from_tf``). Raises ``ValueError`` (and the loaders' errors) on bad input."""
-    from bevo_ros.datasets.rosbag import RigFrames, load_sequence, split_frames
+    a diverged training's message to ``warn``. ``rig``: how the bags' rig and calibration are taken
+    (``RigSettings``, the params' node settings of the same names). Raises ``ValueError`` (and the loaders' errors) on bad input."""
+    from bevo_ros.datasets.rosbag import RigSettings, load_sequence, split_frames
     from bevo_ros.io.files import atomic_write_text
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import TrainOptions, resolve_device, train
@@ -311,7 +311,7 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
             f"noise {o.noise}) in {time.perf_counter() - t0:.1f} s")
         bag_paths.append(syn)
         gt_modes[str(syn)] = np.asarray(drive.pitch_roll_road, dtype=np.float64)  # exact, per frame
-    seqs = [load_sequence(b, config, frames=frames or RigFrames()) for b in bag_paths]
+    seqs = [load_sequence(b, config, rig=rig or RigSettings()) for b in bag_paths]
     eval_mode = o.eval or ("held-out" if o.train else "all")
     if o.train:
         topts = TrainOptions(epochs=o.epochs, lr=o.lr, split=o.split, seed=o.seed,
