@@ -26,7 +26,7 @@ from bevo_ros.config import BevoConfig, build_odometry
 from bevo_ros.core.aerial_map import AerialMap
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.mosaic import mosaic_to_map
-from bevo_ros.core.odometry import BevoOdometry, OdometryStep, OutOfOrderError
+from bevo_ros.core.odometry import BevoOdometry, InvalidInputError, OdometryStep, OutOfOrderError
 from bevo_ros.core.pose import pose_matrix
 from bevo_ros.datasets import kitti
 from bevo_ros.datasets.rosbag import (PARAMETERS_EXTRINSICS, RigSettings, calibration_for_recording, camera_for_recording,
@@ -65,6 +65,7 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
         from tqdm import tqdm
 
         bar = tqdm(total=total, unit="frame", desc="run_bag")
+    image_topic = rec.image_topic  # the topic read_recording took (old bags: /camera/image_raw)
     for topic, stamp_ns, msg in bag.iter_messages(bag_path, [imu_topic, image_topic]):
         stamp_ns = stamp_to_ns(msg.header.stamp)
         stamp = stamp_to_sec(msg.header.stamp)  # the node's conversion: bit-identical floats
@@ -85,7 +86,11 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
                     bar.update(1)
                 if first_stamp is not None and stamp_ns < first_stamp:
                     continue
-                out = odo.add_image(stamp, calib.rectify(bag.decode_image(msg)))
+                img = bag.decode_image(msg)
+                if (img.shape[1], img.shape[0]) != (calib.width, calib.height):  # before the remap: it returns the maps' size
+                    raise InvalidInputError(f"image size {img.shape[1]}x{img.shape[0]} does not match the calibration "
+                                            f"{calib.width}x{calib.height} (from {calib.source})")
+                out = odo.add_image(stamp, calib.rectify(img))
         except (ValueError, OutOfOrderError) as exc:  # the node drops and counts these too
             reason = getattr(exc, "reason", type(exc).__name__)
             drops[reason] = drops.get(reason, 0) + 1

@@ -219,6 +219,36 @@ def test_run_bag_undistorts_as_the_node_does(tmp_path, synthetic_bag):
     assert np.array_equal(load_sequence(raw, config).images.numpy(), load_sequence(rectified, config).images.numpy())
 
 
+def test_run_bag_reads_an_old_bag_on_image_raw(tmp_path, synthetic_bag):
+    """Bags written before issue 11 carry the images on /camera/image_raw: read by default, the same run."""
+    from bevo_ros.pipeline import run_bag
+
+    _, base_path = synthetic_bag
+    config, _ = load_config(SYNTH_PARAMS)
+    old = _copy_bag(base_path, tmp_path / "old", bag.LEGACY_IMAGE_TOPIC)
+    want = _positions(run_bag(base_path, config, config.learned_params_file)[0])
+    got = _positions(run_bag(old, config, config.learned_params_file)[0])
+    assert len(want) > 10
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+def test_images_of_another_size_than_the_calibration_are_dropped_before_undistorting(tmp_path, synthetic_bag, capsys):
+    """The undistortion maps would return any image at the calibration's size: the size is checked
+    first, as the node does (each such image a counted drop; the training loader an error)."""
+    from bevo_ros.pipeline import run_bag
+
+    _, base_path = synthetic_bag
+    config, _ = load_config(SYNTH_PARAMS)
+    cropped = _copy_bag(base_path, tmp_path / "cropped", "/camera/image_raw", image=lambda img: np.ascontiguousarray(img[:-4, :-4]),
+                        camera_info={"D": [-0.08, 0.01, 0.0, 0.0, 0.0]})
+    capsys.readouterr()
+    steps, _, odo = run_bag(cropped, config, config.learned_params_file, image_topic="/camera/image_raw")
+    err = capsys.readouterr().err
+    assert steps == [] and "does not match the calibration" in err and "undistorted" in err, err
+    with pytest.raises(ValueError, match="but the calibration is"):
+        load_sequence(cropped, config)
+
+
 def test_run_bag_names_an_unusable_camera_info(tmp_path, synthetic_bag, capsys):
     """A lens model OpenCV cannot undo on an unrectified topic: a clear error, and the way out."""
     _, base_path = synthetic_bag
@@ -236,7 +266,8 @@ def test_run_bag_names_an_unusable_camera_info(tmp_path, synthetic_bag, capsys):
     assert run.main([str(raw), "--out", str(tmp_path / "o"), "--params", SYNTH_PARAMS, "--image-topic",
                      "/camera/image_raw", "-q"]) == 2
     err = capsys.readouterr().err
-    assert "CameraInfo is unusable" in err and "kannala_brandt_x" in err and "use_camera_info: false" in err, err
+    assert ("CameraInfo on /camera/camera_info is unusable" in err and "kannala_brandt_x" in err
+            and "use_camera_info: false" in err), err
 
 
 def test_run_bag_reports_user_errors(tmp_path, capsys):

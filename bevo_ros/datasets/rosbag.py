@@ -16,6 +16,7 @@ import torch
 from bevo_ros.io import bag
 from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS
 from bevo_ros.config import BevoConfig, ConfigError, camera_model, coerce_setting, extrinsics_problem
+from bevo_ros.core.validation import intrinsics_problem
 from bevo_ros.core.geometry import CameraModel, rpy_from_rotation
 
 PathLike = str | os.PathLike
@@ -174,13 +175,16 @@ def calibration_for_recording(rec: bag.BagContents, config: BevoConfig, rig: Rig
     from bevo_ros.ros.camera import CalibrationError, calibration_from_camera_info, calibration_from_parameters
 
     if rig.use_camera_info and rec.camera_info is not None:
-        topic = next((t for t, (kind, _) in rec.topics.items() if kind == bag.CAMERA_INFO_MSG), "CameraInfo")
         try:
-            return calibration_from_camera_info(rec.camera_info, rig.camera_info_use_p, rig.undistort, rec.image_topic,
-                                                source=f"CameraInfo on {topic}")
+            calib = calibration_from_camera_info(rec.camera_info, rig.camera_info_use_p, rig.undistort, rec.image_topic,
+                                                 source=f"CameraInfo on {rec.camera_info_topic}")
+            problem = intrinsics_problem(calib.K, calib.width, calib.height)  # the node's check of a CameraInfo
+            if problem is not None:
+                raise CalibrationError(problem)
         except CalibrationError as exc:
-            raise ConfigError(f"{rec.path}: its CameraInfo is unusable: {exc} (or set use_camera_info: false and the "
-                              "camera.* parameters)") from None
+            raise ConfigError(f"{rec.path}: its CameraInfo on {rec.camera_info_topic} is unusable: {exc} (or set "
+                              "use_camera_info: false and the camera.* parameters)") from None
+        return calib
     if not config.camera.has_intrinsics():
         raise ConfigError(f"{rec.path}: no CameraInfo{' read' if rig.use_camera_info else ' (use_camera_info false)'} and "
                           "the camera intrinsics are not set (camera.fx, fy, cx, cy, width, height_px)")
@@ -225,8 +229,12 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
         raise ValueError(f"{bag_path}: needs at least 2 images")
     calib = calibration_for_recording(rec, config, rig)
     camera = camera_for_recording(rec, config, rig, calib)
-    if calib.maps is not None:  # distorted images: undistorted as the node does
-        rec.images = np.stack([calib.rectify(img) for img in rec.images])
+    if rec.images.shape[1:] != (calib.height, calib.width):  # the node drops each such image (bad_image_size)
+        raise ValueError(f"{bag_path}: the images are {rec.images.shape[2]}x{rec.images.shape[1]} but the calibration "
+                         f"is {calib.width}x{calib.height} (from {calib.source})")
+    if calib.maps is not None:  # distorted images: undistorted as the node does, in place
+        for i in range(len(rec.images)):
+            rec.images[i] = calib.rectify(rec.images[i])
     ids = np.asarray(rec.imu_frame_ids, dtype=object)
     for frame in dict.fromkeys(rec.imu_frame_ids):  # each IMU frame's samples, as the node rotates each message
         R = imu_rotation_for_recording(rec, frame, rig)

@@ -597,8 +597,10 @@ class BagContents:
     Attributes:
         imu_stamps: ``(N,)``; gyro, accel: ``(N, 3)`` float64 (rad/s, m/s^2).
         frame_stamps: ``(F,)``; images: ``(F, H, W)`` uint8 (grey), or None if not loaded.
-        camera_info: the first sensor_msgs/CameraInfo message as read (rosbags), or None.
-        image_topic: the topic the images were read from.
+        camera_info: the first sensor_msgs/CameraInfo message as read (rosbags), or None;
+            camera_info_topic: its topic.
+        image_topic: the topic the images were read from (``/camera/image_raw`` for old bags without
+            ``/camera/image_rect``).
         gt_stamps: ``(G,)``; gt_poses: ``(G, 4, 4)`` base poses in ``gt_frame_id``, or None.
         gt_att_stamps, gt_roll, gt_pitch, gt_yaw: ``(A,)`` attitude of the ground-truth Imu, or None.
         static_tf: the transforms of every ``/tf_static`` message (the rig, as bevo_node reads it).
@@ -615,6 +617,7 @@ class BagContents:
     imu_frame_id: str = ""
     image_frame_id: str = ""
     camera_info: Any = None
+    camera_info_topic: str = ""
     image_topic: str = ""
     gt_stamps_ns: np.ndarray | None = None
     gt_poses: np.ndarray | None = None
@@ -705,7 +708,7 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
                                    f"the first was {shape[1]}x{shape[0]}")
                 images.append(img)
         elif topic == camera_info_topic and rec.camera_info is None:
-            rec.camera_info = msg
+            rec.camera_info, rec.camera_info_topic = msg, topic
         elif topic == gt_odometry_topic:
             p = msg.pose.pose
             T = np.eye(4)
