@@ -399,7 +399,9 @@ def test_tf_static_extrinsics_keep_the_calibrated_cameras_tilt(graph, drive, ref
     if reference == "camera":
         assert np.abs(used).max() < 1e-4  # the true base mounting (0, 0) back
         assert node._mounting_logged is not None  # and the node said so
-        assert error < 0.02  # not 0: the IMU before the first image (which names the camera frame) started the DUKF from the configured mounting
+        # the IMU before the first image (which names the camera frame) started the DUKF from the configured
+        # mounting; the engine moves that start (_move_dukf_start): 1.3 % before, 0.001 % with it
+        assert error < 0.001
     else:
         assert abs(used[0] - np.degrees(calibrated[0])) < 1e-9
         assert error > 0.05  # 1 deg of camera pitch: ~14 % of the BEV's scale at this geometry

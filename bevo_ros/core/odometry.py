@@ -329,6 +329,7 @@ class BevoOdometry:
         self._yaw_rate = None  # its latest rate
         self._prev_yaw_cum = 0.0
         self._imu_restarts = 0  # DUKF (re)starts: the attitude jumps there (kept with each history entry)
+        self._start_share = (0.0, 0.0)  # d (pitch, roll) mean / d start of the DUKF since its (re)start
         self._prev_pitch = None  # fused, previous frame: (BEV pitch, DUKF pitch, DUKF start count, pull integrals)
         self._pull_cum = 0.0  # fused: the DUKF's accelerometer updates' pitch changes that reach the BEV, summed, rad
         self._pull_kept_out = 0.0  # fused: the share kept out of the BEV's attitude (_fuse_imu), summed, rad
@@ -349,7 +350,11 @@ class BevoOdometry:
         self.camera = camera.to(self.device, self.dtype)
         mounting, calibrated_with = self._mounting_calibration
         if calibrated_with is not None:
+            started_from = self.mounting_attitude
             self.mounting_attitude = mounting_for_extrinsics(mounting, calibrated_with, camera.T_base_cam)
+            if hasattr(self, "_road_tilt") and self._state is not None and self._prev is None:  # before the first frame
+                self._move_dukf_start(self.mounting_attitude[0] - started_from[0],
+                                      self.mounting_attitude[1] - started_from[1])
             self._standstill.attitude = self.mounting_attitude
             if hasattr(self, "_road_tilt"):  # after __init__: reset() sets it from the attitude otherwise
                 old = self._mounting
@@ -364,6 +369,37 @@ class BevoOdometry:
         self._shift_per_pitch_change = pitch_change_shift(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
         self._yaw_per_roll = roll_yaw_sensitivity(camera.mount_height)
         self._standstill.set_camera(self.camera)
+
+    def _move_dukf_start(self, dp: float, dr: float) -> None:
+        """Before the first frame: the DUKF started from a mounting attitude that is now ``(dp, dr)``
+        off (a node's IMU fused before the first image named the camera, whose extrinsics re-derive
+        the mounting; 1 deg: 1.3 % of a synthetic drive's length before this, 0.001 % after): its state
+        becomes what a start from the new mounting would have given. Its mean moves by the start's
+        share of the change (``_start_share``: a Kalman filter's mean depends on its start by the
+        product of its updates' ``1 - K``); the rest of the pitch change is the accelerometer pull it
+        would not have made, which :meth:`_fuse_imu` keeps out of the BEV (the start's excess
+        variance: all of it, early on), so the BEV's pitch input moves by the whole change and its
+        roll input by the mean's. The road-tilt low-pass moves with the inputs (the BEV's attitude
+        does not jump), and so do the current start's history entries (the pitch changes the
+        correction reads stay the car's)."""
+        if not (dp or dr):
+            return
+        (p, r), cov = self._state
+        sp, sr = dp * self._start_share[0], dr * self._start_share[1]
+        kept = dp - sp  # the pull a start from the new mounting would not have made (kept out of the BEV)
+        epoch = self._imu_restarts  # only the current start's attitudes
+        self._state = ((p + sp, r + sr), cov)
+        self._pull_kept_out -= kept
+        self._pitch_kept_out_recent -= kept
+        self._road_tilt.shift(dp, sr)  # the inputs: the pitch less its kept-out pull moves by dp, the roll by sr
+
+        def moved(entry: tuple) -> tuple:
+            t, road, state, yaw, e, pull = entry
+            if e != epoch:
+                return entry
+            return t, road, ((state[0][0] + sp, state[0][1] + sr), state[1]), yaw, e, (pull[0], pull[1] - kept)
+
+        self._history = deque(map(moved, self._history), maxlen=self._history.maxlen)
 
     @property
     def pitch_roll(self) -> np.ndarray | None:
@@ -523,6 +559,7 @@ class BevoOdometry:
             v0 = self.initial_attitude_std**2
             mean, cov, pull = self.dukf.step_scalar(self.mounting_attitude, (v0, 0.0, v0), g, f, 0.0, self._noise,
                                                     extra, return_pull=True)
+            self._start_share = (cov[0] / v0, cov[2] / v0)
             self._yaw_rate = None
             self._imu_restarts += 1
             h1 = None
@@ -536,6 +573,11 @@ class BevoOdometry:
                                  self._imu_dt, h1)
             mean, cov, pull = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise, extra,
                                                     return_pull=True)
+            # the start's share of the mean, d mean / d start = the product of the updates' (1 - K) =
+            # P_post / P_pred per angle (_move_dukf_start)
+            (o_p, o_r), prior = self._noise[0], self._state[1]
+            self._start_share = (self._start_share[0] * cov[0] / (prior[0] + o_p * self._imu_dt),
+                                 self._start_share[1] * cov[2] / (prior[2] + o_r * self._imu_dt))
         self._state = (mean, cov)
         # The DUKF's variance above its steady state is uncertainty it has not worked off yet (its
         # start from the mounting attitude, a restart, the accelerometer discounted through an

@@ -158,6 +158,11 @@ class RoadTiltFilter:
         self._stamp: float | None = None
         self._elapsed: float | None = None
 
+    def shift(self, pitch: float, roll: float) -> None:
+        """Move the tilt by ``(pitch, roll)`` (rad): its input moved by that much for good."""
+        if self._tilt is not None and self.enabled:
+            self._tilt = (self._tilt[0] + pitch, self._tilt[1] + roll)
+
     def update(self, stamp: float, pitch: float, roll: float) -> tuple[float, float]:
         """Feed one sample: its stamp (s, not before the previous one) and the gravity-referenced
         pitch and roll (rad). Returns the (pitch, roll) relative to the road plane."""
