@@ -87,9 +87,8 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
                 if first_stamp is not None and stamp_ns < first_stamp:
                     continue
                 img = bag.decode_image(msg)
-                if (img.shape[1], img.shape[0]) != (calib.width, calib.height):  # before the remap: it returns the maps' size
-                    raise InvalidInputError(f"image size {img.shape[1]}x{img.shape[0]} does not match the calibration "
-                                            f"{calib.width}x{calib.height} (from {calib.source})")
+                if (problem := calib.size_problem(img)) is not None:  # dropped, as the node drops it
+                    raise InvalidInputError(f"image size does not match the calibration: the image {problem}")
                 out = odo.add_image(stamp, calib.rectify(img))
         except (ValueError, OutOfOrderError) as exc:  # the node drops and counts these too
             reason = getattr(exc, "reason", type(exc).__name__)

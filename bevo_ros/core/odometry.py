@@ -352,17 +352,27 @@ class BevoOdometry:
         if calibrated_with is not None:
             started_from = self.mounting_attitude
             self.mounting_attitude = mounting_for_extrinsics(mounting, calibrated_with, camera.T_base_cam)
-            if hasattr(self, "_road_tilt") and self._state is not None and self._prev is None:  # before the first frame
-                self._move_dukf_start(self.mounting_attitude[0] - started_from[0],
-                                      self.mounting_attitude[1] - started_from[1])
             self._standstill.attitude = self.mounting_attitude
             if hasattr(self, "_road_tilt"):  # after __init__: reset() sets it from the attitude otherwise
                 old = self._mounting
                 self._mounting = self.mounting_attitude if self._road_tilt.enabled else (0.0, 0.0)
                 dp, dr = self._mounting[0] - old[0], self._mounting[1] - old[1]
-                if dp or dr:  # the attitudes waiting for frames (a node's IMU before /tf_static) move with it,
-                    self._history = deque(((t, (road[0] + dp, road[1] + dr), *rest) for t, road, *rest in self._history),
-                                          maxlen=self._history.maxlen)
+                sp = sr = kept = 0.0
+                if self._state is not None and self._prev is None:  # before the first frame
+                    sp, sr, kept = self._move_dukf_start(self.mounting_attitude[0] - started_from[0],
+                                                         self.mounting_attitude[1] - started_from[1])
+                if dp or dr or sp or sr or kept:
+                    # The attitudes waiting for frames (a node's IMU before /tf_static) move with the mounting,
+                    # and the current DUKF start's states and kept-out pulls with the start's move.
+                    epoch = self._imu_restarts
+
+                    def moved(entry: tuple) -> tuple:
+                        t, road, state, yaw, e, pull = entry
+                        if e == epoch:
+                            state, pull = ((state[0][0] + sp, state[0][1] + sr), state[1]), (pull[0], pull[1] - kept)
+                        return t, (road[0] + dp, road[1] + dr), state, yaw, e, pull
+
+                    self._history = deque(map(moved, self._history), maxlen=self._history.maxlen)
                     if self._prev_pitch is not None:  # and so does the last frame's: the camera's tilt did not change
                         self._prev_pitch = (self._prev_pitch[0] + dp, *self._prev_pitch[1:])
         self._scale_per_pitch = pitch_scale_sensitivity(self.spec, float(camera.T_base_cam[0, 3]), camera.mount_height)
@@ -370,36 +380,26 @@ class BevoOdometry:
         self._yaw_per_roll = roll_yaw_sensitivity(camera.mount_height)
         self._standstill.set_camera(self.camera)
 
-    def _move_dukf_start(self, dp: float, dr: float) -> None:
+    def _move_dukf_start(self, dp: float, dr: float) -> tuple[float, float, float]:
         """Before the first frame: the DUKF started from a mounting attitude that is now ``(dp, dr)``
         off (a node's IMU fused before the first image named the camera, whose extrinsics re-derive
         the mounting; 1 deg: 1.3 % of a synthetic drive's length before this, 0.001 % after): its state
-        becomes what a start from the new mounting would have given. Its mean moves by the start's
+        becomes what a start from the new mounting would have given (nothing moves for ``(0, 0)``). Its mean moves by the start's
         share of the change (``_start_share``: a Kalman filter's mean depends on its start by the
         product of its updates' ``1 - K``); the rest of the pitch change is the accelerometer pull it
         would not have made, which :meth:`_fuse_imu` keeps out of the BEV (the start's excess
         variance: all of it, early on), so the BEV's pitch input moves by the whole change and its
         roll input by the mean's. The road-tilt low-pass moves with the inputs (the BEV's attitude
-        does not jump), and so do the current start's history entries (the pitch changes the
-        correction reads stay the car's)."""
-        if not (dp or dr):
-            return
+        does not jump); ``set_camera`` moves the current start's history entries by the returned
+        ``(pitch, roll, kept-out pull)`` changes (the pitch changes the correction reads stay the car's)."""
         (p, r), cov = self._state
         sp, sr = dp * self._start_share[0], dr * self._start_share[1]
         kept = dp - sp  # the pull a start from the new mounting would not have made (kept out of the BEV)
-        epoch = self._imu_restarts  # only the current start's attitudes
         self._state = ((p + sp, r + sr), cov)
         self._pull_kept_out -= kept
         self._pitch_kept_out_recent -= kept
         self._road_tilt.shift(dp, sr)  # the inputs: the pitch less its kept-out pull moves by dp, the roll by sr
-
-        def moved(entry: tuple) -> tuple:
-            t, road, state, yaw, e, pull = entry
-            if e != epoch:
-                return entry
-            return t, road, ((state[0][0] + sp, state[0][1] + sr), state[1]), yaw, e, (pull[0], pull[1] - kept)
-
-        self._history = deque(map(moved, self._history), maxlen=self._history.maxlen)
+        return sp, sr, kept
 
     @property
     def pitch_roll(self) -> np.ndarray | None:
@@ -573,11 +573,12 @@ class BevoOdometry:
                                  self._imu_dt, h1)
             mean, cov, pull = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise, extra,
                                                     return_pull=True)
-            # the start's share of the mean, d mean / d start = the product of the updates' (1 - K) =
-            # P_post / P_pred per angle (_move_dukf_start)
-            (o_p, o_r), prior = self._noise[0], self._state[1]
-            self._start_share = (self._start_share[0] * cov[0] / (prior[0] + o_p * self._imu_dt),
-                                 self._start_share[1] * cov[2] / (prior[2] + o_r * self._imu_dt))
+            if self._prev is None:  # only _move_dukf_start reads it, before the first frame
+                # the start's share of the mean, d mean / d start = the product of the updates' (1 - K) =
+                # P_post / P_pred per angle
+                (o_p, o_r), prior = self._noise[0], self._state[1]
+                self._start_share = (self._start_share[0] * cov[0] / (prior[0] + o_p * self._imu_dt),
+                                     self._start_share[1] * cov[2] / (prior[2] + o_r * self._imu_dt))
         self._state = (mean, cov)
         # The DUKF's variance above its steady state is uncertainty it has not worked off yet (its
         # start from the mounting attitude, a restart, the accelerometer discounted through an

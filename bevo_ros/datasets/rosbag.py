@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from bevo_ros.io import bag
-from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS
+from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS, camera_extrinsics, imu_axes
 from bevo_ros.config import BevoConfig, ConfigError, camera_model, coerce_setting, extrinsics_problem
 from bevo_ros.core.validation import intrinsics_problem
 from bevo_ros.core.geometry import CameraModel, rpy_from_rotation
@@ -150,21 +150,14 @@ def extrinsics_for_recording(rec: bag.BagContents, config: BevoConfig,
     """``(base_T_camera (4, 4), source)``: the bag's ``/tf_static`` ``base_frame -> image frame``
     when it has it (and ``rig.extrinsics_from_tf``), else ``camera.base_T_camera``: bevo_node's
     choice (``bevo_ros.ros.rig``), so that ``bevo run`` equals the node replaying the bag."""
-    if rig.extrinsics_from_tf and rec.image_frame_id:
-        T = rec.static_tf.lookup(rig.base_frame, rec.image_frame_id)
-        if T is not None:
-            return T, f"/tf_static {rig.base_frame} -> {rec.image_frame_id.lstrip('/')}"
-    return np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4), PARAMETERS_EXTRINSICS
+    return camera_extrinsics(rec.static_tf if rig.extrinsics_from_tf else None, rig.base_frame, rec.image_frame_id,
+                             config.camera.base_T_camera)
 
 
 def imu_rotation_for_recording(rec: bag.BagContents, frame_id: str, rig: RigSettings = RigSettings()) -> np.ndarray | None:
     """Rotation taking the IMU's ``frame_id`` axes into ``base_frame``'s (the bag's ``/tf_static``),
     None for the same axes or no such transform (the node then takes the IMU axes as the base's)."""
-    frame = frame_id.lstrip("/")
-    if not rig.extrinsics_from_tf or not frame or frame == rig.base_frame.lstrip("/"):
-        return None
-    T = rec.static_tf.lookup(rig.base_frame, frame)
-    return None if T is None else T[:3, :3].copy()
+    return imu_axes(rec.static_tf if rig.extrinsics_from_tf else None, rig.base_frame, frame_id)
 
 
 def calibration_for_recording(rec: bag.BagContents, config: BevoConfig, rig: RigSettings = RigSettings()):
@@ -229,9 +222,8 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
         raise ValueError(f"{bag_path}: needs at least 2 images")
     calib = calibration_for_recording(rec, config, rig)
     camera = camera_for_recording(rec, config, rig, calib)
-    if rec.images.shape[1:] != (calib.height, calib.width):  # the node drops each such image (bad_image_size)
-        raise ValueError(f"{bag_path}: the images are {rec.images.shape[2]}x{rec.images.shape[1]} but the calibration "
-                         f"is {calib.width}x{calib.height} (from {calib.source})")
+    if len(rec.images) and (problem := calib.size_problem(rec.images[0])) is not None:  # the node drops each (bad_image_size)
+        raise ValueError(f"{bag_path}: an image {problem}")
     if calib.maps is not None:  # distorted images: undistorted as the node does, in place
         for i in range(len(rec.images)):
             rec.images[i] = calib.rectify(rec.images[i])

@@ -64,3 +64,24 @@ class StaticTree:
             return None
         return np.linalg.inv(T_rt) @ T_rs
 
+
+def camera_extrinsics(transforms: Any, base_frame: str, camera_frame: str, fallback) -> tuple[np.ndarray, str]:
+    """``(base_T_camera (4, 4), source)``: ``transforms.lookup(base_frame, camera_frame)`` (a
+    :class:`StaticTree` or the node's listener; None: not used) when known, else ``fallback``
+    (``camera.base_T_camera``). The node's choice and the offline commands' alike."""
+    if transforms is not None and camera_frame:
+        T = transforms.lookup(base_frame, camera_frame)
+        if T is not None:
+            return T, f"/tf_static {base_frame} -> {camera_frame}"
+    return np.asarray(fallback, dtype=np.float64).reshape(4, 4), PARAMETERS_EXTRINSICS
+
+
+def imu_axes(transforms: Any, base_frame: str, imu_frame: str) -> np.ndarray | None:
+    """Rotation taking vectors from ``imu_frame`` into ``base_frame``'s axes (``transforms`` as in
+    :func:`camera_extrinsics`), None for the same frame, no frame or no such transform (the IMU's
+    axes are then taken as the base's)."""
+    frame = imu_frame.lstrip("/")
+    if transforms is None or not frame or frame == base_frame.lstrip("/"):
+        return None
+    T = transforms.lookup(base_frame, frame)
+    return None if T is None else T[:3, :3].copy()

@@ -44,6 +44,14 @@ class Calibration:
                 f"cx={K[0, 2]:.3f} cy={K[1, 2]:.3f}")
         return text + (", undistorting every image (OpenCV remap)" if self.maps is not None else "")
 
+    def size_problem(self, img: np.ndarray) -> str | None:
+        """Why ``img (H, W)`` cannot be used with this calibration (another size), or None. Checked
+        before :meth:`rectify`: its remap returns any image at the maps' size."""
+        if (img.shape[1], img.shape[0]) == (self.width, self.height):
+            return None
+        return (f"is {img.shape[1]}x{img.shape[0]} but the calibration is {self.width}x{self.height} "
+                f"(from {self.source})")
+
     def rectify(self, img: np.ndarray) -> np.ndarray:
         """``(H, W)`` uint8 raw image -> ``(H, W)`` uint8 undistorted (identity without maps)."""
         if self.maps is None:

@@ -20,7 +20,7 @@ import numpy as np
 
 from bevo_ros.config import BevoConfig, ConfigError, camera_model
 from bevo_ros.core.validation import intrinsics_problem
-from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS
+from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS, camera_extrinsics, imu_axes
 from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from_camera_info,
                                  calibration_from_parameters, same_camera_info)
 from bevo_ros.ros.diagnostics import OK, WARN, Report, SensorState
@@ -125,12 +125,8 @@ class Rig:
     # ------------------------------------------------------------------ extrinsics
     def _extrinsics(self) -> tuple[np.ndarray, str]:
         """``(base_T_camera (4, 4), source)``: /tf_static ``base_frame -> image frame`` when known."""
-        base = self.settings.base_frame
-        if self.static_tf is not None and self._camera_frame:
-            T = self.static_tf.lookup(base, self._camera_frame)
-            if T is not None:
-                return T, f"/tf_static {base} -> {self._camera_frame}"
-        return np.asarray(self.config.camera.base_T_camera, dtype=np.float64).reshape(4, 4), PARAMETERS_EXTRINSICS
+        return camera_extrinsics(self.static_tf, self.settings.base_frame, self._camera_frame,
+                                 self.config.camera.base_T_camera)
 
     def refresh(self, force: bool = False) -> None:
         """(Re)build the camera model when the calibration or the camera's static TF changed."""
@@ -168,8 +164,7 @@ class Rig:
             version = self.static_tf.version
         if cached is not None and cached[0] == version:
             return cached[1]
-        T = self.static_tf.lookup(base, frame) if self.static_tf is not None else None
-        R = None if T is None else T[:3, :3].copy()
+        R = imu_axes(self.static_tf, base, frame)
         self._R_base_imu[frame] = (version, R)
         if R is not None:
             if cached is None or cached[1] is None or not np.allclose(cached[1], R, rtol=0, atol=1e-12):
@@ -244,9 +239,8 @@ class Rig:
             return None
         self._image_size = (img.shape[1], img.shape[0])
         calib = self.calibration
-        if (img.shape[1], img.shape[0]) != (calib.width, calib.height):
-            self.report.drop("bad_image_size", f"image at {t:.6f} is {img.shape[1]}x{img.shape[0]} but the "
-                                               f"calibration is {calib.width}x{calib.height} (from {calib.source})")
+        if (problem := calib.size_problem(img)) is not None:
+            self.report.drop("bad_image_size", f"image at {t:.6f} {problem}")
             return None
         return calib.rectify(img)
 
