@@ -296,6 +296,8 @@ class BevoNode(Node):
         values["calibration"] = self.rig.calibration.source if self.rig.calibration is not None else "none yet"
         values["extrinsics"] = self.rig.extrinsics_source
         values["direction_of_travel"] = self.engine.direction_of_travel if self.engine is not None else "unknown"
+        if self.engine is not None:  # what the engine takes off the gyro (x, y from standstills, z the motion filter's)
+            values["gyro_bias_deg_s"] = ", ".join(f"{math.degrees(b):+.4f}" for b in self.engine.gyro_bias)
         name = self.get_name()
         statuses = [status_message(name, "odometry", odometry_state(values, inputs, self.engine is not None,
                                                                     drops - prev_drops))]

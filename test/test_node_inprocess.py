@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -194,6 +195,9 @@ def test_odometry_equals_offline_core(harness_factory, drive):
         assert key in values, values
     assert values["drops_total"] == "0" and int(values["odometry_published"]) == len(expected)
     assert 0.0 <= float(values["peak_quality_mean"]) <= 1.0
+    # the gyro biases the engine takes off, deg/s (x, y from standstills, z the motion filter's)
+    assert [float(v) for v in values["gyro_bias_deg_s"].split(",")] == pytest.approx(
+        [math.degrees(b) for b in h.node.engine.gyro_bias], abs=1e-4)
     p50, p99, _ = h.node.report.latency_percentiles()
     assert 0 < p50 <= p99 < 60.0  # figures: tools/bench_node.py
 

@@ -162,6 +162,39 @@ def test_fused_holds_on_real_imu_clips(kitti_root, drive, first):
 
 
 @pytest.mark.kitti
+def test_a_stop_rocking_on_its_suspension_gives_no_gyro_bias(kitti_root, monkeypatch):
+    """0018 braking to a 6 s stop (real IMU and motion, rendered frames, fed by stamp): the car
+    rocks back on its suspension as it stops, which the rest intervals' gyro-bias estimate must
+    not take for a bias (engine REST_BIAS_SETTLE, REST_BIAS_PRIOR). Measured: 62 of 63 frames at
+    rest found, 4.7 cm of creep over the stop, pitch-rate bias -0.017 deg/s. Taken from the first
+    still frames with no prior it read -1.25 deg/s: the DUKF's pitch ran off, the BEVs moved, the
+    standstill was lost after 3 frames and the stop crept 9.9 m (the test can fail: checked with
+    those settings below)."""
+    import bevo_ros.core.odometry as engine_module
+
+    ox = read_oxts(kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0018_sync" / "oxts")
+    d = drive_from_oxts(ox.slice(2240, 2240 + 175), seed=1, camera=small_camera())
+    rest = d.relative_motion[:159, 0] < 0.005
+    assert rest.sum() > 50
+
+    def run() -> tuple[int, float, tuple]:
+        odo = build_odometry(BevoConfig(), FUSED, camera=d.camera)
+        steps = _feed_clip(odo, d, 0, 160, by_stamp=True)
+        est = np.array([s.motion for s in steps[1:]])
+        return sum(s.standstill for s in steps[1:]), float(np.abs(est[rest, 0]).sum()), odo.gyro_bias
+
+    still, creep, bias = run()
+    print(f"\nfound {still} frames at rest of {rest.sum()}; creep {creep * 100:.1f} cm; gyro bias {np.degrees(bias)} deg/s")
+    assert still >= 0.9 * rest.sum() and creep < 0.2 and max(abs(b) for b in bias[:2]) < math.radians(0.1)
+    monkeypatch.setattr(engine_module, "REST_BIAS_SETTLE", 0.0)
+    monkeypatch.setattr(engine_module, "REST_BIAS_PRIOR", 1e-9)
+    monkeypatch.setattr(engine_module, "REST_BIAS_MAX", 0.05)
+    still, creep, bias = run()
+    print(f"without the settling and the prior: {still} frames at rest; creep {creep:.2f} m; gyro bias {np.degrees(bias)} deg/s")
+    assert still < 0.5 * rest.sum() and creep > 1.0
+
+
+@pytest.mark.kitti
 def test_render_oxts_bag_through_bevo_run(kitti_root, tmp_path, capsys):
     """``bevo convert --render-oxts`` writes the drive as a bag (frames on the camera clock, the
     10 Hz OXTS at its own stamps, played by stamp); ``run_bag`` (``bevo run``) reads the turn's

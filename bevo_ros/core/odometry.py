@@ -86,6 +86,22 @@ DIRECTION_SPEED = 1.0
 # with the car (the car ahead at our speed), and the filter's near-zero speed is wrong.
 MOVING_MARGIN = 0.05
 
+# Fused mode, at a standstill the images confirm: the gyro's pitch and roll rates are their biases
+# (as the yaw's is; a zero-rotation update). Their estimate is the rest intervals' mean rate, older
+# rest time counting as at most REST_BIAS_MEMORY seconds (a MEMS bias walks: the next stop's mean
+# takes over), shrunk towards zero as if REST_BIAS_PRIOR seconds at zero came first (a short stop
+# moves it little). Only rest REST_BIAS_SETTLE seconds after the stop began counts: a car rocks back
+# on its suspension as it stops (real drive 0018 @ 2240 and 2320, test_fused_holds_on_real_imu_clips:
+# 0.3 s of that read as the bias ran the
+# DUKF's pitch off, the BEVs moved, the standstill was lost and the stop read as 1.8 m/s). A rest
+# interval reading more than REST_BIAS_MAX (rad/s) is no bias but motion the images missed, and is
+# left out. The DUKF then predicts with the rates less the estimate: before this, the 10 Hz
+# traffic_light preset's DUKF pitch ran 3 deg off over its 15 s stop (MEMS bias 0.1-0.2 deg/s),
+# read as tilt after the pull-away.
+REST_BIAS_MEMORY = 30.0  # s
+REST_BIAS_PRIOR = 2.0  # s
+REST_BIAS_SETTLE = 1.0  # s
+REST_BIAS_MAX = math.radians(1.0)  # rad/s
 Z_VARIANCE = 1e6  # z is held constant: say so with a huge variance rather than a false certainty
 _PLANAR = np.ix_([0, 1, 5], [0, 1, 5])  # (x, y, yaw) in a 6x6 ROS covariance
 
@@ -160,7 +176,8 @@ class Counters:
     rejected_textureless: int = 0  # fused: a frame whose correlation carries no information
     rejected_translation: int = 0  # fused: the translation failed the Mahalanobis gate
     rejected_rotation: int = 0  # fused: the image rotation disagreed with the gyro beyond the gate
-    standstill: int = 0  # fused: frames at rest (zero motion, the yaw gyro's bias observed)
+    standstill: int = 0  # fused: frames at rest (zero motion, the gyro's biases observed)
+    rest_bias_skipped: int = 0  # fused: rest intervals whose pitch/roll rates were too large for a gyro bias
     gated_peak: int = 0  # fused: the highest peak was off the prediction or the direction of travel, the road's taken
     pitch_correction_off: int = 0  # fused: pairs the pitch-change correction left alone (its DUKF pull or turn gate)
 
@@ -342,6 +359,11 @@ class BevoOdometry:
         self._fwd_sum = 0.0  # integral of the accelerometer's forward acceleration since the last frame, m/s
         self._fwd_time = 0.0  # the time it covers, s
         self._direction = 1  # fused: direction of travel, +1 forward, -1 reverse, 0 either (after a stop)
+        # fused: the raw gyro's (stamp, x, y) rates, for the rest intervals' mean (REST_BIAS_MEMORY)
+        self._gyro_xy: deque[tuple[float, float, float]] = deque(maxlen=4000)
+        self._xy_bias = (0.0, 0.0)  # fused: the gyro's x (roll) and y (pitch) rate biases, rad/s
+        self._xy_bias_time = REST_BIAS_PRIOR  # the rest time behind them, s (at most REST_BIAS_MEMORY)
+        self._rest_since: float | None = None  # fused: the start of the current standstill, s
         self._standstill.reset()
         self.counters.resets += 1
 
@@ -405,6 +427,13 @@ class BevoOdometry:
     def pitch_roll(self) -> np.ndarray | None:
         """Current gravity-referenced (pitch, roll) from the DUKF, radians."""
         return None if self._state is None else np.array(self._state[0])
+
+    @property
+    def gyro_bias(self) -> tuple[float, float, float]:
+        """Fused mode: the gyro biases the engine takes off (rad/s, base x, y, z): x and y from the
+        rest intervals' mean rates (REST_BIAS_MEMORY), z the motion filter's yaw-rate bias. Zeros
+        until the first standstill (and in paper mode)."""
+        return (*self._xy_bias, float(self._vstate.b) if self.mode == "fused" else 0.0)
 
     @property
     def direction_of_travel(self) -> str:
@@ -511,6 +540,8 @@ class BevoOdometry:
     def _fuse_imu(self, stamp: float, g: list[float], a: list[float]) -> None:
         """Fused mode, one IMU sample: compensated DUKF, suspension-aware road tilt, gyro yaw."""
         vs = self._vstate
+        self._gyro_xy.append((stamp, g[0], g[1]))
+        g = [g[0] - self._xy_bias[0], g[1] - self._xy_bias[1], g[2]]
         elapsed = 0.0 if self._prev_stamp is None else max(stamp - self._prev_stamp, 0.0)
         speed, speed_var = vs.speed_at(elapsed)
         # The forward acceleration from the accelerometer's forward reading at the latest filtered
@@ -895,6 +926,13 @@ class BevoOdometry:
             self._direction = 1 if frame.state.v > 0 else -1
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
         if still:
+            if self._rest_since is None:
+                self._rest_since = self._prev_stamp
+            if self._prev_stamp - self._rest_since >= REST_BIAS_SETTLE:
+                self._observe_rest_bias(self._prev_stamp, stamp)
+        else:
+            self._rest_since = None
+        if still:
             self.counters.standstill += 1  # a state, not an event: a long stop would crowd the events out
         elif quality < n.min_quality:
             self._count("rejected_textureless", stamp)
@@ -932,6 +970,27 @@ class BevoOdometry:
         std_y = math.sqrt((n.slip_std * dx) ** 2 + meas_var)
         mpp = self.spec.metres_per_pixel
         return [row0 + dx / mpp, col0 + dx * math.tan(dyaw / 2) / mpp], [std_x / mpp, std_y / mpp]
+
+    def _observe_rest_bias(self, start: float, end: float) -> None:
+        """Fused mode, the images say the car stood still from ``start`` to ``end`` (s): the gyro's
+        mean x and y rates over the IMU samples in between are their biases (REST_BIAS_MEMORY)."""
+        rates = []
+        for s, x, y in reversed(self._gyro_xy):  # newest first: the interval is at the end
+            if s <= start:
+                break
+            if s <= end:
+                rates.append((x, y))
+        span = end - start
+        if not rates or span <= 0:
+            return
+        mx, my = (sum(r[i] for r in rates) / len(rates) for i in (0, 1))
+        if max(abs(mx), abs(my)) > REST_BIAS_MAX:
+            self.counters.rest_bias_skipped += 1
+            return
+        held = self._xy_bias_time
+        self._xy_bias = ((self._xy_bias[0] * held + mx * span) / (held + span),
+                         (self._xy_bias[1] * held + my * span) / (held + span))
+        self._xy_bias_time = min(held + span, REST_BIAS_MEMORY)
 
     def _stop_is_plausible(self, dt: float) -> bool:
         """Fused mode: the motion filter's speed can reach zero within ``dt`` braking at 1 g (plus
