@@ -98,16 +98,33 @@ def listener():
     lis.close()
 
 
+_STARTED: list[subprocess.Popen] = []
+
+
 def _play(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *PLAY, *args], env=_env(), stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, *PLAY, *args], env=_env(), stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
+    _STARTED.append(proc)
+    return proc
+
+
+@pytest.fixture(autouse=True)
+def _no_player_outlives_its_test():
+    """A player left running by a failed test (a timeout under load) would keep publishing into
+    the next test's domain: kill it at teardown."""
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=30)
 
 
 def test_play_delivers_every_message_and_clock(small_bag, listener):
     t0 = time.monotonic()
     proc = _play(str(small_bag), "--rate", "4", "--wait-for-subscribers", "20")
     listener.spin_while(proc, extra=1.0)
-    out, err = proc.communicate(timeout=30)
+    out, err = proc.communicate(timeout=60)
     got = {t: len(v) for t, v in listener.msgs.items()}
     print(f"play_bag rc {proc.returncode} in {time.monotonic() - t0:.1f} s; received {got}\n{out}{err}")
     assert proc.returncode == 0, err
@@ -132,7 +149,7 @@ def test_topics_and_start(small_bag, listener):
     proc = _play(str(small_bag), "--rate", "0", "--topics", bag.IMU_TOPIC, "--start", "1.0",
                  "--wait-for-subscribers", "20", "--no-clock", "-q")
     listener.spin_while(proc, extra=1.0)
-    out, err = proc.communicate(timeout=30)
+    out, err = proc.communicate(timeout=60)
     got = {t: len(v) for t, v in listener.msgs.items()}
     print(f"--topics /imu/data --start 1.0: received {got}")
     assert proc.returncode == 0, err
@@ -145,7 +162,7 @@ def test_ctrl_c_exits_130_without_traceback(small_bag, listener):
     proc = _play(str(small_bag), "--rate", "0.05", "--wait-for-subscribers", "20")
     listener.spin_while(proc, until=lambda: len(listener.msgs[bag.IMU_TOPIC]) >= 1)
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=30)
+    out, err = proc.communicate(timeout=60)
     print(f"rc {proc.returncode}; stderr: {err.strip()}")
     assert proc.returncode == 130
     assert "interrupted" in err and "Traceback" not in err
@@ -185,4 +202,4 @@ def test_recorded_qos_replays_tf_static_latched_and_namespace(tmp_path, listener
         assert late and late[0].transforms[0].child_frame_id == "imu_link"
     finally:
         proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=30)
+        proc.communicate(timeout=60)
