@@ -128,7 +128,7 @@ class OdometrySettings:
     # Fused mode: a frame whose correlation reads little forward motion is checked for standstill on
     # the raw images (core/standstill.py: the small motion over the road region by brightness
     # constancy); below this speed (m/s) over the frame interval the vehicle is at rest: zero
-    # motion, the yaw gyro's bias observed. 0 disables the check.
+    # motion, the gyro's biases observed. 0 disables the check.
     standstill_max_speed: float = 0.1
     # Fused mode: the direction of travel is forward from the start and changes only at a standstill
     # the images confirm; the correlation's peak is taken among shifts of that direction (the car

@@ -244,7 +244,7 @@ class BevoOdometry:
         standstill_max_speed: fused mode: a frame whose correlation reads less than
             :data:`~bevo_ros.core.standstill.CHECK_BELOW` forward is checked for standstill on the
             raw images (:mod:`~bevo_ros.core.standstill`); below this speed (m/s) over the frame
-            interval the vehicle is at rest: zero motion, the yaw gyro's bias observed. 0 disables it.
+            interval the vehicle is at rest: zero motion, the gyro's biases observed. 0 disables it.
         direction_lock: fused mode: the direction of travel is forward from the start and changes
             only at a standstill the images confirm: the correlation's peak is taken among shifts
             of that direction (:data:`DIRECTION_TOLERANCE`). A car ahead pulling away moves in the

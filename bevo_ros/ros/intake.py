@@ -164,7 +164,7 @@ ENGINE_REJECTIONS = (
     ("rejected_rotation", "an image rotation disagreeing with the gyro beyond the odometry.gate"),
 )
 # fused mode: engine counters of frame states, not faults, reported as events: frames at rest (zero
-# motion, the yaw gyro's bias observed) and frames whose translation took a correlation peak other
+# motion, the gyro's biases observed) and frames whose translation took a correlation peak other
 # than the highest (the one nearest the motion filter's prediction, or in the direction of travel:
 # a second motion in view, the car ahead, its shadow), and frame pairs over which the pitch-change
 # correction was off (the DUKF pulled hard by its accelerometer, or turning with its roll unconverged)

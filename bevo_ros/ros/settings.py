@@ -131,7 +131,7 @@ DESCRIPTIONS = {
     "filter.max_angular_rate": "IMU samples with a gyro axis above this (rad/s) are dropped (imu_gyro_range)",
     "odometry.standstill_max_speed": "fused mode: below this speed (m/s, the small motion over a frame interval read on "
                                      "the raw images when the correlation reads under 0.15 m) the vehicle is at rest: zero "
-                                     "motion, the yaw gyro's bias observed; 0 disables",
+                                     "motion, the gyro's biases observed; 0 disables",
     "odometry.direction_lock": "fused mode: forward from the start, the direction of travel changes only at a stop the "
                                "images confirm, and the correlation's peak is taken in it (the car ahead pulling away "
                                "reads as reversing); false for a vehicle that reverses without a confirmed stop",
