@@ -102,8 +102,12 @@ _STARTED: list[subprocess.Popen] = []
 
 
 def _play(*args: str) -> subprocess.Popen:
+    # SIGINT back to its default in the child: a suite run as a background job (`make test &` in a
+    # script) ignores SIGINT, the child inherits that and Python then installs no KeyboardInterrupt
+    # handler, so the Ctrl-C test would see the player play on (exit 0) instead of stopping (130).
     proc = subprocess.Popen([sys.executable, *PLAY, *args], env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     _STARTED.append(proc)
     return proc
 
