@@ -91,11 +91,10 @@ MOVING_MARGIN = 0.05
 # rest time counting as at most REST_BIAS_MEMORY seconds (a MEMS bias walks: the next stop's mean
 # takes over), shrunk towards zero as if REST_BIAS_PRIOR seconds at zero came first (a short stop
 # moves it little). Only rest REST_BIAS_SETTLE seconds after the stop began counts: a car rocks back
-# on its suspension as it stops (real drive 0018 @ 2240 and 2320, test_fused_holds_on_real_imu_clips:
-# 0.3 s of that read as the bias ran the
-# DUKF's pitch off, the BEVs moved, the standstill was lost and the stop read as 1.8 m/s). A rest
-# interval reading more than REST_BIAS_MAX (rad/s) is no bias but motion the images missed, and is
-# left out. The DUKF then predicts with the rates less the estimate: before this, the 10 Hz
+# on its suspension as it stops (real drive 0018 @ 2240, test_a_stop_rocking_on_its_suspension_gives_
+# no_gyro_bias: 0.3 s of that read as the bias ran the DUKF's pitch off, the BEVs moved, the
+# standstill was lost and the stop crept 9.9 m). A rest interval reading more than REST_BIAS_MAX
+# (rad/s) is no bias but motion the images missed, and is left out. The DUKF then predicts with the rates less the estimate: before this, the 10 Hz
 # traffic_light preset's DUKF pitch ran 3 deg off over its 15 s stop (MEMS bias 0.1-0.2 deg/s),
 # read as tilt after the pull-away.
 REST_BIAS_MEMORY = 30.0  # s
@@ -925,15 +924,11 @@ class BevoOdometry:
         elif self._direction == 0 and abs(frame.state.v) > DIRECTION_SPEED:
             self._direction = 1 if frame.state.v > 0 else -1
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])
-        if still:
-            if self._rest_since is None:
-                self._rest_since = self._prev_stamp
-            if self._prev_stamp - self._rest_since >= REST_BIAS_SETTLE:
-                self._observe_rest_bias(self._prev_stamp, stamp)
-        else:
+        if not still:
             self._rest_since = None
         if still:
             self.counters.standstill += 1  # a state, not an event: a long stop would crowd the events out
+            self._observe_rest_bias(self._prev_stamp, stamp)
         elif quality < n.min_quality:
             self._count("rejected_textureless", stamp)
         else:
@@ -972,8 +967,13 @@ class BevoOdometry:
         return [row0 + dx / mpp, col0 + dx * math.tan(dyaw / 2) / mpp], [std_x / mpp, std_y / mpp]
 
     def _observe_rest_bias(self, start: float, end: float) -> None:
-        """Fused mode, the images say the car stood still from ``start`` to ``end`` (s): the gyro's
-        mean x and y rates over the IMU samples in between are their biases (REST_BIAS_MEMORY)."""
+        """Fused mode, the images say the car stood still from ``start`` to ``end`` (s): once the stop
+        has lasted REST_BIAS_SETTLE, the gyro's mean x and y rates over the IMU samples in between are
+        their biases (REST_BIAS_MEMORY)."""
+        if self._rest_since is None:
+            self._rest_since = start
+        if start - self._rest_since < REST_BIAS_SETTLE:
+            return
         rates = []
         for s, x, y in reversed(self._gyro_xy):  # newest first: the interval is at the end
             if s <= start:
