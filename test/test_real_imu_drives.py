@@ -324,6 +324,30 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "expected comma-separated frame numbers" in bad.stderr
 
+def test_eval_real_imu_acceptance_table(tmp_path):
+    """``--presets ... --acceptance``: issue 9's table, each drive whole in both modes, each figure
+    against its target, and whether fused beats paper; without ``--presets`` a clear error."""
+    import re
+    import subprocess
+    import sys
+
+    tool = str(REPO_ROOT / "tools" / "eval_real_imu.py")
+    out = subprocess.run([sys.executable, tool, "--presets", "braking", "--acceptance", "--cache", str(tmp_path)],
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    rows = {m.group(1): [float(v) for v in m.groups()[1:]] for m in re.finditer(
+        r"braking/1 +(fused|paper) +([\d.]+) / +([\d.]+) \w+ +([\d.]+) \w+ +([\d.]+) \w+ +([\d.]+) \w+ +[-+\d.]+",
+        out.stdout)}
+    assert set(rows) == {"fused", "paper"}, out.stdout
+    fused, paper = rows["fused"], rows["paper"]  # pitch, roll (deg), per frame (%), yaw (deg), drift (%)
+    assert all(0.0 < v for v in fused) and fused[2] < paper[2] and fused[3] < paper[3], out.stdout
+    assert re.search(r"fused: targets met \(of 1 drives\): attitude <= 0.3 deg [01], per frame <= 3.0 % [01], "
+                     r"yaw <= 0.05 deg [01], drift <= 1.0 % [01]", out.stdout), out.stdout
+    assert "fused beats paper on every metric in 1 of 1 drives" in out.stdout, out.stdout
+    bad = subprocess.run([sys.executable, tool, "--acceptance"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--acceptance needs --presets" in bad.stderr
+
+
 
 @pytest.mark.kitti
 def test_a_cold_start_behind_a_car_keeps_the_first_pairs_speed(kitti_root, monkeypatch):
