@@ -116,6 +116,10 @@ class OdometrySettings:
     min_quality: float = 0.05
     # Fused mode: Mahalanobis distance (sigmas) beyond which a frame's measurement is rejected.
     gate: float = 5.0
+    # Fused mode: a frame whose images turn more than this (rad) away from the bias-corrected gyro
+    # (plus 1 deg/s of bias change per second) is no measurement of the yaw gyro's bias: something
+    # else turned in the BEV (a car ahead), not the gyro's bias (core/vehicle_filter.py).
+    rotation_gate: float = 0.00524
     # Fused mode: the DUKF starts at the mounting attitude with this standard deviation (rad).
     initial_attitude_std: float = 0.0524
     # Fused mode: remove from each frame's forward motion the shift that the engine's own change of
@@ -518,7 +522,8 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
                           f"got {config.filter.gyro_sampling!r}")
     dukf = DUKF(process_var=learned.process_noise_density, measurement_var=learned.measurement_noise_variance,
                 motion_model=config.filter.motion_model).double()
-    vehicle = VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate)
+    vehicle = VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate,
+                           rotation_gate=config.odometry.rotation_gate)
     spec = bev_spec(config)
     limits = imu_limits(config)
     odometry = BevoOdometry(
