@@ -117,8 +117,9 @@ class OdometrySettings:
     # Fused mode: Mahalanobis distance (sigmas) beyond which a frame's measurement is rejected.
     gate: float = 5.0
     # Fused mode: a frame whose images turn more than this (rad) away from the bias-corrected gyro
-    # (plus 1 deg/s of bias change per second) is no measurement of the yaw gyro's bias: something
-    # else turned in the BEV (a car ahead), not the gyro's bias (core/vehicle_filter.py).
+    # (plus 1 deg/s and 3 x the bias estimate's standard deviation, times the frame interval) is no
+    # measurement of the yaw gyro's bias: something else turned in the BEV (a car ahead)
+    # (core/vehicle_filter.py).
     rotation_gate: float = 0.00524
     # Fused mode: the DUKF starts at the mounting attitude with this standard deviation (rad).
     initial_attitude_std: float = 0.0524

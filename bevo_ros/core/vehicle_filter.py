@@ -58,10 +58,10 @@ class VehicleNoise:
             (a black, covered or overexposed frame).
         gate: Mahalanobis distance (sigmas) beyond which a measurement is rejected.
         rotation_gate: rad; a frame whose image rotation differs from the bias-corrected gyro's
-            increment by more than this plus :data:`BIAS_RATE_BOUND` x ``dt`` is not used for the
-            bias. The bias is small and slow, so such a frame saw something else turn: a car
-            ahead (synthetic ``urban`` with traffic: the drive's heading 9.4 -> 0.5 deg off, drift
-            6.7 -> 2.7 %). The Mahalanobis gate cannot catch it: ``image_rotation_std`` (1 deg per
+            increment by more than this plus (:data:`BIAS_RATE_BOUND` + 3 x the bias estimate's
+            standard deviation) x ``dt`` is not used for the bias. The bias is small and slow, so such a frame saw something else turn: a car
+            ahead (synthetic ``urban`` with traffic: the drive's heading 9.4 -> 1.6 deg off, drift
+            6.7 -> 2.9 %). The Mahalanobis gate cannot catch it: ``image_rotation_std`` (1 deg per
             frame) is what weights the images against the gyro over many frames.
     """
 
@@ -279,7 +279,9 @@ class VehicleFilter:
         if have and rotation is not None:
             z_b = (gyro_yaw - rotation) / dt
             r_b = (rotation_var + n.gyro_yaw_density * dt) / (dt * dt)
-            bound = n.rotation_gate + BIAS_RATE_BOUND * dt
+            # widened by the bias estimate's own 3 sigma: a gyro whose bias is not known yet (a start)
+            # may disagree with the images by more
+            bound = n.rotation_gate + (BIAS_RATE_BOUND + 3.0 * _sqrt(P[2][2])) * dt
             residual = (z_b - x[2]) * dt  # the images' turn less the bias-corrected gyro's, rad
             if isinstance(residual, Tensor):
                 plausible = residual.abs() <= bound
