@@ -93,17 +93,21 @@ def print_acceptance(results: dict[str, dict[str, dict[str, float]]], modes: lis
     def mark(key: str, value: float) -> str:
         return "ok" if value <= TARGETS[key] else "over"
 
-    print(f"{'drive':18s} {'mode':5s}  road pitch / roll (deg)   per frame (%)    yaw (deg/frame)   drift (%)       scale (%)")
+    print(f"{'drive':18s} {'mode':5s}  road pitch / roll (deg)   per frame (%)    yaw (deg/frame)   drift (%)"
+          "       scale (%)")
     for drive, by_mode in results.items():
         for mode in modes:
             r = by_mode[mode]
-            print(f"{drive:18s} {mode:5s}  {r['pitch']:5.2f} / {r['roll']:5.2f} {mark('attitude', max(r['pitch'], r['roll'])):4s}"
-                  f"     {r['per_frame']:6.2f} {mark('per_frame', r['per_frame']):4s}   {r['yaw']:6.3f} {mark('yaw', r['yaw']):4s}"
+            attitude = max(r["pitch"], r["roll"])
+            print(f"{drive:18s} {mode:5s}  {r['pitch']:5.2f} / {r['roll']:5.2f} {mark('attitude', attitude):4s}"
+                  f"     {r['per_frame']:6.2f} {mark('per_frame', r['per_frame']):4s}"
+                  f"   {r['yaw']:6.3f} {mark('yaw', r['yaw']):4s}"
                   f"      {r['drift']:6.2f} {mark('drift', r['drift']):4s}   {r['scale']:+6.2f}")
     for mode in modes:
         rows = [by_mode[mode] for by_mode in results.values()]
         mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-        met = {k: sum((max(r["pitch"], r["roll"]) if k == "attitude" else r[k]) <= t for r in rows) for k, t in TARGETS.items()}
+        met = {k: sum((max(r["pitch"], r["roll"]) if k == "attitude" else r[k]) <= t for r in rows)
+               for k, t in TARGETS.items()}
         print(f"{'mean of ' + str(len(rows)):18s} {mode:5s}  {mean['pitch']:5.2f} / {mean['roll']:5.2f}"
               f"          {mean['per_frame']:6.2f}          {mean['yaw']:6.3f}             {mean['drift']:6.2f}"
               f"        {mean['scale']:+6.2f}")

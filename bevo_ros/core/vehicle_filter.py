@@ -59,10 +59,11 @@ class VehicleNoise:
         gate: Mahalanobis distance (sigmas) beyond which a measurement is rejected.
         rotation_gate: rad; a frame whose image rotation differs from the bias-corrected gyro's
             increment by more than this plus (:data:`BIAS_RATE_BOUND` + 3 x the bias estimate's
-            standard deviation) x ``dt`` is not used for the bias. The bias is small and slow, so such a frame saw something else turn: a car
-            ahead (synthetic ``urban`` with traffic: the drive's heading 9.4 -> 1.6 deg off, drift
-            6.7 -> 2.9 %). The Mahalanobis gate cannot catch it: ``image_rotation_std`` (1 deg per
-            frame) is what weights the images against the gyro over many frames.
+            standard deviation) x ``dt`` is not used for the bias. The bias is small and slow, so
+            such a frame saw something else turn: a car ahead (synthetic ``urban`` with traffic:
+            the drive's heading 9.4 -> 1.6 deg off, drift 6.7 -> 2.9 %). The Mahalanobis gate cannot
+            catch it: ``image_rotation_std`` (1 deg per frame) is what weights the images against
+            the gyro over many frames.
     """
 
     jerk_density: float = 10.0

@@ -161,7 +161,8 @@ class Intake:
 ENGINE_REJECTIONS = (
     ("rejected_textureless", "a correlation peak below odometry.min_quality (black, covered or textureless frame)"),
     ("rejected_translation", "a forward motion beyond the odometry.gate Mahalanobis gate"),
-    ("rejected_rotation", "an image rotation disagreeing with the gyro beyond the odometry.gate"),
+    ("rejected_rotation",
+     "an image rotation disagreeing with the gyro beyond the odometry.gate or odometry.rotation_gate"),
 )
 # fused mode: engine counters of frame states, not faults, reported as events: frames at rest (zero
 # motion, the gyro's biases observed) and frames whose translation took a correlation peak other
