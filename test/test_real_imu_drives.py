@@ -324,6 +324,7 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "expected comma-separated frame numbers" in bad.stderr
 
+
 def test_eval_real_imu_acceptance_table(tmp_path):
     """``--presets ... --acceptance``: issue 9's table, each drive whole in both modes, each figure
     against its target, and whether fused beats paper; without ``--presets`` a clear error."""
@@ -346,7 +347,6 @@ def test_eval_real_imu_acceptance_table(tmp_path):
     assert "fused beats paper on every metric in 1 of 1 drives" in out.stdout, out.stdout
     bad = subprocess.run([sys.executable, tool, "--acceptance"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--acceptance needs --presets" in bad.stderr
-
 
 
 @pytest.mark.kitti

@@ -168,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--traffic", action="store_true",
                    help="other vehicles in the images: a car ahead, parked cars, oncoming cars (synthetic.TrafficOptions)")
     p.add_argument("--acceptance", action="store_true",
-                   help="with --presets: each drive whole, issue 9's acceptance table (instead of clips)")
+                   help="with --presets: each drive whole, issue 9's acceptance table (instead of clips: "
+                        "--length, --step, --starts, --pairs and --verbose do not apply)")
     args = p.parse_args(argv)
     if args.acceptance and args.presets is None:
         print("eval_real_imu: --acceptance needs --presets (the targets are the synthetic presets')", file=sys.stderr)

@@ -59,11 +59,13 @@ class VehicleNoise:
         gate: Mahalanobis distance (sigmas) beyond which a measurement is rejected.
         rotation_gate: rad; a frame whose image rotation differs from the bias-corrected gyro's
             increment by more than this plus (:data:`BIAS_RATE_BOUND` + 3 x the bias estimate's
-            standard deviation) x ``dt`` is not used for the bias. The bias is small and slow, so
-            such a frame saw something else turn: a car ahead (synthetic ``urban`` with traffic:
-            the drive's heading 9.4 -> 1.6 deg off, drift 6.7 -> 2.9 %). The Mahalanobis gate cannot
-            catch it: ``image_rotation_std`` (1 deg per frame) is what weights the images against
-            the gyro over many frames.
+            standard deviation) x ``dt`` is not used for the bias, and widens the bias's variance
+            by :data:`ROTATION_REJECT_WIDEN` (a lasting disagreement is a bias after all). Set for
+            10 Hz frames: per frame, so at 30 Hz a car turning under ~9 deg/s passes it. The bias
+            changes slowly, so such a frame saw something else turn: a car ahead (synthetic
+            ``urban`` with traffic: the drive's heading 9.4 -> 2.0 deg off, drift 6.7 -> 2.8 %).
+            The Mahalanobis gate cannot catch it: ``image_rotation_std`` (1 deg per frame) is what
+            weights the images against the gyro over many frames.
     """
 
     jerk_density: float = 10.0
@@ -87,9 +89,13 @@ N_STATE = 4  # v, a, b (yaw gyro bias), beta (forward accelerometer bias)
 # frame's yaw change variance (rad^2: a car does not turn in place).
 STANDSTILL_ACCEL_STD = 0.05
 STANDSTILL_YAW_VAR = 1e-10
-# rad/s: how far the yaw gyro's bias may move from its estimate within a frame interval, on top of
-# ``rotation_gate`` (the images' per-frame error): a MEMS gyro's bias is well under 1 deg/s.
+# rad/s: how far the yaw gyro's true bias may be from its estimate beyond the estimate's own
+# 3 sigma, on top of ``rotation_gate`` (the images' per-frame error); x ``dt`` per frame.
 BIAS_RATE_BOUND = math.radians(1.0)
+# The bias variance's factor per frame the rotation gate rejects: a lasting disagreement (a bias that
+# jumped, or larger than the prior said: 8 deg/s at 10 Hz, 5 deg/s at 5 Hz) opens the gate within
+# frames instead of locking the images out for good; a car's turn of a second or two does not.
+ROTATION_REJECT_WIDEN = 1.05
 
 
 @dataclass
@@ -283,12 +289,19 @@ class VehicleFilter:
             # widened by the bias estimate's own 3 sigma: a gyro whose bias is not known yet (a start)
             # may disagree with the images by more
             bound = n.rotation_gate + (BIAS_RATE_BOUND + 3.0 * _sqrt(P[2][2])) * dt
-            residual = (z_b - x[2]) * dt  # the images' turn less the bias-corrected gyro's, rad
+            residual = (z_b - x[2]) * dt  # the bias-corrected gyro's turn less the images', rad
             if isinstance(residual, Tensor):
                 plausible = residual.abs() <= bound
+                # (full_like: a Python 1.05 in torch.where would be rounded to float32)
+                k = torch.where(informative & ~plausible, torch.full_like(residual, ROTATION_REJECT_WIDEN),
+                                torch.ones_like(residual))
             else:
                 plausible = abs(residual) <= bound
+                k = ROTATION_REJECT_WIDEN if informative and not plausible else 1.0
             x, P, acc_r, d_r = _scalar_update(x, P, 2, z_b, r_b, n.gate, informative & plausible)
+            root = _sqrt(k)  # the bias's variance times k, its covariances times sqrt(k): P stays positive
+            P = [[P[i][j] * (k if i == j == 2 else root if 2 in (i, j) else 1.0) for j in range(N_STATE)]
+                 for i in range(N_STATE)]
         state = VehicleState(x, P)
         dx = x[0] * dt
         dyaw = gyro_yaw - x[2] * dt

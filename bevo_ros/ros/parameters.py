@@ -40,7 +40,8 @@ RANGES: dict[str, tuple[float, float]] = {
     "filter.mounting_pitch": (-math.pi / 2, math.pi / 2), "filter.mounting_roll": (-math.pi / 2, math.pi / 2),
     "filter.max_acceleration": (0.1, INF), "filter.max_angular_rate": (0.01, INF),
     "max_time_jump_forward": (0.001, INF), "time_jump_confirmations": (1, 1000),
-    "odometry.min_quality": (0.0, 1.0), "odometry.gate": (0.0, INF), "odometry.rotation_gate": (0.0, math.pi), "odometry.initial_attitude_std": (0.0, math.pi),
+    "odometry.min_quality": (0.0, 1.0), "odometry.gate": (0.0, INF), "odometry.rotation_gate": (0.0, math.pi),
+    "odometry.initial_attitude_std": (0.0, math.pi),
     "odometry.frame_clock_window": (0, 100_000), "odometry.standstill_max_speed": (0.0, 10.0),
 }
 
