@@ -15,10 +15,10 @@ from bevo_ros.config import REPO_ROOT, BevoConfig, CameraSettings, build_odometr
 from bevo_ros.io.learned_params import LearnedParams, load_learned_params
 from bevo_ros.core.geometry import CameraModel
 from bevo_ros.datasets.rosbag import feed_engine
-from bevo_ros.core.pose import integrate_motions
 from bevo_ros.core.vehicle_dynamics import compensate_floats, compensate_specific_force
 from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
 from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive
+from bevo_ros.evaluation.metrics import motion_scores
 
 FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
 PAPER = load_learned_params(REPO_ROOT / "params" / "learned_paper.yaml")
@@ -41,14 +41,10 @@ def feed(odo, d, images=None):
 
 
 def scores(steps, d) -> dict[str, float]:
+    """``evaluation.metrics.motion_scores`` of the drive, and the NEES of the published motions."""
     est = np.array([s.motion for s in steps[1:]])
     gt = d.relative_motion
     road = np.array([s.pitch_roll_road for s in steps])
-    att = np.degrees(np.sqrt(np.mean((road - d.pitch_roll_road) ** 2, axis=0)))
-    dist = np.linalg.norm(gt[:, :2], axis=1)
-    et = np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
-    end_e = integrate_motions(torch.tensor(est))[-1].numpy()
-    end_g = integrate_motions(torch.tensor(gt))[-1].numpy()
     # NEES of the published (dx, dy, dyaw) against its covariance (3 = consistent): the step's
     # twist covariance is the motion's, rotated into the frame at t and divided by dt^2.
     nees = []
@@ -58,13 +54,8 @@ def scores(steps, d) -> dict[str, float]:
         cov = rot.T @ s.twist_covariance[np.ix_([0, 1, 5], [0, 1, 5])] @ rot * s.dt**2
         e = s.motion - g
         nees.append(float(e @ np.linalg.solve(cov, e)))
-    return {
-        "nees_mean": float(np.mean(nees)), "nees_median": float(np.median(nees)),
-        "pitch": float(att[0]), "roll": float(att[1]),
-        "trans_pct": float(np.sqrt(np.mean(et**2)) / dist.mean() * 100),
-        "yaw": float(np.degrees(np.sqrt(np.mean((est[:, 2] - gt[:, 2]) ** 2)))),
-        "drift": float(np.linalg.norm(end_e[:2] - end_g[:2]) / dist.sum() * 100),
-    }
+    return {"nees_mean": float(np.mean(nees)), "nees_median": float(np.median(nees)),
+            **motion_scores(est, gt, road, d.pitch_roll_road)}
 
 
 # ------------------------------------------------------------------------------ pure functions
@@ -751,8 +742,7 @@ def _clip_motions(odo, d, f0: int, f1: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _drift_pct(est: np.ndarray, gt: np.ndarray) -> float:
-    end_e, end_g = (integrate_motions(torch.tensor(m))[-1].numpy() for m in (est, gt))
-    return float(np.linalg.norm(end_e[:2] - end_g[:2]) / np.linalg.norm(gt[:, :2], axis=1).sum() * 100)
+    return motion_scores(est, gt)["drift"]
 
 
 @pytest.mark.slow

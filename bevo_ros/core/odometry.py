@@ -94,9 +94,9 @@ MOVING_MARGIN = 0.05
 # on its suspension as it stops (real drive 0018 @ 2240, test_a_stop_rocking_on_its_suspension_gives_
 # no_gyro_bias: 0.3 s of that read as the bias ran the DUKF's pitch off, the BEVs moved, the
 # standstill was lost and the stop crept 9.9 m). A rest interval reading more than REST_BIAS_MAX
-# (rad/s) is no bias but motion the images missed, and is left out. The DUKF then predicts with the rates less the estimate: before this, the 10 Hz
-# traffic_light preset's DUKF pitch ran 3 deg off over its 15 s stop (MEMS bias 0.1-0.2 deg/s),
-# read as tilt after the pull-away.
+# (rad/s) is no bias but motion the images missed, and is left out. The DUKF then predicts with the
+# rates less the estimate: before this, the 10 Hz traffic_light preset's DUKF pitch ran 3 deg off
+# over its 15 s stop (MEMS bias 0.1-0.2 deg/s), read as tilt after the pull-away.
 REST_BIAS_MEMORY = 30.0  # s
 REST_BIAS_PRIOR = 2.0  # s
 REST_BIAS_SETTLE = 1.0  # s

@@ -299,9 +299,10 @@ class VehicleFilter:
                 plausible = abs(residual) <= bound
                 k = ROTATION_REJECT_WIDEN if informative and not plausible else 1.0
             x, P, acc_r, d_r = _scalar_update(x, P, 2, z_b, r_b, n.gate, informative & plausible)
-            root = _sqrt(k)  # the bias's variance times k, its covariances times sqrt(k): P stays positive
-            P = [[P[i][j] * (k if i == j == 2 else root if 2 in (i, j) else 1.0) for j in range(N_STATE)]
-                 for i in range(N_STATE)]
+            if isinstance(k, Tensor) or k != 1.0:
+                root = _sqrt(k)  # the bias's variance times k, its covariances times sqrt(k): P stays positive
+                P = [[P[i][j] * (k if i == j == 2 else root if 2 in (i, j) else 1.0) for j in range(N_STATE)]
+                     for i in range(N_STATE)]
         state = VehicleState(x, P)
         dx = x[0] * dt
         dyaw = gyro_yaw - x[2] * dt

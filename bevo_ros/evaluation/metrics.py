@@ -25,6 +25,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from bevo_ros.core.pose import integrate_motions
 
 PathLike = str | Path
 
@@ -324,4 +327,31 @@ def pitch_roll_errors(pr: dict[str, np.ndarray]) -> dict[str, float]:
         d = d[np.isfinite(d)]
         if d.size:
             out[f"{name} RMSE vs OXTS"] = float(np.sqrt(np.mean(d ** 2)))
+    return out
+
+
+def motion_scores(est: np.ndarray, gt: np.ndarray, attitude: np.ndarray | None = None,
+                  true_attitude: np.ndarray | None = None) -> dict[str, float]:
+    """Issue 9's figures of a drive from its per-frame planar motions (the engine's ``OdometryStep.motion``).
+
+    Args:
+        est, gt: ``(F-1, 3)`` ``(dx, dy, dyaw)`` per frame pair (m, rad), estimated and true.
+        attitude, true_attitude: optional ``(F, 2)`` road-relative ``(pitch, roll)`` per frame (rad).
+
+    Returns:
+        ``trans_pct`` per-frame translation RMSE in % of the mean motion, ``yaw`` per-frame yaw RMSE
+        (deg), ``drift`` endpoint position error in % of the path, ``scale`` forward scale error (%),
+        and with the attitudes ``pitch`` / ``roll`` RMS errors (deg).
+    """
+    est, gt = np.asarray(est, dtype=np.float64), np.asarray(gt, dtype=np.float64)
+    dist = np.linalg.norm(gt[:, :2], axis=1)
+    err = np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
+    end_e, end_g = (integrate_motions(torch.as_tensor(m))[-1].numpy() for m in (est, gt))
+    out = {"trans_pct": float(np.sqrt(np.mean(err**2)) / dist.mean() * 100),
+           "yaw": float(np.degrees(np.sqrt(np.mean((est[:, 2] - gt[:, 2]) ** 2)))),
+           "drift": float(np.linalg.norm(end_e[:2] - end_g[:2]) / dist.sum() * 100),
+           "scale": float((est[:, 0].sum() / gt[:, 0].sum() - 1) * 100)}
+    if attitude is not None and true_attitude is not None:
+        rms = np.degrees(np.sqrt(np.mean((np.asarray(attitude) - np.asarray(true_attitude)) ** 2, axis=0)))
+        out["pitch"], out["roll"] = float(rms[0]), float(rms[1])
     return out
