@@ -488,6 +488,15 @@ def mounting_in_use(config: BevoConfig, T_base_cam) -> tuple[float, float]:
     return mounting_for_extrinsics(mounting, calibrated, T_base_cam)
 
 
+def vehicle_noise(config: BevoConfig, learned: LearnedParams):
+    """The motion filter's noise: the learned densities with the configured gates
+    (``odometry.min_quality``, ``gate``, ``rotation_gate``); the engine's and the training replay's."""
+    from bevo_ros.core.vehicle_filter import VehicleNoise
+
+    return VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate,
+                        rotation_gate=config.odometry.rotation_gate)
+
+
 def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     """The engine both the node and the offline commands (bevo_ros.pipeline) run: one construction, one behaviour."""
     from bevo_ros.core.device import resolve_device
@@ -502,7 +511,6 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         raise ConfigError(f"device: {exc}") from None
     from bevo_ros.core.compiled import KERNEL_MODES
     from bevo_ros.core.odometry import MODES
-    from bevo_ros.core.vehicle_filter import VehicleNoise
 
     if config.kernels not in KERNEL_MODES:
         raise ConfigError(f"kernels must be one of {', '.join(KERNEL_MODES)}, got {config.kernels!r}")
@@ -523,8 +531,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
                           f"got {config.filter.gyro_sampling!r}")
     dukf = DUKF(process_var=learned.process_noise_density, measurement_var=learned.measurement_noise_variance,
                 motion_model=config.filter.motion_model).double()
-    vehicle = VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate,
-                           rotation_gate=config.odometry.rotation_gate)
+    vehicle = vehicle_noise(config, learned)
     spec = bev_spec(config)
     limits = imu_limits(config)
     odometry = BevoOdometry(

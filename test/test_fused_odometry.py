@@ -680,7 +680,10 @@ def test_learning_beats_the_default_noise_on_held_out_frames():
 
 
 def test_replay_reproduces_the_engine(camera):
-    """Training replays exactly what the engine computed (same inputs, same filter)."""
+    """Training replays exactly what the engine computed (same inputs, same filter), with the
+    configured gates: a tight ``odometry.gate`` and a high ``min_quality`` are the replay's too
+    (``config.vehicle_noise``; the defaults' replay differs)."""
+    from bevo_ros.config import vehicle_noise
     from bevo_ros.training.vehicle import replay
 
     d = preset_drive("curve", seed=3, duration=2.0, render="lazy", camera=camera)
@@ -688,6 +691,19 @@ def test_replay_reproduces_the_engine(camera):
     steps = feed(engine(camera, "fused"), d, images)
     m, _ = replay(VehicleNoise(**FUSED.vehicle), [s.filter_inputs for s in steps[1:]])
     assert np.abs(m.numpy() - np.array([s.motion for s in steps[1:]])).max() < 1e-9
+
+    config = BevoConfig()
+    config.odometry.gate, config.odometry.min_quality, config.odometry.rotation_gate = 0.5, 0.3, 1e-4
+    odo = build_odometry(config, FUSED, camera=camera)
+    steps = feed(odo, d, images)
+    c = odo.counters
+    assert c.rejected_translation + c.rejected_textureless > 0
+    inputs = [s.filter_inputs for s in steps[1:]]
+    engine_motion = np.array([s.motion for s in steps[1:]])
+    m, _ = replay(vehicle_noise(config, FUSED), inputs)
+    assert np.abs(m.numpy() - engine_motion).max() < 1e-9
+    m, _ = replay(VehicleNoise(**FUSED.vehicle), inputs)
+    assert np.abs(m.numpy() - engine_motion).max() > 1e-6
 
 
 def test_learning_the_suspension_beats_the_default_on_a_held_out_drive():

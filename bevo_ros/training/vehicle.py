@@ -127,6 +127,7 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
     """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
     ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
     validation frames' NLL is not worse."""
+    from bevo_ros.config import vehicle_noise
     from bevo_ros.datasets.rosbag import split_frames
 
     t0 = time.perf_counter()
@@ -136,7 +137,7 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
         (_, cut), _ = split_frames(len(s), split)
         train_parts.append((inputs[: cut - 1], truth[: cut - 1]))
         val_parts.append((inputs, truth, cut - 1))
-    base = VehicleNoise(**learned.vehicle)
+    base = vehicle_noise(config, learned)  # the engine's gates, not the defaults
     fit = fit_vehicle_noise(train_parts, base, steps=steps)
 
     def val_nll(noise) -> float:
