@@ -15,7 +15,7 @@ from bevo_ros.core.geometry import CameraModel
 from bevo_ros.core.pose import integrate_motions
 from bevo_ros.datasets.kitti import OXTS_FIELDS, OxtsData, read_oxts
 from bevo_ros.datasets.rosbag import feed_engine
-from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive
+from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive, render_frame
 from bevo_ros.datasets.synthetic.oxts_drive import (EARTH_RADIUS, _camera_clock, _hermite, drive_from_oxts,
                                                     oxts_positions)
 from bevo_ros.io.learned_params import load_learned_params
@@ -100,6 +100,35 @@ def test_drive_from_oxts_puts_the_frames_on_the_camera_clock():
     np.testing.assert_allclose(gap, 6.5 + 10.0 * 0.8, atol=0.3)  # a chord of the 50 m circle: a bit short
     with pytest.raises(ValueError, match="traffic"):
         drive_from_oxts(ox, render=False, traffic="busy")
+
+
+def test_drive_from_oxts_bends_the_road_ahead_by_its_own_slope():
+    """``vertical_curves``: the records climb at a rate that falls by k per metre (a crest of radius
+    1/k); each frame's road ahead is then the parabola ``-k u^2 / 2`` under its plane (the drive's
+    slope further along), the frames' distances are the path's, and the images show it."""
+    ox, _ = _circle_oxts(n=200)
+    col = {name: i for i, name in enumerate(OXTS_FIELDS)}
+    t = (ox.stamps_ns - ox.stamps_ns[0]) * 1e-9
+    k = 1.0 / 900.0
+    ox.data[:, col["vu"]] = 10.0 * np.tan(math.radians(2.0) - k * 10.0 * t)  # climbing 2 deg, then less
+    flat = drive_from_oxts(ox, render=False, camera=small_camera())
+    d = drive_from_oxts(ox, render=False, camera=small_camera(), vertical_curves=True)
+    assert flat.road_profile is None
+    p = d.road_profile
+    np.testing.assert_allclose(np.diff(p.frame_distance), np.linalg.norm(d.relative_motion[:, :2], axis=1), rtol=1e-3)
+    # each frame's place on the profile: the slope there is the drive's slope at the frame
+    np.testing.assert_allclose(np.interp(p.frame_distance, p.distance, p.slope)[20:-20],
+                               d.road_slope_camber[20:-20, 0], atol=1e-4)
+    u = np.array([7.5, 12.5, 17.5])
+    for i in (60, 100, 140):  # away from the ends (the slope's smoothing)
+        z, _ = p.height_ahead(float(p.frame_distance[i]))(u)
+        np.testing.assert_allclose(z, -k * u**2 / 2, atol=2e-3)
+    i = 100
+    bent = render_frame(d, i).astype(float)
+    plane = render_frame(flat, i).astype(float)
+    assert np.abs(bent - plane)[100:].mean() > 5.0  # the ground rows differ
+    with pytest.raises(ValueError, match="vertical_curves and traffic"):
+        drive_from_oxts(ox, render=False, vertical_curves=True, traffic=True)
 
 
 def test_frames_before_their_imu_sample_get_the_interpolated_attitude_and_yaw():
@@ -247,7 +276,8 @@ def test_a_creeping_start_is_no_standstill(kitti_root):
 
 
 def test_render_oxts_reports_bad_input(tmp_path, capsys):
-    """A missing OXTS directory or a frame range outside the drive: a clear error, exit code 2, no bag."""
+    """A missing OXTS directory or a frame range outside the drive: a clear error, exit code 2, no bag;
+    ``--vertical-curves`` renders, and with real images it is an error."""
     from bevo_ros import cli
 
     out = tmp_path / "bag"
@@ -262,6 +292,11 @@ def test_render_oxts_reports_bad_input(tmp_path, capsys):
         (oxts / "data" / f"{i:010d}.txt").write_text(" ".join(f"{v:.12g}" for v in row) + "\n")
     assert cli.main(["convert", "--render-oxts", str(oxts), "--first", "20", "--count", "50", "-o", str(out)]) == 2
     assert "the drive has" in capsys.readouterr().err and not out.exists()
+    # --vertical-curves bends the rendered road; real images are what they are
+    assert cli.main(["convert", "--render-oxts", str(oxts), "--vertical-curves", "--count", "2", "-o", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out and out.exists()
+    assert cli.main(["convert", "--odometry", str(tmp_path), "--vertical-curves", "-o", str(tmp_path / "b2")]) == 2
+    assert "--render-oxts only" in capsys.readouterr().err and not (tmp_path / "b2").exists()
 
 
 @pytest.mark.kitti
@@ -347,6 +382,9 @@ def test_eval_real_imu_acceptance_table(tmp_path):
     assert "fused beats paper on every metric in 1 of 1 drives" in out.stdout, out.stdout
     bad = subprocess.run([sys.executable, tool, "--acceptance"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--acceptance needs --presets" in bad.stderr
+    bad = subprocess.run([sys.executable, tool, "--presets", "braking", "--vertical-curves", "--traffic"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--vertical-curves and --traffic cannot be combined" in bad.stderr
 
 
 @pytest.mark.kitti

@@ -23,11 +23,14 @@ def drive() -> syn.SyntheticDrive:
     return syn.make_drive(seed=0, duration=20.0, noise=False, render=False)
 
 
-@pytest.fixture(scope="module", params=[None, *syn.PRESETS])
+@pytest.fixture(scope="module", params=[None, *syn.PRESETS, "vertical_curves"])
 def any_drive(request, drive) -> syn.SyntheticDrive:
-    """The random drive and every preset (noise-free, no images): the exactness checks run on each."""
+    """The random drive, every preset and a drive over crests and sags (noise-free, no images): the
+    exactness checks run on each."""
     if request.param is None:
         return drive
+    if request.param == "vertical_curves":
+        return syn.make_drive(seed=0, duration=20.0, noise=False, render=False, vertical_curves=True)
     return syn.make_drive(seed=0, preset=request.param, noise=False, render=False)
 
 
@@ -248,6 +251,72 @@ def test_rendered_pixels_show_their_ground_point(drive):
     err2 = np.abs(img2[v.astype(int), u.astype(int)] - mean).max() * 255
     print(f"supersampled: max error {err2:.2f} grey levels")
     assert err2 <= 0.51
+
+
+def test_rendered_pixels_show_their_ground_point_over_crests_and_sags():
+    """``vertical_curves``: the road ahead bends with the slope the IMU feels, and every ground pixel
+    shows the point where its ray meets that bent road (an independent ray cast: bisection on the
+    road's height). The plane's cast misses those points: the test sees the bend."""
+    d = syn.make_drive(seed=0, duration=20.0, noise=False, render=False, vertical_curves=True)
+    t = d.frame_stamps - d.imu_stamps[0]
+    # the slope the IMU feels is the road's: the hills' slope steps are in the drive's road slope
+    flat = syn.make_drive(seed=0, duration=20.0, noise=False, render=False)
+    hills = d._motion.hills(d._motion.distance(t))
+    assert np.abs(hills).max() > math.radians(1.0) and flat.road_profile is None
+    np.testing.assert_allclose(d.road_slope_camber[:, 0] - flat.road_slope_camber[:, 0], hills, atol=1e-12)
+    # the profile the images bend by is that slope, at each frame's distance
+    profile = d.road_profile
+    np.testing.assert_allclose(np.interp(profile.frame_distance, profile.distance, profile.slope), hills, atol=1e-5)
+    # the frame whose road 15 m ahead is furthest from the plane
+    bend = [float(profile.height_ahead(sk)(np.array([15.0]))[0][0]) for sk in profile.frame_distance]
+    i = int(np.argmax(np.abs(bend)))
+    assert abs(bend[i]) > 0.03  # m: a bend the camera sees (~2 px at 15 m)
+    height = profile.height_ahead(float(profile.frame_distance[i]))
+    img = syn.render_frame(d, i, IDEAL).astype(np.float64) / 255.0
+    rng = np.random.default_rng(0)
+    v = rng.integers(200, d.camera.height_px, 300).astype(np.float64)  # from ~75 m ahead to the bonnet
+    u = rng.integers(0, d.camera.width, 300).astype(np.float64)
+    T = syn.camera_poses_4x4(d)[i]
+    rays = T[:3, :3] @ np.linalg.solve(d.camera.K.double().numpy(), np.stack([u, v, np.ones_like(u)]))
+    x, y, yaw = d.poses_xy_yaw[i]
+    ahead = lambda lam: (T[0, 3] + lam * rays[0] - x) * math.cos(yaw) + (T[1, 3] + lam * rays[1] - y) * math.sin(yaw)
+    above = lambda lam: T[2, 3] + lam * rays[2] - height(ahead(lam))[0]  # the ray's height over the road
+    lo, hi = np.zeros_like(u), -T[2, 3] / rays[2]
+    for _ in range(20):  # past the road, whichever way it bends
+        hi = np.where(above(hi) > 0, 2 * hi, hi)
+    assert (above(hi) <= 0).all()
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = np.where(above(mid) > 0, mid, lo), np.where(above(mid) > 0, hi, mid)
+    truth = d.ground_intensity(T[0, 3] + lo * rays[0], T[1, 3] + lo * rays[1])
+    err = np.abs(img[v.astype(int), u.astype(int)] - truth).max() * 255
+    gx, gy = _pixel_ground_points(d, i, u, v)
+    err_plane = np.abs(img[v.astype(int), u.astype(int)] - d.ground_intensity(gx, gy)).max() * 255
+    print(f"\nframe {i}: road 15 m ahead {bend[i] * 100:+.1f} cm against the plane; 300 ground pixels: max |pixel - "
+          f"ground intensity| {err:.2f} grey levels (the plane's points: {err_plane:.1f})")
+    assert err <= 0.51
+    assert err_plane > 3.0
+    with pytest.raises(ValueError, match="vertical_curves and traffic"):
+        syn.make_drive(seed=0, duration=1.0, render=False, vertical_curves=True, traffic=True)
+
+
+def test_road_profile_heights_ahead():
+    """``RoadProfile.height_ahead``: a slope growing by k per metre (a crest of radius 1/k) is the
+    parabola ``-k u^2 / 2`` under the base's plane, exactly (the slope is piecewise linear), behind
+    the base too; past the profile's ends the slope is held (the road goes on straight)."""
+    k, g0 = 1.0 / 900.0, math.radians(-1.0)
+    s = np.linspace(0.0, 200.0, 81)
+    profile = syn.RoadProfile(s, g0 + k * s, np.array([50.0]))
+    z, dz = profile.height_ahead(50.0)(np.array([-20.0, 0.0, 7.5, 12.5, 17.5]))
+    u = np.array([-20.0, 0.0, 7.5, 12.5, 17.5])
+    np.testing.assert_allclose(z, -k * u**2 / 2, atol=1e-12)
+    np.testing.assert_allclose(dz, -k * u, atol=1e-12)
+    # beyond the end (s = 200): the slope held at g0 + 200 k, the height continues linearly
+    z_end, dz_end = profile.height_ahead(190.0)(np.array([10.0, 30.0]))
+    np.testing.assert_allclose(dz_end, [-k * 10.0, -k * 10.0], atol=1e-12)
+    np.testing.assert_allclose(z_end, [-k * 50.0, -k * 50.0 - k * 10.0 * 20.0], atol=1e-12)
+    with pytest.raises(ValueError, match="increasing"):
+        syn.RoadProfile(np.array([0.0, 0.0]), np.zeros(2), np.zeros(1))
 
 
 def test_true_bev_matches_the_rendered_image(drive):

@@ -13,12 +13,16 @@ are fed by stamp, as a bag plays. Rendered frames are cached (``--cache``, numpy
 road-relative attitude included, which the real drives' reference only approximates; a 10 Hz IMU
 as KITTI's by default, ``--imu-rate``): no shared data needed. ``--traffic`` puts other vehicles
 in the images of either (a car ahead, parked cars, oncoming cars: ``synthetic.TrafficOptions``).
+``--vertical-curves`` bends the road ahead in the images by its crests and sags (the shared drives'
+own slope further along, or the presets' seeded vertical curves), as a real camera sees them.
 
   .venv/bin/python tools/eval_real_imu.py                       # 16 s clips, every 80 frames
   .venv/bin/python tools/eval_real_imu.py --length 51 --step 51 # 5 s clips
   .venv/bin/python tools/eval_real_imu.py --presets all --length 51 --step 25   # synthetic, 5 s clips
   .venv/bin/python tools/eval_real_imu.py --traffic             # 16 s clips behind and among other cars
+  .venv/bin/python tools/eval_real_imu.py --vertical-curves     # 16 s clips over the roads' crests and sags
   .venv/bin/python tools/eval_real_imu.py --presets all --acceptance  # issue 9's preset table
+  .venv/bin/python tools/eval_real_imu.py --presets all --acceptance --vertical-curves  # the same over hills
 
 ``--acceptance`` (with ``--presets``) runs each preset drive whole in each mode and prints issue 9's
 acceptance table: the BEV's road-relative pitch / roll error (RMS over the frames), the per-frame
@@ -158,12 +162,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--imu-rate", type=float, default=10.0, help="with --presets: IMU rate, Hz (default 10, KITTI's)")
     p.add_argument("--traffic", action="store_true",
                    help="other vehicles in the images: a car ahead, parked cars, oncoming cars (synthetic.TrafficOptions)")
+    p.add_argument("--vertical-curves", action="store_true",
+                   help="the images show the road ahead bent by its crests and sags (the drive's own slope further "
+                        "along; with --presets, make_drive's seeded vertical curves, which the IMU feels too); not "
+                        "with --traffic")
     p.add_argument("--acceptance", action="store_true",
                    help="with --presets: each drive whole, issue 9's acceptance table (instead of clips: "
                         "--length, --step, --starts, --pairs and --verbose do not apply)")
     args = p.parse_args(argv)
     if args.acceptance and args.presets is None:
         print("eval_real_imu: --acceptance needs --presets (the targets are the synthetic presets')", file=sys.stderr)
+        return 2
+    if args.vertical_curves and args.traffic:
+        print("eval_real_imu: --vertical-curves and --traffic cannot be combined (the vehicles stand on the road's "
+              "plane)", file=sys.stderr)
         return 2
     if args.presets is not None:
         names = sorted(PRESETS) if args.presets == "all" else args.presets.split(",")
@@ -183,15 +195,16 @@ def main(argv: list[str] | None = None) -> int:
     pair_errors: dict[str, list] = {m: [] for m in modes}  # per clip: forward error of each frame pair
     args.cache.mkdir(parents=True, exist_ok=True)
     camera = kitti_like_camera(scale=0.5)
-    traffic = "_traffic" if args.traffic else ""
+    traffic = "_traffic" if args.traffic else "_hills" if args.vertical_curves else ""
     results: dict[str, dict[str, dict[str, float]]] = {}
     for drive, name, seed in sources:
         if args.presets is not None:
-            d = preset_drive(name, seed=seed, imu_rate=args.imu_rate, camera=camera, render="lazy", traffic=args.traffic)
+            d = preset_drive(name, seed=seed, imu_rate=args.imu_rate, camera=camera, render="lazy", traffic=args.traffic,
+                             vertical_curves=args.vertical_curves)
             cache = args.cache / f"preset_{name}_seed{seed}_{args.imu_rate:g}hz_620x188{traffic}.npy"
         else:
             d = drive_from_oxts(read_oxts(args.raw / f"2011_09_30_drive_{name}_sync" / "oxts"), seed=seed, camera=camera,
-                                traffic=args.traffic)
+                                traffic=args.traffic, vertical_curves=args.vertical_curves)
             cache = args.cache / f"{name}_seed{seed}_620x188{traffic}.npy"
         if cache.exists():
             images = np.load(cache, mmap_mode="r")
@@ -234,7 +247,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"  {drive:>14s} {f0:5d} {mode:5s} {dist:6.1f} m: drift {drift:6.2f} %, scale {scale:+6.2f} %, "
                           f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)
     if args.acceptance:
-        print(f"{args.imu_rate:g} Hz IMU, 620x188 camera, whole drives{' with traffic' if args.traffic else ''}:")
+        extra = " with traffic" if args.traffic else " over crests and sags" if args.vertical_curves else ""
+        print(f"{args.imu_rate:g} Hz IMU, 620x188 camera, whole drives{extra}:")
         print_acceptance(results, modes)
         return 0
     if not rows[modes[0]]:

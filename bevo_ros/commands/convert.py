@@ -42,6 +42,7 @@ examples:
   bevo convert --odometry DATASET --sequence 06 --first 0 --count 20 --storage mcap -o short
   bevo convert --raw RAW/2011_09_30/2011_09_30_drive_0020_sync --camera 0 -o drive20_bag
   bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0027_sync/oxts --first 0 --count 160 -o real_imu_bag
+  bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0020_sync/oxts --vertical-curves -o drive20_hills_bag
 """
 
 
@@ -57,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--render-oxts", metavar="DIR",
                      help="a raw drive's oxts directory: its real IMU and motion with a rendered synthetic camera "
                           "(exact ground truth; bevo_ros.datasets.synthetic.oxts_drive; run with params/synthetic.yaml)")
+    p.add_argument("--vertical-curves", action="store_true",
+                   help="with --render-oxts: the images show the road ahead bent by the drive's own slope further "
+                        "along (its crests and sags; drive_from_oxts' vertical_curves)")
     p.add_argument("--sequence", default="06", help="odometry sequence number (default 06)")
     p.add_argument("-o", "--output", required=True, help="output bag directory (must not exist, see --overwrite)")
     p.add_argument("--storage", choices=bag.STORAGES, default="sqlite3", help="rosbag2 storage plugin (default sqlite3)")
@@ -104,7 +108,7 @@ def _render_oxts(args) -> int:
     try:
         if out.exists() and not args.overwrite:
             raise FileExistsError(f"{out}: output bag exists (use --overwrite to replace it)")
-        drive = drive_from_oxts(read_oxts(args.render_oxts), render="lazy")
+        drive = drive_from_oxts(read_oxts(args.render_oxts), render="lazy", vertical_curves=args.vertical_curves)
         n = drive.num_frames
         stop = n if args.count is None else args.first + args.count
         if not (0 <= args.first and args.first + 2 <= stop <= n):
@@ -126,11 +130,15 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.render_oxts:
         return _render_oxts(args)
+    if args.vertical_curves:
+        print("kitti_to_bag: error: --vertical-curves applies to --render-oxts only (real images show their "
+              "road as it is)", file=sys.stderr)
+        return 2
     out = Path(args.output)
     try:
         if out.exists() and not args.overwrite:
             raise ConversionError(f"{out}: output bag exists (use --overwrite to replace it)")
-        opts = ConversionOptions(**{k: v for k, v in vars(args).items() if k != "render_oxts"})
+        opts = ConversionOptions(**{k: v for k, v in vars(args).items() if k not in ("render_oxts", "vertical_curves")})
         src = load_source(opts)
         counts = convert(src, opts)
     except KeyboardInterrupt:

@@ -5,15 +5,15 @@ motion) with that camera (``oxts_drive``), other vehicles in the images (``traff
 from bevo_ros.datasets.synthetic.ground import RoadGround, default_ground, ground_intensity
 from bevo_ros.datasets.synthetic.motion import GRAVITY, PRESETS
 from bevo_ros.datasets.synthetic.imu import ImuNoise
-from bevo_ros.datasets.synthetic.render import (RenderOptions, camera_pose_world, ground_patch, kitti_like_camera,
-                                                render_frame, render_view, true_bev)
+from bevo_ros.datasets.synthetic.render import (RenderOptions, RoadProfile, camera_pose_world, ground_patch,
+                                                kitti_like_camera, render_frame, render_view, true_bev)
 from bevo_ros.datasets.synthetic.drive import (LazyImages, SyntheticDrive, base_poses_4x4, camera_poses_4x4,
                                                make_drive, preset_drive)
 from bevo_ros.datasets.synthetic.oxts_drive import drive_from_oxts
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions
 
 __all__ = [
-    "GRAVITY", "ImuNoise", "LazyImages", "PRESETS", "RenderOptions", "RoadGround", "SyntheticDrive", "TrafficOptions", "base_poses_4x4",
+    "GRAVITY", "ImuNoise", "LazyImages", "PRESETS", "RenderOptions", "RoadGround", "RoadProfile", "SyntheticDrive", "TrafficOptions", "base_poses_4x4",
     "camera_pose_world", "camera_poses_4x4", "default_ground", "drive_from_oxts", "ground_intensity", "ground_patch",
     "kitti_like_camera", "make_drive", "preset_drive", "render_frame", "render_view", "true_bev",
 ]

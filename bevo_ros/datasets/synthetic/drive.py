@@ -16,9 +16,9 @@ from bevo_ros.core.geometry import CameraModel
 from bevo_ros.core.rate_integration import GYRO_SAMPLING
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
-from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_motion, _rpy, _rx, _ry, _rz,
-                                                _with_preset)
-from bevo_ros.datasets.synthetic.render import RenderOptions, kitti_like_camera, render_frame
+from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_hills, _random_motion, _rpy,
+                                                _rx, _ry, _rz, _with_preset)
+from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
 
 __all__ = ["LazyImages", "SyntheticDrive", "base_poses_4x4", "camera_poses_4x4", "make_drive", "preset_drive"]
@@ -94,6 +94,7 @@ class SyntheticDrive:
     render_options: RenderOptions = field(default_factory=RenderOptions)
     image_noise: bool = True
     traffic: list[np.ndarray] | None = None  # per frame (K_f, 7) other vehicles (.traffic), or None
+    road_profile: RoadProfile | None = None  # crests and sags the images show (None: the road ahead is a plane)
     _motion: _Motion | None = field(default=None, repr=False)
 
     @property
@@ -176,6 +177,7 @@ def make_drive(
     preset: str | None = None,
     gyro_sampling: str = "interval_mean",
     traffic: TrafficOptions | bool | None = None,
+    vertical_curves: bool = False,
 ) -> SyntheticDrive:
     """Simulate a drive: trajectory, IMU at ``imu_rate`` and camera frames at ``frame_rate``.
 
@@ -207,6 +209,11 @@ def make_drive(
         traffic: other vehicles in the images (:mod:`.traffic`): True = the default
             :class:`TrafficOptions` (a car ahead, parked cars, oncoming cars), or options; None/False
             = an empty road. The IMU and the ground truth do not depend on it.
+        vertical_curves: seeded crests and sags along the distance travelled (slope steps of
+            0.7-2.5 deg over 25-70 m, longer at speed) on top of ``road_tilt``: the IMU feels them
+            and the images show the road ahead bent by them (``road_profile``; the BEV's plane is
+            no longer the road under the car, as on real roads). The road-relative attitude stays
+            the one to the road under the base. Not with ``traffic`` (its vehicles stand on the plane).
 
     Returns:
         a :class:`SyntheticDrive`.
@@ -234,6 +241,8 @@ def make_drive(
     if gyro_sampling not in GYRO_SAMPLING:
         raise ValueError(f"gyro_sampling must be one of {GYRO_SAMPLING}, got {gyro_sampling!r}")
     traffic = as_traffic_options(traffic)
+    if vertical_curves and traffic is not None:
+        raise ValueError("vertical_curves and traffic cannot be combined: the vehicles stand on the road's plane")
     if render not in (True, False, "lazy"):
         raise ValueError(f"render must be True, False or 'lazy', got {render!r}")
     if not (road_tilt is True or road_tilt is False or (isinstance(road_tilt, (tuple, list)) and len(road_tilt) == 2)):
@@ -270,6 +279,11 @@ def make_drive(
     v_ref = speed_range[1]  # vibration envelope: relative to the fastest speed
     if pre_set is not None:
         motion = _with_preset(motion, pre_set, np.random.default_rng([int(seed), 5]), -pre, t_imu[-1] + post, bumps)
+    if vertical_curves:
+        # past the end by the renderer's reach (haze_end), so the last frame sees its road ahead
+        hills_range = (float(motion.distance(-pre)), float(motion.distance(t_imu[-1] + post)) + options.haze_end)
+        v_max = float(motion.speed(np.linspace(-pre, t_imu[-1] + post, 2000)).max())
+        motion = replace(motion, hills=_random_hills(np.random.default_rng([int(seed), 7]), *hills_range, v_max))
     # Dense grid (>= 1 kHz, containing every IMU stamp) for the position integral.
     sub = max(1, int(math.ceil(1000.0 / imu_rate)))
     h = 1.0 / (imu_rate * sub)
@@ -321,6 +335,9 @@ def make_drive(
         imu_rotation_gravity=r_grav, imu_velocity_gravity=vel, imu_poses_xy_yaw=poses,
         render_options=options, image_noise=noisy, _motion=motion,
     )
+    if vertical_curves:
+        grid = np.arange(hills_range[0], hills_range[1] + 0.25, 0.25)
+        drive.road_profile = RoadProfile(grid, motion.hills(grid), motion.distance(t_imu[fi]))
     if traffic is not None:
         drive.traffic = traffic_at_frames(traffic, t_dense, xy_dense, motion.yaw(t_dense), t_imu[fi], seed)
     if render == "lazy":

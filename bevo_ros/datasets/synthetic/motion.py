@@ -334,6 +334,9 @@ class _Motion:
     # The road drives the body's oscillation and bumps: full above this speed (m/s), fading to
     # nothing at rest (a car standing at a light does not pitch by a degree between frames).
     excitation_speed: float = 3.0
+    # Crests and sags: slope steps as a function of the distance travelled (m -> rad), a road's
+    # vertical curves; the renderer bends the road ahead with them (the drive's ``road_profile``).
+    hills: _Ramps | None = None
 
     def excitation(self, t):
         """Road excitation of the suspension in [0, 1]: a C2 smoothstep of ``speed / excitation_speed``."""
@@ -359,8 +362,13 @@ class _Motion:
         return (self.excitation(t) * (self.roll_sines(t) + self.roll_bumps(t))
                 + self.load_roll * self.speed(t) * self.yaw_rate(t))
 
+    def distance(self, t):
+        """Distance travelled since ``t = 0`` (negative before), m."""
+        return self.speed_profile.integral(np.asarray(t, dtype=np.float64), 0.0)
+
     def slope(self, t):
-        return self.slope0 + self.slope_sines(t)
+        out = self.slope0 + self.slope_sines(t)
+        return out if self.hills is None else out + self.hills(self.distance(t))
 
     def camber(self, t):
         return self.camber0 + self.camber_sines(t)
@@ -539,6 +547,25 @@ _PRESETS: dict[str, _Preset] = {
 
 PRESETS: dict[str, str] = {name: p.description for name, p in _PRESETS.items()}
 """Named deterministic drives for :func:`make_drive` ``(preset=...)``: name -> description."""
+
+
+def _random_hills(rng: np.random.Generator, s_lo: float, s_hi: float, v_max: float) -> _Ramps:
+    """Crests and sags over the distance ``[s_lo, s_hi]`` (m): the slope moves by 0.7-2.5 deg over
+    25-70 m (vertical curve radii from ~600 m; the KITTI sample's crest is ~900 m), longer where
+    ``v_max`` (m/s) would make the vertical acceleration exceed 0.4 m/s^2 (roads are designed for
+    their speed: a 100 km/h road's crests are kilometres long), then holds for 15-95 m; it stays
+    within 3 deg of level."""
+    changes, s, level = [], s_lo + rng.uniform(0.0, 40.0), 0.0
+    while s < s_hi:
+        step = rng.choice([-1.0, 1.0]) * rng.uniform(0.7, 2.5) * _DEG
+        # the smooth step's peak curvature is 2.46 step / length (630 / 2^8 at its middle)
+        length = max(rng.uniform(25.0, 70.0), 2.46 * abs(step) * v_max**2 / 0.4)
+        if abs(level + step) > 3.0 * _DEG:
+            step = -step
+        level += step
+        changes.append((s, length, level))
+        s += length + rng.uniform(15.0, 95.0)
+    return _levels(0.0, changes)
 
 
 def _with_preset(m: _Motion, p: _Preset, rng: np.random.Generator, t_lo: float, t_hi: float, bumps: float) -> _Motion:

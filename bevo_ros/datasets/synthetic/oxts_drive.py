@@ -22,8 +22,10 @@ What is real and what is defined here:
   ``v wz``), so the roll is that lean plus the unit's roll's fast part; its slow part less the lean
   (a zero-phase Gaussian) is the camber. The rendered roll is an assumption, the pitch is not.
 
-The camera renders the locally planar road (no crest ahead): the slope ahead, which only images
-see, is not part of this drive.
+By default the camera renders the locally planar road (no crest ahead). With ``vertical_curves``
+the road ahead of each frame bends by the drive's own slope further along (its profile over the
+distance travelled, :class:`~bevo_ros.datasets.synthetic.render.RoadProfile`): the crests and sags
+the car is about to drive over, as a real camera sees them.
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ from bevo_ros.datasets.synthetic.drive import LazyImages, SyntheticDrive
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
 from bevo_ros.datasets.synthetic.motion import _rx, _ry, _rz
-from bevo_ros.datasets.synthetic.render import RenderOptions, kitti_like_camera, render_frame
+from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
 
 __all__ = ["drive_from_oxts", "oxts_positions"]
 
@@ -71,6 +73,20 @@ def _road_slope(vu: np.ndarray, speed: np.ndarray, min_speed: float, sigma: floa
     idx = np.arange(len(vu))
     slope = np.interp(idx, idx[moving], slope[moving])
     return _gaussian_smooth(slope, sigma)
+
+
+def _road_profile(stamps: np.ndarray, speed: np.ndarray, slope: np.ndarray, f_stamps: np.ndarray,
+                  moving: np.ndarray, reach: float) -> RoadProfile:
+    """The road's slope over the distance travelled (the speed's trapezoid), from the ``moving``
+    records only: at a crawl or a stop the slope is held over time (``_road_slope``), which over
+    the few centimetres driven would be a crease. Held for ``reach`` m past both ends."""
+    s = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(stamps))])
+    knots = np.flatnonzero(moving)
+    knots = knots[np.concatenate([[True], np.diff(s[knots]) > 1e-3])] if len(knots) else knots
+    d, g = (s[knots], slope[knots]) if len(knots) >= 2 else (s[[0, -1]] + [0.0, 1.0], slope[[0, 0]])
+    d = np.concatenate([[d[0] - reach - 20.0], d, [d[-1] + reach + 20.0]])
+    g = np.concatenate([[g[0]], g, [g[-1]]])
+    return RoadProfile(d, g, np.interp(f_stamps, stamps, s))
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -124,6 +140,7 @@ def drive_from_oxts(
     lean_gradient: float = 0.0087,
     min_speed: float = 2.0,
     traffic: TrafficOptions | bool | None = None,
+    vertical_curves: bool = False,
 ) -> SyntheticDrive:
     """A drive with the OXTS records' path and IMU and a rendered camera, one frame per record.
 
@@ -139,6 +156,8 @@ def drive_from_oxts(
         min_speed: below it (m/s) the slope is held: ``vu / v`` is noise at a crawl.
         traffic: other vehicles in the images (:mod:`.traffic`, as :func:`make_drive`'s), along the
             records' path; None/False = an empty road.
+        vertical_curves: the images show the road ahead bent by the drive's slope further along
+            (crests, sags); False = a plane. Not with ``traffic`` (its vehicles stand on the plane).
 
     Returns:
         a :class:`SyntheticDrive`: the IMU at the records' stamps, the frames on the camera's clock
@@ -150,6 +169,8 @@ def drive_from_oxts(
         raise ValueError(f"need at least 3 OXTS records, got {n}")
     if render not in (True, False, "lazy"):
         raise ValueError(f"render must be True, False or 'lazy', got {render!r}")
+    if vertical_curves and traffic:
+        raise ValueError("vertical_curves and traffic cannot be combined: the vehicles stand on the road's plane")
     if not np.isfinite(oxts.data[:, :23]).all():
         raise ValueError("OXTS records hold non-finite values")
     stamps = float(t0) + (oxts.stamps_ns - oxts.stamps_ns[0]).astype(np.float64) * 1e-9
@@ -214,6 +235,8 @@ def drive_from_oxts(
         imu_pitch_roll_gravity=pr_grav, imu_road_slope_camber=tilt, imu_rotation_gravity=r_grav,
         imu_velocity_gravity=vel, imu_poses_xy_yaw=imu_poses, render_options=options, image_noise=True,
     )
+    if vertical_curves:
+        drive.road_profile = _road_profile(stamps, speed, tilt[:, 0], f_stamps, moving, options.haze_end)
     traffic = as_traffic_options(traffic)
     if traffic is not None:
         drive.traffic = traffic_at_frames(traffic, stamps, xy, yaw_u, f_stamps, seed)

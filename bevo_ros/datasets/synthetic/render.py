@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 import torch
@@ -23,8 +23,8 @@ if TYPE_CHECKING:
     from bevo_ros.datasets.synthetic.drive import SyntheticDrive
 
 __all__ = [
-    "RenderOptions", "camera_pose_world", "ground_patch", "kitti_like_camera", "render_frame", "render_view",
-    "true_bev",
+    "RenderOptions", "RoadProfile", "camera_pose_world", "ground_patch", "kitti_like_camera", "render_frame",
+    "render_view", "true_bev",
 ]
 
 Tensor = torch.Tensor
@@ -108,10 +108,12 @@ def render_view(
     options: RenderOptions | None = None,
     noise_seed: Sequence[int] | int | None = None,
     vehicles: np.ndarray | None = None,
+    road_height: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> np.ndarray:
     """Render the camera image at a vehicle pose. -> ``(H, W)`` uint8.
 
-    Every (sub-)pixel ray is intersected with the road plane ``z = 0``; the pixel shows the ground
+    Every (sub-)pixel ray is intersected with the road plane ``z = 0`` (or the road bent by
+    ``road_height``); the pixel shows the ground
     intensity there (bilinear texture), the sky for rays that do not hit the ground, or the nearest
     of the other ``vehicles`` (boxes, :mod:`.traffic`) when one is hit first; a vehicle's shadow
     darkens the road under it.
@@ -123,6 +125,10 @@ def render_view(
         pitch_roll_road: ``(pitch, roll)`` of the base relative to the road, radians.
         options: renderer settings; image noise is drawn from ``noise_seed``.
         vehicles: ``(K, 7)`` other vehicles (:data:`~.traffic.VEHICLE_FIELDS`), or None.
+        road_height: ``u -> (height, d height / du)`` (numpy, m) of the road at ``u`` m ahead of
+            the base along its heading, against the plane ``z = 0`` (crests and sags:
+            :meth:`RoadProfile.height_ahead`); each ray shows the first point where it goes below
+            it within the haze's reach (``_meet_bent_road``), the sky or the haze where none.
     """
     options = options or RenderOptions()
     boxes = _vehicle_frames(vehicles)
@@ -141,6 +147,7 @@ def render_view(
     img = torch.empty(h, w, dtype=torch.float32)
     bounds = None if boxes is None else _image_bounds(boxes, camera, r_wc, t_wc, ss)
     rows = max(1, 96 // ss)  # image rows per block: bounded memory (~30 MB) whatever the size
+    table = None if road_height is None else _height_table(road_height, options.haze_end)
     for r0 in range(0, h, rows):
         v = vs[r0 * ss:(r0 + rows) * ss]
         # Ray directions (n_v, W*ss, 3): column-wise affine in u and v.
@@ -152,6 +159,13 @@ def render_view(
         down = rz < -1e-12
         out = torch.where(down, options.haze_value, out)
         lam = -t_wc[2] / torch.where(down, rz, -1.0)
+        if table is not None:
+            # the first point where the ray meets the bent road within the haze's reach: a ray
+            # above the plane's horizon can meet a sag's rising road; one aimed down that passes
+            # over a crest and meets nothing within the reach shows the haze
+            lam, hit = _meet_bent_road(table, pose_xy_yaw, t_wc, d, horiz, options.haze_end)
+            out = torch.where(hit, options.haze_value, out)
+            down = hit
         dist = lam * horiz  # horizontal range of the ground point
         near = down & (dist < options.haze_end)
         # The vehicles whose image rectangle meets this block, and the block's part they can cover.
@@ -189,6 +203,111 @@ def render_view(
     if options.noise_std:
         out_np += np.random.default_rng(noise_seed).normal(0.0, options.noise_std, out_np.shape).astype(np.float32)
     return np.clip(np.rint(out_np), 0, 255).astype(np.uint8)
+
+
+@dataclass
+class RoadProfile:
+    """A road's vertical profile: its slope along the distance travelled (crests and sags), by which
+    the renderer bends the road ahead of each frame (the plane ``z = 0`` is the road under the base).
+
+    Attributes:
+        distance: ``(M,)`` m, increasing, covering every frame's view ahead (past it the slope is held).
+        slope: ``(M,)`` rad, positive = descending (nose down, as REP-103's pitch).
+        frame_distance: ``(F,)`` the distance of each frame.
+    """
+
+    distance: np.ndarray
+    slope: np.ndarray
+    frame_distance: np.ndarray
+
+    def __post_init__(self) -> None:
+        s, g = np.asarray(self.distance, np.float64), np.asarray(self.slope, np.float64)
+        if s.ndim != 1 or s.shape != g.shape or len(s) < 2 or not (np.diff(s) > 0).all() or not np.isfinite(g).all():
+            raise ValueError("RoadProfile needs increasing distances and finite slopes of the same length (>= 2)")
+        self.distance, self.slope = s, g
+        # the slope's integral (trapezoid): the height change along the road is its negative
+        self._integral = np.concatenate([[0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * np.diff(s))])
+
+    def _slope_and_integral(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The slope at distances ``s`` and its integral, exact for the piecewise-linear slope and
+        continued at the end slopes (held) outside the profile."""
+        d, g, big = self.distance, self.slope, self._integral
+        slope = np.interp(s, d, g)
+        i = np.clip(np.searchsorted(d, s, side="right") - 1, 0, len(d) - 2)
+        inside = big[i] + (s - d[i]) * 0.5 * (g[i] + slope)
+        before, after = big[0] + (s - d[0]) * g[0], big[-1] + (s - d[-1]) * g[-1]
+        return slope, np.where(s < d[0], before, np.where(s > d[-1], after, inside))
+
+    def height_ahead(self, s0: float):
+        """``u (m ahead of the base at distance s0) -> (height, d height / du)`` against the road's
+        plane under the base (small angles: the slope ahead less the slope here, integrated)."""
+        g0, big0 = (float(v[0]) for v in self._slope_and_integral(np.array([float(s0)])))
+
+        def height(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            g, big = self._slope_and_integral(s0 + np.asarray(u, np.float64))
+            return -(big - big0 - g0 * u), -(g - g0)
+
+        return height
+
+
+def _meet_bent_road(table, pose_xy_yaw, t_wc: Tensor, d: Tensor, horiz: Tensor, reach: float,
+                    iterations: int = 10) -> tuple[Tensor, Tensor]:
+    """Ray parameters where rays ``t_wc + lam d`` (``d (..., 3)``, ``horiz`` its horizontal length)
+    meet the bent road (``table``: ``u -> (height, slope)`` ahead of the base) within ``reach`` m
+    of horizontal range -> ``(lam, hit)``. Bracketed from the plane's crossing (a sag's road is
+    already above the ray there: between the camera and it; a crest's is still below: stepping on
+    by 25 % until the ray goes under it), then Newton's method kept inside the bracket (a bisection
+    step where it would leave it). A ray that meets the road twice before the plane's crossing (a
+    rise the ray grazes, far ahead) may show the second meeting."""
+    x, y, yaw = (float(v) for v in pose_xy_yaw)
+    c, s = math.cos(yaw), math.sin(yaw)
+    u0 = (float(t_wc[0]) - x) * c + (float(t_wc[1]) - y) * s  # the camera's distance ahead of the base
+    du = d[..., 0] * c + d[..., 1] * s  # forward distance per unit of lam
+    rz = d[..., 2]
+    far = reach / horiz.clamp_min(1e-9)  # lam at the reach
+
+    def above(lam: Tensor, sel=...) -> Tensor:  # the ray's height over the road
+        return t_wc[2] + lam * rz[sel] - table(u0 + lam * du[sel])[0]
+
+    start = torch.where(rz < 0, -t_wc[2] / rz.clamp(max=-1e-12), far).clamp(max=far)
+    f0 = above(start)
+    lo = torch.where(f0 > 0, start, torch.zeros_like(start))  # the camera is above the road
+    hi = torch.where(f0 > 0, torch.full_like(start, math.inf), start)
+    lam, still = start.clone(), (f0 > 0) & (start < far)
+    while bool(still.any()):  # a crest: on by 25 % steps, the open rays only (<= ~30 steps to the reach)
+        sel = still.nonzero(as_tuple=True)
+        nxt = torch.minimum(lam[sel] * 1.25, far[sel])
+        under = above(nxt, sel) <= 0
+        hi[sel] = torch.where(under, nxt, hi[sel])
+        lo[sel] = torch.where(under, lo[sel], nxt)
+        lam[sel] = nxt
+        still[sel] = ~under & (nxt < far[sel])
+    hit = torch.isfinite(hi)
+    lam = torch.where(hit, hi, 0.0)  # Newton from the far end: monotone on a crest's or a sag's curve
+    lo = torch.where(hit, lo, 0.0)
+    for _ in range(iterations):
+        z, dz = table(u0 + lam * du)
+        f = t_wc[2] + lam * rz - z
+        lo, hi = torch.where(f > 0, lam, lo), torch.where(f > 0, hi, lam)
+        slope = rz - dz * du
+        step = lam - f / torch.where(slope < 0, slope, -1.0)
+        lam = torch.where((slope < 0) & (step >= lo) & (step <= hi), step, 0.5 * (lo + hi))
+    return torch.where(hit, lam, 0.0), hit
+
+
+def _height_table(road_height, reach: float, step: float = 0.02):
+    """``road_height`` tabulated every ``step`` m over ``[-10, reach + 10]`` m ahead: ``u (...) ->
+    (height, slope)`` by linear interpolation (height error ~curvature x step^2 / 8 < 1e-7 m)."""
+    grid = np.arange(-10.0, reach + 10.0 + step, step)
+    z, dz = (torch.as_tensor(np.asarray(a, dtype=np.float64)) for a in road_height(grid))
+
+    def lookup(u: Tensor) -> tuple[Tensor, Tensor]:
+        pos = ((u - grid[0]) / step).clamp(0.0, len(grid) - 1.000001)
+        i = pos.floor().long()
+        w = pos - i
+        return z[i] * (1 - w) + z[i + 1] * w, dz[i] * (1 - w) + dz[i + 1] * w
+
+    return lookup
 
 
 def _vehicle_frames(vehicles: np.ndarray | None) -> Tensor | None:
@@ -307,8 +426,10 @@ def render_frame(drive: SyntheticDrive, index: int, options: RenderOptions | Non
     index = index % n
     opts = options or drive.render_options
     vehicles = drive.traffic[index] if drive.traffic is not None else None
+    profile = drive.road_profile
     return render_view(drive.ground, drive.camera, drive.poses_xy_yaw[index], drive.pitch_roll_road[index], opts,
-                       noise_seed=[drive.seed, 3, index], vehicles=vehicles)
+                       noise_seed=[drive.seed, 3, index], vehicles=vehicles,
+                       road_height=None if profile is None else profile.height_ahead(float(profile.frame_distance[index])))
 
 
 # ---------------------------------------------------------------------------------------------
