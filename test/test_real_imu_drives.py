@@ -362,7 +362,8 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
 
 def test_eval_real_imu_acceptance_table(tmp_path):
     """``--presets ... --acceptance``: issue 9's table, each drive whole in both modes, each figure
-    against its target, and whether fused beats paper; without ``--presets`` a clear error."""
+    against its target, and whether fused beats paper; ``--vertical-curves`` the same over crests and
+    sags; without ``--presets`` a clear error."""
     import re
     import subprocess
     import sys
@@ -380,6 +381,14 @@ def test_eval_real_imu_acceptance_table(tmp_path):
     assert re.search(r"fused: targets met \(of 1 drives\): attitude <= 0.3 deg [01], per frame <= 3.0 % [01], "
                      r"yaw <= 0.05 deg [01], drift <= 1.0 % [01]", out.stdout), out.stdout
     assert "fused beats paper on every metric in 1 of 1 drives" in out.stdout, out.stdout
+    # over crests and sags: its own frames (a cache of their own), the same table
+    hills = subprocess.run([sys.executable, tool, "--presets", "braking", "--acceptance", "--vertical-curves", "--modes",
+                            "fused", "--cache", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert hills.returncode == 0, hills.stderr
+    assert "whole drives over crests and sags:" in hills.stdout, hills.stdout
+    assert len(list(tmp_path.glob("*_hills.npy"))) == 1
+    bent = re.search(r"braking/1 +fused +[\d.]+ / +[\d.]+ \w+ +([\d.]+) ", hills.stdout)
+    assert bent and float(bent.group(1)) != fused[2], hills.stdout  # other images, another per-frame error
     bad = subprocess.run([sys.executable, tool, "--acceptance"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--acceptance needs --presets" in bad.stderr
     bad = subprocess.run([sys.executable, tool, "--presets", "braking", "--vertical-curves", "--traffic"],
