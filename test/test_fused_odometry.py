@@ -192,7 +192,7 @@ def camera():
 # Limits at half resolution, 100 Hz IMU, short drives (measured: curve 0.12 / 0.18 deg road
 # attitude, 2.9 %, 0.024 deg, 1.2 % drift; braking 0.22 / 0.17, 6.9 %, 0.026, 3.6 %; bend_start
 # 0.12 / 0.31, 3.3 %, 0.028, 1.2 %; paper mode 13-57 %, yaw 0.28-0.56 deg, 11-29 %). Issue 9 asks
-# 0.3 deg, 3 %, 0.05 deg and 1 %: see the README for what is reached. Braking is the spread one:
+# 0.3 deg, 3 %, 0.05 deg and 1 %: see the README ("How well it does") for what is reached. Braking is the spread one:
 # seeds 2-4 of the same 6 s drive give 8.4 / 7.2 / 13.2 % per frame and 4.8 / 2.4 / 6.4 % drift
 # (12.2 / 8.4 / 14.0 % and 4.5 / 4.1 / 1.4 % before the pitch-change correction acted through
 # accelerations: its drift is the one figure that got worse), so its limits hold seed 1 with a
@@ -397,7 +397,7 @@ def test_attitude_is_interpolated_to_the_frame_stamp(camera):
 def test_pitch_change_correction_on_an_urban_drive(camera):
     """The 10 Hz urban preset (a KITTI-like 10 Hz IMU; braking into a 90 deg turn, down to 0.1 m
     per frame): the correction removes the BEV pitch changes the engine itself made (road-tilt
-    low-pass, suspension model), and the per-frame error and drift fall (the README has the
+    low-pass, suspension model), and the per-frame error and drift fall (docs/FUSED_ODOMETRY.md has the
     other presets)."""
     rows = {}
     for name, duration in (("urban", 26.0),):  # the README's preset, whole

@@ -175,11 +175,11 @@ def _clip_scores(d, f0: int, f1: int, mode: str) -> tuple[float, float]:
 def test_fused_holds_on_real_imu_clips(kitti_root, drive, first):
     """16 s clips of the shared drives' real IMU and motion, camera rendered: a start in a
     bend that ends in a stop (0027), two right-angle turns at 5 m/s (0020), a stop and a start
-    (0018). Fused drift within 5 % (README: 160-frame clips of all four drives), and far below
+    (0018). Fused drift within 5 % (docs/FUSED_ODOMETRY.md: 160-frame clips of all four drives), and far below
     paper mode's (20-60 %). 0018 @ 2320 reads 4.58 % (3.14 % with the suspension pitch gradient
     0.003 before): pulling away in a 28 deg/s turn, the road's slope changes by 1.4 deg in 2.5 s
     and the pitch-change correction, which assumes a constant slope, adds 0.05-0.12 m per pair;
-    the lean that now matches the truth no longer offsets part of it (README, "The suspension's
+    the lean that now matches the truth no longer offsets part of it (docs/FUSED_ODOMETRY.md, "The suspension's
     pitch gradient")."""
     ox = read_oxts(kitti_root / "raw" / "2011_09_30" / f"2011_09_30_drive_{drive}_sync" / "oxts")
     d = drive_from_oxts(ox.slice(first, first + 175), seed=1, camera=small_camera())

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Accuracy on real dynamics: the shared drives' OXTS (real IMU and motion) with a rendered camera,
-cut into clips that each start cold, as a held-out clip does (README: "Real drives' IMU and motion
+cut into clips that each start cold, as a held-out clip does (docs/FUSED_ODOMETRY.md: "Real drives' IMU and motion
 with a rendered camera"; bevo_ros.datasets.synthetic.oxts_drive).
 
 Prints, per mode, the clips' endpoint drift (mean, median, p90, max, how many over 3 % and 5 %),
@@ -236,7 +236,8 @@ def main(argv: list[str] | None = None) -> int:
                 trans = float(np.sqrt(np.mean(np.sum((est[:, :2] - gt[:, :2]) ** 2, axis=1))) * 100)  # cm
                 # The BEV pitch error of each pair's first frame weighted by the pair's motion: a
                 # pitch error e scales the forward reading by ~(1 - 2 X e / h), so this mean is
-                # what the clip's scale error follows (README: "where the scale error comes from").
+                # what the clip's scale error follows (docs/FUSED_ODOMETRY.md: "Where the clips' scale
+                # error comes from").
                 frame_pitch_err = bev_pitch - d.pitch_roll_road[f0:f1, 0]  # (F,) rad
                 pitch_err = float(np.degrees((frame_pitch_err[:-1] * gt[:, 0]).sum() / gt[:, 0].sum()))
                 rows[mode].append((drift, trans, scale, pitch_err))

@@ -6,7 +6,7 @@ come on a regular clock (a triggered or free-running camera stamped at reception
 timed by the OXTS clock, which is quantised to 10 ms: intervals of 0.09-0.11 s for a 0.104 s
 camera). Taken as is, that jitter becomes +-10 % of the motion per frame although the car moved
 the same: on the KITTI sample the fused per-frame error fell from 6.5 to 6.3 cm and the
-frame-to-frame jitter of the estimate from 13.5 to 2.9 cm with this clock (the README has the
+frame-to-frame jitter of the estimate from 13.5 to 2.9 cm with this clock (docs/FUSED_ODOMETRY.md, item 6, has the
 trade-off on that sample's odd first stamps).
 
 So the interval used is the mean period over the last ``window`` frames times the whole number of

@@ -27,7 +27,7 @@ stay (the synthetic demo drive: 9 cm/frame at 2 s vs 31 cm/frame at 10 s). On a 
 low-pass lags the slope (by ~tau x the slope's rate) and the road ahead bends away from the plane
 under the car: the KITTI sample's crest reads 4-11 cm short per frame, and 0.7 s helps it (1.72 ->
 1.38 % drift), while the real-dynamics clips rendered over their own crests and sags lose per frame
-what they gain in drift (README, ``--vertical-curves``: 59 16 s clips 3.91 -> 4.06 cm, 1.57 ->
+what they gain in drift (README, "How well it does", ``--vertical-curves``: 59 16 s clips 3.91 -> 4.06 cm, 1.57 ->
 1.52 %; 94 5 s clips 3.84 -> 4.03 cm, 2.33 -> 2.28 %): 1 s stays for now.
 
 ``time_constant <= 0``, ``inf`` or ``None`` disables the low-pass: the attitude is returned

@@ -264,7 +264,7 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
 
     # Records KITTI's synchronisation interpolated over lost packets are no measurement, but the
     # line between the real rates on either side is the best bridge an IMU-only engine has (a gap
-    # with the images' rotation alone was worse: README): written unless asked, and reported.
+    # with the images' rotation alone was worse: README, Limitations): written unless asked, and reported.
     interpolated = kitti.interpolated_oxts(src.oxts)
     found = np.flatnonzero(interpolated[first:stop]) + first
     if len(found) and not opts.quiet:

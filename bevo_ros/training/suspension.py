@@ -13,8 +13,9 @@ axis at a time (pitch, then roll), a bounded search: a grid over :data:`SEARCH_B
 current value, then golden-section steps inside the best grid point's neighbours. The engine is
 not differentiable in this number through its discrete choices (the correlation peak, the
 gates), and one number per axis needs no gradient: a few engine runs find it. The body's pitch
-on the road regressed on ``dv/dt`` (README, the real drives) is not the target: the number the
-engine needs also absorbs what its gravity attitude misreads during the same accelerations.
+on the road regressed on ``dv/dt`` (docs/FUSED_ODOMETRY.md, "Road-relative pitch on real drives")
+is not the target: the number the engine needs also absorbs what its gravity attitude misreads
+during the same accelerations.
 """
 from __future__ import annotations
 
