@@ -203,6 +203,7 @@ class BevoNode(Node):
 
     def _reset(self) -> None:
         self.feed.reset()
+        self.intake.clear()  # IMU held for the next image (ordered_intake): the old trajectory's
         self.rig.drop_held("the odometry was reset (time jump or ~/reset) while they waited for a calibration")
         self.outputs.path.clear()
         self.events["reset"] += 1
@@ -254,6 +255,7 @@ class BevoNode(Node):
     def _on_flush_timer(self) -> None:
         if self.rig.held_images:  # the parameters' fallback is due even when no further image comes
             self.rig.await_calibration()
+        self.intake.release_stale(self.settings.image_wait)  # no image came for the IMU held for one
         if not self.feed.flush_due():
             return
         if self.settings.ordered_intake:
@@ -296,6 +298,7 @@ class BevoNode(Node):
         values["calibration"] = self.rig.calibration.source if self.rig.calibration is not None else "none yet"
         values["extrinsics"] = self.rig.extrinsics_source
         values["direction_of_travel"] = self.engine.direction_of_travel if self.engine is not None else "unknown"
+        values["imu_held"] = str(self.intake.hold.held)  # waiting for the next image (ordered_intake)
         if self.engine is not None:  # what the engine takes off the gyro (x, y from standstills, z the motion filter's)
             values["gyro_bias_deg_s"] = ", ".join(f"{math.degrees(b):+.4f}" for b in self.engine.gyro_bias)
         name = self.get_name()

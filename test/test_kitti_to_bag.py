@@ -171,6 +171,13 @@ def test_missing_directory(tmp_path, capsys):
     _expect_error(capsys, ["--odometry", tmp_path / "nope", "-o", tmp_path / "o"], "nope/sequences/06",
                   "not found")
     _expect_error(capsys, ["--raw", tmp_path / "nodrive", "-o", tmp_path / "o"], "nodrive", "not found")
+    # one level off: the messages say which folder each option takes
+    (tmp_path / "day" / "2011_10_03_drive_0042_sync").mkdir(parents=True)
+    _expect_error(capsys, ["--raw", tmp_path / "day", "-o", tmp_path / "o"], "--raw takes one drive's folder",
+                  "2011_10_03_drive_0042_sync")
+    (tmp_path / "dataset" / "sequences" / "06" / "image_0").mkdir(parents=True)
+    _expect_error(capsys, ["--odometry", tmp_path / "dataset" / "sequences" / "06", "-o", tmp_path / "o"],
+                  "--odometry takes the folder that holds sequences/")
     assert not (tmp_path / "o").exists()
 
 
@@ -180,6 +187,29 @@ def test_corrupt_oxts_line(layout, tmp_path, capsys):
     out = tmp_path / "o"
     _expect_error(capsys, ["--odometry", layout / "odometry", "-o", out], "0000000003.txt:1", "cannot parse")
     assert not out.exists() and _no_partial(out)
+
+
+def test_the_output_directory_is_created(layout, tmp_path, capsys):
+    """The README's first command, `-o bags/kitti06` on a fresh machine: `bags/` is made, as `bevo run
+    --out` makes its folder; a file in the way is a clear error."""
+    out = tmp_path / "bags" / "kitti06"
+    assert convert("--odometry", layout / "odometry", "-o", out, "--count", "2") == 0
+    assert bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 2
+    (tmp_path / "afile").write_text("x")
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", tmp_path / "afile" / "kitti06", "--count", "2"],
+                  "afile: not a directory")
+
+
+def test_a_missing_oxts_record_is_named(layout, tmp_path, capsys):
+    """A gap in the OXTS file numbers (one file and one timestamp line gone) would pair every later
+    record with another frame's time: refused, the record named."""
+    oxts = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts"
+    (oxts / "data" / "0000000002.txt").unlink()
+    lines = (oxts / "timestamps.txt").read_text().splitlines(True)
+    (oxts / "timestamps.txt").write_text("".join(lines[:2] + lines[3:]))
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", tmp_path / "o"], "0000000003.txt",
+                  "expected record 2")
+    assert not (tmp_path / "o").exists()
 
 
 def test_count_mismatches(layout, tmp_path, capsys):
@@ -242,6 +272,28 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     stamps = kitti.read_timestamps_ns(oxts / "timestamps.txt") + 5_000_000
     (cam / "timestamps.txt").write_text("".join(
         f"2011-09-30 12:08:{(s // 10**9) % 60:02d}.{s % 10**9:09d}\n" for s in stamps))
+    # The camera matrix of a raw drive is its own day's: the layout has only 2011_09_26's calibration,
+    # which the odometry layout borrows for the extrinsics but a raw drive may not (another day's P_rect
+    # mis-scales it by percents: 17.6 % drift on the sample).
+    _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "no_day"], "no raw calibration of 2011_09_30",
+                  "found 2011_09_26's", "--raw-calib")
+    assert not (tmp_path / "no_day").exists()
+    # Given explicitly, 2011_09_26's files are refused on their rectified size (1242x375 for 1226x370 images).
+    _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "o26", "--raw-calib", layout / "raw" / "2011_09_26"],
+                  "S_rect_00 is 1242x375 but the images are 1226x370")
+    # The day's own calibration: 2011_09_26's chain with the sample's rectified camera (calib.txt's P0).
+    day = layout / "raw" / "2011_09_30"
+    for name in ("calib_imu_to_velo.txt", "calib_velo_to_cam.txt"):
+        shutil.copy(layout / "raw" / "2011_09_26" / name, day / name)
+    p0 = kitti.read_odometry_calib(layout / "odometry" / "sequences" / "06" / "calib.txt")["P0"].ravel()
+    lines = []
+    for line in (layout / "raw" / "2011_09_26" / "calib_cam_to_cam.txt").read_text().splitlines():
+        if line.startswith("S_rect_00:"):
+            line = "S_rect_00: 1.226000e+03 3.700000e+02"
+        elif line.startswith("P_rect_00:"):
+            line = "P_rect_00: " + " ".join(f"{v:.6e}" for v in p0)
+        lines.append(line)
+    (day / "calib_cam_to_cam.txt").write_text("\n".join(lines) + "\n")
     out = tmp_path / "raw_bag"
     rc = kitti_to_bag.main(["--raw", str(drive), "-o", str(out), "--poses",
                             str(layout / "odometry" / "poses" / "06.txt")])
@@ -249,7 +301,7 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     assert rc == 0
     rec = bag.read_recording(out)
     assert np.array_equal(rec.frame_stamps_ns, stamps) and len(rec.imu_stamps_ns) == 5
-    assert rec.camera_info.k[0] == pytest.approx(721.5377)  # P_rect_00 of the raw calibration
+    assert rec.camera_info.k[0] == pytest.approx(707.0912)  # P_rect_00 of the drive's own day
     assert rec.gt_poses.shape == (5, 4, 4)
     # One timestamp short: a clear count error.
     (cam / "timestamps.txt").write_text("".join((cam / "timestamps.txt").read_text().splitlines(True)[:4]))

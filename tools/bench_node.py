@@ -165,10 +165,12 @@ def run_once(messages, params_file: Path, rate: float, args) -> dict:
         received.append(((msg.header.stamp.sec, msg.header.stamp.nanosec), time.perf_counter()))
 
     def on_diag(msg):
-        for st in msg.status:
-            if st.name.startswith("bevo_node"):
-                diag.clear()
-                diag.update({kv.key: kv.value for kv in st.values})
+        # the node publishes several statuses (odometry, calibration, each input): the counts are in
+        # "bevo_node: odometry"; merged, so that none of the others' order hides them
+        values = {kv.key: kv.value for st in msg.status if st.name.startswith("bevo_node") for kv in st.values}
+        if "imu_received" in values:
+            diag.clear()
+            diag.update(values)
 
     tester.create_subscription(Odometry, "/bevo/odometry", on_odom, QoSProfile(depth=1000))
     tester.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)

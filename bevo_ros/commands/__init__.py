@@ -38,12 +38,20 @@ def set_threads(threads: int) -> None:
         torch.set_num_threads(threads)
 
 
+def prog_name(prog: str) -> str:
+    """What a command's messages start with: ``bevo COMMAND`` when run as that (``bevo_ros.cli`` sets
+    ``sys.argv[0]``), else ``prog``, the executable's own name (``kitti_to_bag``)."""
+    return sys.argv[0] if sys.argv and sys.argv[0].startswith("bevo ") else prog
+
+
 def guarded(prog: str, work: Callable[[], int], errors: tuple[type[BaseException], ...],
             codes: Mapping[type[BaseException], int] | None = None, interrupted: str = "interrupted") -> int:
     """The commands' one error convention around ``work() -> exit code``: an expected error (one of
     ``errors``) prints ``PROG: error: MESSAGE`` on stderr and returns 2 (or ``codes[type]`` for the
     first type it is an instance of); Ctrl-C prints ``PROG: INTERRUPTED`` and returns 130. Anything
-    else is a bug and propagates with its traceback."""
+    else is a bug and propagates with its traceback. Run as ``bevo COMMAND`` (``bevo_ros.cli`` sets
+    ``sys.argv[0]`` to it) PROG is that, as in the usage lines; ``prog`` names the executable run alone."""
+    prog = prog_name(prog)
     try:
         return work()
     except errors as exc:

@@ -23,7 +23,7 @@ import sys
 
 import numpy as np
 
-from bevo_ros.commands import add_params_option, new_parser
+from bevo_ros.commands import add_params_option, new_parser, prog_name
 from bevo_ros.config import ConfigError, bev_spec, load_config
 from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
@@ -48,13 +48,13 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)}")
         seq = seq.frames(start, stop)
     except (ConfigError, ValueError, FileNotFoundError) as exc:
-        print(f"calibrate_mounting: error: {exc}", file=sys.stderr)
+        print(f"{prog_name('calibrate_mounting')}: error: {exc}", file=sys.stderr)
         return 2
     spec = bev_spec(config)
     try:
         pitch, roll = calibrate(seq, spec, dpc=config.dpc)
     except ValueError as exc:
-        print(f"calibrate_mounting: error: {exc}", file=sys.stderr)
+        print(f"{prog_name('calibrate_mounting')}: error: {exc}", file=sys.stderr)
         return 1
     # Measured through the bag's rig (its /tf_static, as the node takes it): the camera's tilt to the
     # road. Written for camera.base_T_camera, with which the params lines below go.

@@ -19,7 +19,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from bevo_ros.commands import new_parser
+from bevo_ros.commands import new_parser, prog_name
 from bevo_ros.io import bag
 from bevo_ros.datasets.kitti_bag import ConversionError, ConversionOptions, convert, load_source
 
@@ -34,13 +34,16 @@ notes:
   OXTS records that KITTI's synchronisation filled in by linear interpolation over lost packets
   (all six IMU channels exactly on the line through their neighbours; e.g. drive 0020's records
   1-11, the sample's start) are reported; --leave-out-interpolated-imu leaves them out.
-  The sample's 2011_09_30 drives have no raw calibration; the 2011_09_26 files describe the same
-  rig and are found by the default search (override with --raw-calib).
+  Calibration: the odometry layout's camera matrix is calib.txt's; the rig's extrinsics come from
+  the raw calibration of the drive's day, else the nearest other day found (the sample's 2011_09_30
+  drives have none: 2011_09_26's describe the same rig; override with --raw-calib). A raw drive's
+  camera matrix (P_rect_0X) must be its own day's: another day's only with --raw-calib, and never
+  one whose S_rect_0X is not the images' size.
 
 examples:
   bevo convert --odometry ../shared/data/kitti/odometry --sequence 06 -o seq06_bag
   bevo convert --odometry DATASET --sequence 06 --first 0 --count 20 --storage mcap -o short
-  bevo convert --raw RAW/2011_09_30/2011_09_30_drive_0020_sync --camera 0 -o drive20_bag
+  bevo convert --raw RAW/2011_10_03/2011_10_03_drive_0042_sync --poses DATASET/poses/01.txt -o drive42_bag
   bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0027_sync/oxts --first 0 --count 160 -o real_imu_bag
   bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0020_sync/oxts --vertical-curves -o drive20_hills_bag
 """
@@ -118,7 +121,7 @@ def _render_oxts(args) -> int:
         print("kitti_to_bag: interrupted; no bag written", file=sys.stderr)
         return 130
     except (FileNotFoundError, FileExistsError, ValueError) as exc:
-        print(f"kitti_to_bag: error: {exc}", file=sys.stderr)
+        print(f"{prog_name('kitti_to_bag')}: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {out} ({args.storage}): {args.render_oxts}'s IMU and motion, rendered camera, frames "
           f"{args.first}..{stop - 1} of {n}, {drive.frame_stamps[stop - 1] - drive.frame_stamps[args.first]:.3f} s, "
@@ -145,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         print("kitti_to_bag: interrupted; no bag written", file=sys.stderr)
         return 130
     except (ConversionError, FileNotFoundError, FileExistsError, ValueError) as exc:
-        print(f"kitti_to_bag: error: {exc}", file=sys.stderr)
+        print(f"{prog_name('kitti_to_bag')}: error: {exc}", file=sys.stderr)
         return 2
     first, last = src.frame_stamps_ns[args.first], src.frame_stamps_ns[args.first + counts.get(args.image_topic, 1) - 1]
     print(f"wrote {out} ({args.storage}) from {src.description}, frames {args.first}.."

@@ -16,7 +16,7 @@ import sys
 import time
 
 
-from bevo_ros.commands import new_parser
+from bevo_ros.commands import new_parser, prog_name
 from bevo_ros.io import bag
 
 EPILOG = """\
@@ -198,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         first_ns, _ = bag.bag_time_range(args.bag)
         recorded = bag.topic_qos(args.bag)
     except (UserError, FileNotFoundError, ValueError) as exc:
-        print(f"play_bag: error: {exc}", file=sys.stderr)
+        print(f"{prog_name('play_bag')}: error: {exc}", file=sys.stderr)
         return 2
     # --start counts from the bag's first message (as `ros2 bag play --start-offset`).
     start_ns = first_ns + int(round(args.start * 1e9)) if args.start > 0 else None
@@ -230,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         print("play_bag: interrupted", file=sys.stderr)
         rc = 130
     except (UserError, ValueError) as exc:
-        print(f"play_bag: error: {exc}", file=sys.stderr)
+        print(f"{prog_name('play_bag')}: error: {exc}", file=sys.stderr)
         rc = 2
     finally:
         if player is not None:

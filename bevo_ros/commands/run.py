@@ -16,6 +16,7 @@ node's. Writes into --out:
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -70,4 +71,8 @@ def _run(args: argparse.Namespace) -> int:
           f"peak off the highest (second motion in view, direction of travel) {c.gated_peak}; "
           f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}")
     print("wrote " + ", ".join(str(p) for p in paths))
+    if len(steps) < c.images:  # the trajectory has a row per frame with odometry, not per image of the bag
+        print(f"warning: {c.images - len(steps)} of {c.images} frames gave no odometry (see the counts above): "
+              f"trajectory_kitti.txt has {len(steps)} rows; evaluate against gt_kitti.txt (the same frames), "
+              f"not a sequence's poses file counted from its first frame", file=sys.stderr)
     return 0

@@ -17,6 +17,7 @@ from __future__ import annotations
 import calendar
 import re
 from dataclasses import dataclass
+from datetime import datetime
 from pathlib import Path
 from typing import Iterable
 
@@ -227,6 +228,10 @@ def read_oxts(oxts_dir: PathLike) -> OxtsData:
     stamps_ns = read_timestamps_ns(oxts_dir / "timestamps.txt")
     data_dir = _require_dir(oxts_dir / "data", "OXTS data")
     files = sorted(p for p in data_dir.iterdir() if p.suffix == ".txt")
+    for i, p in enumerate(files):  # record i is timestamps.txt's line i: a gap would shift every later one
+        if not p.stem.isdigit() or int(p.stem) != i:
+            raise ValueError(f"{p}: expected record {i} here; OXTS data files must be numbered consecutively from 0 "
+                             f"(a missing or extra file would pair every later record with another frame's time)")
     if len(files) != len(stamps_ns):
         raise ValueError(f"{data_dir}: {len(files)} OXTS data files but {len(stamps_ns)} lines in "
                          f"{oxts_dir / 'timestamps.txt'}")
@@ -310,9 +315,17 @@ def find_raw_calib_dir(start: PathLike, date: str | None = None) -> Path | None:
 
     Looks in ``X``, ``X/<date>`` and ``X/<any date>`` for ``X`` = ``start`` and each parent (the
     sample's 2011_09_30 drives have no calibration; the 2011_09_26 files describe the same rig).
-    Prefers ``date``, then the newest other date. Returns None when nothing is found.
+    Prefers ``date``, then the nearest other date (the earlier on a tie; the newest without a
+    ``date``). Returns None when nothing is found.
     """
     start = Path(start).resolve()
+
+    def distance(name: str) -> float:
+        try:
+            return abs((datetime.strptime(name, "%Y_%m_%d") - datetime.strptime(date, "%Y_%m_%d")).days)
+        except (TypeError, ValueError):
+            return 0.0  # no (valid) date to be near: the newest first, as the name order gives
+
     for base in [start, *start.parents]:
         candidates = [base]
         if date:
@@ -321,7 +334,8 @@ def find_raw_calib_dir(start: PathLike, date: str | None = None) -> Path | None:
             if root.is_dir():
                 try:
                     dated = sorted((p for p in root.iterdir() if p.is_dir() and re.fullmatch(r"\d{4}_\d{2}_\d{2}", p.name)),
-                                   key=lambda p: (p.name != date, [-ord(c) for c in p.name]))
+                                   key=lambda p: (p.name != date, distance(p.name),
+                                                  p.name if distance(p.name) else [-ord(c) for c in p.name]))
                 except OSError:
                     dated = []
                 candidates.extend(dated)

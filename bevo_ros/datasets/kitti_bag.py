@@ -7,6 +7,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from bevo_ros.io import bag
@@ -93,19 +94,49 @@ def _find_oxts(opts: ConversionOptions, date: str, drive: str, odometry_root: Pa
                     "(give --raw-root or --oxts)")
 
 
-def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str) -> Path:
+def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str, intrinsics: bool = False) -> Path:
+    """The raw calibration directory for a ``date`` drive: ``--raw-calib``, else the day's own,
+    else (extrinsics only: the IMU-to-velodyne chain is one rig's) the nearest other day's.
+
+    ``intrinsics``: the caller takes the camera matrix (``P_rect``) from it too, which KITTI
+    calibrated anew each day (fx 707-722 px: percents of scale): another day's is refused unless
+    given explicitly with ``--raw-calib``."""
     if opts.raw_calib:
         d = Path(opts.raw_calib)
         if not d.is_dir():
             raise ConversionError(f"{d}: --raw-calib directory not found")
+        if date and d.name != date:  # said even with --quiet: the scale of everything hangs on it
+            print(f"warning: the raw calibration in {d} is for another day than this {date} drive "
+                  + ("(its camera matrix too)" if intrinsics else "(its extrinsics)"), file=sys.stderr)
         return d
     found = kitti.find_raw_calib_dir(near, date)
+    files = "calib_imu_to_velo.txt, calib_velo_to_cam.txt, calib_cam_to_cam.txt"
     if found is None:
-        raise ConversionError(f"no raw calibration (calib_imu_to_velo.txt, calib_velo_to_cam.txt, calib_cam_to_cam.txt) "
-                        f"found near {near}; give --raw-calib DIR")
-    if found.name != date and not opts.quiet:
-        print(f"note: using the raw calibration in {found} for a {date} drive (same rig)", file=sys.stderr)
+        raise ConversionError(f"no raw calibration ({files}) found near {near}; give --raw-calib DIR")
+    if date and found.name != date:
+        if intrinsics:
+            raise ConversionError(
+                f"no raw calibration of {date} ({files}, all three) near {near}: found {found.name}'s, but a raw "
+                f"drive's camera matrix (P_rect) is calibrated each day and another day's mis-scales the odometry "
+                f"by percents; give --raw-calib DIR with {date}'s files (or {found} to accept that day's)")
+        if not opts.quiet:
+            print(f"note: using the raw calibration in {found} for a {date} drive (extrinsics only: the same rig; "
+                  f"the camera matrix comes from calib.txt)", file=sys.stderr)
     return found
+
+
+def _check_rectified_size(cam_calib: dict, key: str, path: Path, image: Path) -> None:
+    """A calibration's ``S_rect_0X`` (its rectified image size) must be the images' size."""
+    if key not in cam_calib or cam_calib[key].size != 2:
+        return  # older files have no S_rect: nothing to check
+    w, h = (int(round(v)) for v in cam_calib[key])
+    img = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ConversionError(f"{image}: cannot read image")
+    if (img.shape[1], img.shape[0]) != (w, h):
+        raise ConversionError(f"{path}: {key} is {w}x{h} but the images are {img.shape[1]}x{img.shape[0]} "
+                              f"({image}): that calibration is not this camera's; give --raw-calib DIR with the "
+                              f"drive's own day")
 
 
 def odometry_source(opts: ConversionOptions) -> Source:
@@ -113,7 +144,10 @@ def odometry_source(opts: ConversionOptions) -> Source:
     seq = f"{int(opts.sequence):02d}" if str(opts.sequence).isdigit() else str(opts.sequence)
     seq_dir = root / "sequences" / seq
     if not seq_dir.is_dir():
-        raise ConversionError(f"{seq_dir}: sequence directory not found")
+        hint = ""
+        if (root / f"image_{opts.camera}").is_dir() or root.name == "sequences" or (root / "dataset").is_dir():
+            hint = " (--odometry takes the folder that holds sequences/ and poses/, e.g. .../dataset)"
+        raise ConversionError(f"{seq_dir}: sequence directory not found{hint}")
     images = kitti.list_images(seq_dir / f"image_{opts.camera}")
     _check_image_names(images)
     calib = kitti.read_odometry_calib(seq_dir / "calib.txt")
@@ -165,6 +199,10 @@ def odometry_source(opts: ConversionOptions) -> Source:
         # the rig's extrinsics: ground truth in the base frame, and /tf_static
         T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(
             _raw_calib_dir(opts, oxts_dir.parent, calib_date), opts.camera))
+    elif not opts.quiet:  # no ground truth to put in the base frame: the bag goes without the rig
+        print(f"note: no raw calibration found near {oxts_dir.parent} (--raw-calib DIR): the bag has no /tf_static, "
+              f"and bevo run / bevo_node take the camera's extrinsics from their parameters (camera.base_T_camera)",
+              file=sys.stderr)
     return Source(images, stamps, oxts, calib[key], opts.camera, poses, T_base_cam,
                   f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})")
 
@@ -174,6 +212,10 @@ def raw_source(opts: ConversionOptions) -> Source:
     if not drive_dir.is_dir():
         raise ConversionError(f"{drive_dir}: raw drive directory not found")
     cam_dir = drive_dir / f"image_{opts.camera:02d}"
+    if not cam_dir.is_dir():
+        drives = sorted(p.name for p in drive_dir.iterdir() if p.is_dir() and p.name.endswith("_sync"))
+        if drives:
+            raise ConversionError(f"{cam_dir}: not found: --raw takes one drive's folder, e.g. {drive_dir / drives[0]}")
     images = kitti.list_images(cam_dir / "data")
     _check_image_names(images)
     stamps = kitti.read_timestamps_ns(cam_dir / "timestamps.txt")
@@ -186,12 +228,13 @@ def raw_source(opts: ConversionOptions) -> Source:
         raise ConversionError(f"{oxts_dir}: {len(oxts)} OXTS records but {len(images)} images in {cam_dir / 'data'} "
                         "(synced data pairs them one to one)")
     date = drive_dir.parent.name
-    calib_dir = _raw_calib_dir(opts, drive_dir, date)
+    calib_dir = _raw_calib_dir(opts, drive_dir, date, intrinsics=True)
     cam_calib_path = calib_dir / "calib_cam_to_cam.txt"
     cam_calib = kitti.read_raw_calib(cam_calib_path)
     key = f"P_rect_{opts.camera:02d}"
     if key not in cam_calib or cam_calib[key].size != 12:
         raise ConversionError(f"{cam_calib_path}: no valid '{key}:' line")
+    _check_rectified_size(cam_calib, f"S_rect_{opts.camera:02d}", cam_calib_path, images[0])
     T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(calib_dir, opts.camera))
 
     poses = None

@@ -378,8 +378,8 @@ class BagWriter:
         self._plugin = _storage_plugin(storage)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path}: output bag exists (use --overwrite to replace it)")
-        if not self.path.parent.is_dir():
-            raise FileNotFoundError(f"{self.path.parent}: output directory does not exist")
+        if self.path.parent.exists() and not self.path.parent.is_dir():
+            raise FileNotFoundError(f"{self.path.parent}: not a directory (the output bag's parent)")
         self.counts: dict[str, int] = {}
         self._writer = None
         self._tmpdir: Path | None = None
@@ -392,6 +392,10 @@ class BagWriter:
     def __enter__(self) -> "BagWriter":
         from rosbags.rosbag2 import Writer
 
+        try:  # as `bevo run --out` does: `-o bags/kitti06` on a fresh machine
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise FileNotFoundError(f"{self.path.parent}: cannot create the output directory ({exc})") from exc
         self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent))
         try:
             self._lock_fd = _lock_partial(self._tmpdir)

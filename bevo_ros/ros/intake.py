@@ -2,7 +2,10 @@
 
 :class:`Intake`: every IMU/image message already received is taken and handled in stamp order
 (``ordered_intake``: the offline order, so the IMU keeps up under load), through each stream's
-time-jump guard (a lone outlier stamp is dropped, a confirmed jump back resets).
+time-jump guard (a lone outlier stamp is dropped, a confirmed jump back resets). An image is large
+and DDS orders no topic against another, so a frame can arrive after IMU samples stamped later:
+with ``ordered_intake`` the IMU past the sample each frame waits for is held (:class:`ImuHold`)
+until the next image arrives (or ``image_wait``), which keeps the offline order.
 :class:`EngineFeed`: the engine calls; stamps not after the previous one (a drop, or a reset and
 retry for a big jump back); what the engine dropped or rejected (its events) turned into counted,
 logged drops and events; the IMU that arrives before the calibration; the ``image_wait`` flush.
@@ -58,6 +61,7 @@ class Intake:
         self.subs: dict[str, Any] = {}
         self.guards = {kind: TimeJumpGuard(s.max_time_jump_back, s.max_time_jump_forward, s.time_jump_confirmations)
                        for kind in KINDS}
+        self.hold = ImuHold(dispatch)
 
     def take_all(self, sub) -> list:
         """Every message ``sub`` has already received, taken now (not one per executor turn).
@@ -121,7 +125,7 @@ class Intake:
         v = guard.check(stamp_to_sec(item[0].header.stamp), item)
         self._drop_outliers(kind, v.outliers)
         if v.accept:
-            self.dispatch(kind, item)
+            self._dispatch(kind, item)
             return
         if v.jump is None:
             return  # held until confirmed or found to be an outlier
@@ -140,7 +144,30 @@ class Intake:
                                                + ("odometry reset, the trajectory restarts at identity"
                                                   if v.jump == "back" else "continuing on the new timeline"))
         for k, it in release:
-            self.dispatch(k, it)
+            self._dispatch(k, it)
+
+    def _dispatch(self, kind: str, item: tuple) -> None:
+        if self.settings.ordered_intake:
+            self.hold.dispatch(kind, item)
+        else:
+            self.hold.release_all()  # switched off (live, or rclpy could not take): nothing stays held
+            self.dispatch(kind, item)
+
+    def release_stale(self, wait: float) -> None:
+        """Hand on held IMU that has waited ``wait`` seconds (wall) plus a frame interval for an
+        image: a frame dropped, the camera stopped or lagging (the flush timer's call). Counted: an
+        image that still comes after it may give other poses than ``bevo run``."""
+        n = self.hold.release_stale(wait)
+        if n and self.hold.last_image is not None:  # before the first image the camera is starting: nothing to say
+            self.report.events["imu_hold_timeout"] += 1
+            self.report.log("imu_hold_timeout", f"{n} IMU sample(s) waited more than image_wait={wait:g} s plus a "
+                                                "frame interval for the next image: fused without it (a frame "
+                                                "arriving later than that is processed out of the offline order)",
+                            level="info")
+
+    def clear(self) -> None:
+        """Forget the held IMU: the odometry was reset (a time jump back: they belong to the old timeline)."""
+        self.hold.clear()
 
     def rejudge(self) -> None:
         """After a reset by a clock jump: held messages are judged again on the new timeline."""
@@ -178,6 +205,97 @@ ENGINE_DROPS = (
     ("dropped_invalid_bev", "invalid_bev",
      "whose BEV had no valid pixel (pitch/roll put the ground patch out of the image)"),
 )
+
+
+
+class ImuHold:
+    """Keeps the offline order when a frame arrives after IMU samples stamped later than it.
+
+    Offline (``bevo run``) a frame is processed right after the first IMU sample at or past its
+    stamp (the engine waits for it: the attitude is interpolated to the stamp), and every later
+    sample sees that frame's update (the motion filter's speed in the accelerometer's
+    compensation). A node fed live can receive the large image message after the next IMU samples;
+    fused first, they use the speed before the frame and the poses differ from ``bevo run``
+    (millimetres on a synthetic drive). So a sample past the last image is handed on only while
+    that image still waits for one (none at or past its stamp handed on yet); later ones are held
+    until the next image arrives (before the first image, all of them). Then the held ones up to its
+    stamp go on, the image, and, if the image still waits for one, the first held sample past it.
+    Held samples delay no output (no frame waits for them). When no image comes (a frame dropped,
+    the camera stopped) they go on after ``wait`` plus the last frame interval
+    (:meth:`release_stale`, the node's flush timer; counted by the caller: a frame arriving after
+    that may differ from ``bevo run`` again). At most ``limit`` are held: beyond it the oldest goes on.
+    """
+
+    def __init__(self, sink: Callable[[str, tuple], None], limit: int = 1000) -> None:
+        self.sink, self.limit = sink, limit
+        self._held: collections.deque = collections.deque()  # (stamp, item, held since: monotonic s)
+        self._last_image: float | None = None  # newest image stamp handed on
+        self._last_sent: float | None = None  # newest IMU stamp handed on
+        self._image_wall: float | None = None  # when the last image was handed on (monotonic s)
+        self._period = 0.0  # wall interval between the last two images, s (at most 1 s)
+
+    @property
+    def held(self) -> int:
+        return len(self._held)
+
+    @property
+    def last_image(self) -> float | None:
+        return self._last_image
+
+    def _waiting(self) -> bool:
+        """The last image still waits for a sample at or past its stamp."""
+        return self._last_image is not None and (self._last_sent is None or self._last_sent < self._last_image)
+
+    def _send_imu(self, stamp: float, item: tuple) -> None:
+        self._last_sent = stamp if self._last_sent is None else max(self._last_sent, stamp)
+        self.sink("imu", item)
+
+    def _send_held(self, n: int) -> None:
+        for _ in range(n):
+            if not self._held:  # the sink reset the node (clear()) meanwhile
+                return
+            stamp, item, _ = self._held.popleft()
+            self._send_imu(stamp, item)
+
+    def dispatch(self, kind: str, item: tuple) -> None:
+        t = stamp_to_sec(item[0].header.stamp)
+        if kind == "imu":
+            if self._last_image is None or (t > self._last_image and not self._waiting()):
+                self._held.append((t, item, time.monotonic()))
+                if len(self._held) > self.limit:
+                    self._send_held(1)
+            else:  # at or before the last image (the engine judges its order), or the sample it waits for
+                self._send_imu(t, item)
+            return
+        n = 0
+        while n < len(self._held) and self._held[n][0] <= t:
+            n += 1
+        self._send_held(n)  # the IMU up to the frame's stamp, before it
+        self.sink(kind, item)
+        now = time.monotonic()
+        if self._image_wall is not None:
+            self._period = min(now - self._image_wall, 1.0)
+        self._image_wall = now
+        self._last_image = t if self._last_image is None else max(self._last_image, t)
+        if self._held and self._waiting():
+            self._send_held(1)  # the sample the frame waits for
+
+    def release_stale(self, wait: float) -> int:
+        """Hand on everything held when its oldest sample has waited ``wait`` plus the last frame
+        interval; -> how many went on."""
+        if self._held and time.monotonic() - self._held[0][2] >= wait + self._period:
+            n = len(self._held)
+            self._send_held(n)
+            return n
+        return 0
+
+    def release_all(self) -> None:
+        self._send_held(len(self._held))
+
+    def clear(self) -> None:
+        self._held.clear()
+        self._last_image = self._last_sent = self._image_wall = None
+        self._period = 0.0
 
 
 class EngineFeed:

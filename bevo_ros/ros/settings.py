@@ -90,7 +90,9 @@ DESCRIPTIONS = {
     "output_qos_depth": "history depth of the odometry/path/BEV publishers",
     "image_wait": "seconds an image waits for IMU past its stamp before it is processed anyway",
     "ordered_intake": "take every IMU/image message already received and process them in stamp order "
-                      "(offline order, IMU keeps up under load) instead of one per topic per executor turn",
+                      "(offline order, IMU keeps up under load) instead of one per topic per executor turn; "
+                      "IMU past the sample a frame waits for is held until the next image arrives (at most "
+                      "image_wait), so a late image is processed as offline",
     "max_pending_images": "images waiting for IMU (or, before any calibration, for CameraInfo) beyond this are dropped "
                           "(oldest first, counted)",
     "max_time_jump_back": "a stamp earlier than the previous by more than this (s) is a time jump back: once "

@@ -1,0 +1,134 @@
+"""The node intake's IMU hold (``bevo_ros.ros.intake.ImuHold``), without DDS: whatever order the
+IMU and image messages arrive in, the engine sees the operations of the offline (stamp) order.
+
+The engine is modelled by what decides the order of its operations: a frame is processed once a
+sample at or past its stamp has been fused (``BevoOdometry.add_image`` / ``_release``), so the
+recorded sequence of "fuse sample" and "process frame" is what the odometry depends on.
+"""
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+
+import pytest
+
+from bevo_ros.ros.intake import ImuHold
+
+
+def msg(t: float):
+    sec = int(t)
+    return (SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=round((t - sec) * 1e9)))),
+            0.0)
+
+
+class EngineOrder:
+    """Records the engine's operations: ("imu", t) when fused, ("frame", t) when processed."""
+
+    def __init__(self) -> None:
+        self.ops: list[tuple[str, float]] = []
+        self.last_imu: float | None = None
+        self.pending: list[float] = []
+
+    def __call__(self, kind: str, item) -> None:
+        h = item[0].header.stamp
+        t = round(h.sec + h.nanosec * 1e-9, 6)
+        if kind == "imu":
+            if self.last_imu is not None and t <= self.last_imu:
+                return  # out of order: the engine drops it
+            self.ops.append(("imu", t))
+            self.last_imu = t
+            while self.pending and self.pending[0] <= t:
+                self.ops.append(("frame", self.pending.pop(0)))
+        elif self.last_imu is not None and t <= self.last_imu:
+            self.ops.append(("frame", t))
+        else:
+            self.pending.append(t)
+
+
+def stamp_order(imu: list[float], frames: list[float]) -> list[tuple[str, float]]:
+    """The offline order: by stamp, an IMU sample before a frame of the same stamp."""
+    return sorted([("imu", t) for t in imu] + [("image", t) for t in frames], key=lambda e: (e[1], e[0] != "imu"))
+
+
+def late(order: list[tuple[str, float]], delay: int) -> list[tuple[str, float]]:
+    """Every image delivered after the next ``delay`` IMU messages (images keep their own order)."""
+    out: list[tuple[str, float]] = []
+    waiting: list[list] = []  # [image, IMU messages still to come before it]
+    for e in order:
+        if e[0] == "image":
+            waiting.append([e, delay])
+        else:
+            out.append(e)
+            for w in waiting:
+                w[1] -= 1
+        while waiting and waiting[0][1] <= 0:
+            out.append(waiting.pop(0)[0])
+    return out + [w[0] for w in waiting]
+
+
+def run(arrivals, hold: bool = True) -> list[tuple[str, float]]:
+    engine = EngineOrder()
+    h = ImuHold(engine)
+    for kind, t in arrivals:
+        (h.dispatch if hold else engine)(kind, msg(t))
+    h.release_all()
+    return engine.ops
+
+
+RIGS = {  # IMU and frame stamps (s)
+    "100 Hz IMU, 10 Hz camera, equal stamps": ([i / 100 for i in range(60)], [i / 10 for i in range(6)]),
+    "100 Hz IMU, frames 3 ms after a sample": ([i / 100 for i in range(60)], [i / 10 + 0.003 for i in range(6)]),
+    "5 Hz IMU, 10 Hz camera (faster than the IMU)": ([i / 5 for i in range(8)], [i / 10 for i in range(14)]),
+    "10 Hz both, frames 30 ms after the IMU": ([i / 10 for i in range(12)], [i / 10 + 0.03 for i in range(11)]),
+    "20 Hz IMU, 10 Hz camera": ([i / 20 for i in range(30)], [i / 10 for i in range(14)]),
+}
+
+
+@pytest.mark.parametrize("rig", sorted(RIGS))
+@pytest.mark.parametrize("delay", [0, 1, 2, 5])
+def test_the_engine_sees_the_offline_order_whatever_the_arrival(rig, delay):
+    imu, frames = RIGS[rig]
+    offline = run(stamp_order(imu, frames), hold=False)
+    assert [k for k, _ in offline].count("frame") >= len(frames) - 1
+    arrivals = late(stamp_order(imu, frames), delay)
+    assert run(arrivals) == offline, (rig, delay)
+
+
+def test_without_the_hold_a_late_image_changes_the_order():
+    """The test above can fail: the same late arrivals straight into the engine reorder it."""
+    imu, frames = RIGS["100 Hz IMU, 10 Hz camera, equal stamps"]
+    offline = run(stamp_order(imu, frames), hold=False)
+    assert run(late(stamp_order(imu, frames), 2), hold=False) != offline
+    imu, frames = RIGS["5 Hz IMU, 10 Hz camera (faster than the IMU)"]
+    offline = run(stamp_order(imu, frames), hold=False)
+    assert run(late(stamp_order(imu, frames), 1), hold=False) != offline
+
+
+def test_duplicate_and_older_images_do_not_move_the_hold_back():
+    engine = EngineOrder()
+    h = ImuHold(engine)
+    for kind, t in [("imu", 0.0), ("image", 0.0), ("imu", 0.01), ("imu", 0.02), ("image", 0.0), ("imu", 0.03),
+                    ("image", 0.02), ("imu", 0.04)]:
+        h.dispatch(kind, msg(t))
+    assert h.last_image == pytest.approx(0.02)
+    h.release_all()
+    assert [op for op in engine.ops if op[0] == "imu"] == [("imu", t) for t in (0.0, 0.01, 0.02, 0.03, 0.04)]
+
+
+def test_held_samples_go_on_after_the_wait_and_are_bounded():
+    engine = EngineOrder()
+    h = ImuHold(engine, limit=5)
+    h.dispatch("imu", msg(0.0))
+    h.dispatch("image", msg(0.0))
+    for i in range(1, 4):
+        h.dispatch("imu", msg(i / 100))
+    assert h.held == 3  # the frame at 0.0 had its sample (0.0): 0.01-0.03 wait for the next image
+    assert h.release_stale(10.0) == 0 and h.held == 3
+    time.sleep(0.02)
+    assert h.release_stale(0.01) == 3 and h.held == 0
+    for i in range(4, 12):  # no image: beyond the limit the oldest goes on, in order
+        h.dispatch("imu", msg(i / 100))
+    assert h.held == 5
+    assert [t for _, t in engine.ops if _ == "imu"] == pytest.approx([i / 100 for i in range(7)])
+    h.clear()
+    assert h.held == 0 and h.last_image is None
