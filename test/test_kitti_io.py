@@ -235,3 +235,20 @@ def test_poses_and_motion_consistent_with_oxts(kitti_root):
     assert yaw_err < 1.0
     assert sum_err < 1.0  # dyaw of a slightly tilted base only approximates the heading change
     assert lateral < 0.02  # the base moves along its own x axis: the extrinsics are right
+
+
+def test_raw_calibration_search_prefers_the_day_then_the_nearest(tmp_path):
+    """find_raw_calib_dir: the drive's own day, else the nearest other day (the earlier on a tie; a
+    date-like name that is no date last), else without a date the newest. No data needed."""
+    for day in ("2011_09_26", "2011_09_29", "2011_10_03", "2011_99_99"):
+        (tmp_path / day).mkdir()
+        for name in ("calib_imu_to_velo.txt", "calib_velo_to_cam.txt", "calib_cam_to_cam.txt"):
+            (tmp_path / day / name).write_text("x\n")
+    drive = tmp_path / "2011_09_30" / "2011_09_30_drive_0020_sync"
+    drive.mkdir(parents=True)
+    assert kitti.find_raw_calib_dir(drive, "2011_09_30").name == "2011_09_29"
+    assert kitti.find_raw_calib_dir(drive, "2011_10_01").name == "2011_09_29"  # 2 days either way: the earlier
+    assert kitti.find_raw_calib_dir(drive, "2011_10_03").name == "2011_10_03"
+    assert kitti.find_raw_calib_dir(drive, None).name == "2011_99_99"  # no date: the newest name
+    (tmp_path / "2011_09_30" / "calib_imu_to_velo.txt").write_text("x\n")  # a partial set is no calibration
+    assert kitti.find_raw_calib_dir(drive, "2011_09_30").name == "2011_09_29"

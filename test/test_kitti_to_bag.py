@@ -303,6 +303,23 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     assert np.array_equal(rec.frame_stamps_ns, stamps) and len(rec.imu_stamps_ns) == 5
     assert rec.camera_info.k[0] == pytest.approx(707.0912)  # P_rect_00 of the drive's own day
     assert rec.gt_poses.shape == (5, 4, 4)
+    # The day comes from the drive folder's name: moved under a folder that is no date, or given as `.`,
+    # it still finds its own day's calibration (2011_09_30, a sibling of the new folder's parent).
+    moved = layout / "raw" / "drives" / drive.name
+    moved.parent.mkdir()
+    drive.rename(moved)
+    shutil.rmtree(layout / "raw" / "2011_09_26")  # only the drive's own day is left to find
+    shutil.move(str(day), str(layout / "raw" / "drives" / "2011_09_30"))
+    assert kitti_to_bag.main(["--raw", str(moved), "-o", str(tmp_path / "moved"), "-q"]) == 0
+    assert bag.read_recording(tmp_path / "moved").camera_info.k[0] == pytest.approx(707.0912)
+    cwd = os.getcwd()
+    try:
+        os.chdir(moved)
+        assert kitti_to_bag.main(["--raw", ".", "-o", str(tmp_path / "dot"), "-q"]) == 0
+    finally:
+        os.chdir(cwd)
+    assert bag.read_recording(tmp_path / "dot").camera_info.k[0] == pytest.approx(707.0912)
+    drive, cam = moved, moved / "image_00"
     # One timestamp short: a clear count error.
     (cam / "timestamps.txt").write_text("".join((cam / "timestamps.txt").read_text().splitlines(True)[:4]))
     _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "o2"], "image_00/timestamps.txt",

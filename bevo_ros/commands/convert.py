@@ -37,8 +37,8 @@ notes:
   Calibration: the odometry layout's camera matrix is calib.txt's; the rig's extrinsics come from
   the raw calibration of the drive's day, else the nearest other day found (the sample's 2011_09_30
   drives have none: 2011_09_26's describe the same rig; override with --raw-calib). A raw drive's
-  camera matrix (P_rect_0X) must be its own day's: another day's only with --raw-calib, and never
-  one whose S_rect_0X is not the images' size.
+  camera matrix (P_rect_0X) must be its own day's (the day from the drive folder's name): another
+  day's only with --raw-calib, and never one whose S_rect_0X is not the images' size.
 
 examples:
   bevo convert --odometry ../shared/data/kitti/odometry --sequence 06 -o seq06_bag
@@ -118,7 +118,7 @@ def _render_oxts(args) -> int:
             raise ValueError(f"--first {args.first} --count {args.count}: the drive has {n} frames (need >= 2 in range)")
         write_drive_bag(drive, out, storage=args.storage, overwrite=args.overwrite, frame_range=(args.first, stop))
     except KeyboardInterrupt:
-        print("kitti_to_bag: interrupted; no bag written", file=sys.stderr)
+        print(f"{prog_name('kitti_to_bag')}: interrupted; no bag written", file=sys.stderr)
         return 130
     except (FileNotFoundError, FileExistsError, ValueError) as exc:
         print(f"{prog_name('kitti_to_bag')}: error: {exc}", file=sys.stderr)
@@ -134,8 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.render_oxts:
         return _render_oxts(args)
     if args.vertical_curves:
-        print("kitti_to_bag: error: --vertical-curves applies to --render-oxts only (real images show their "
-              "road as it is)", file=sys.stderr)
+        print(f"{prog_name('kitti_to_bag')}: error: --vertical-curves applies to --render-oxts only (real images "
+              "show their road as it is)", file=sys.stderr)
         return 2
     out = Path(args.output)
     try:
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         src = load_source(opts)
         counts = convert(src, opts)
     except KeyboardInterrupt:
-        print("kitti_to_bag: interrupted; no bag written", file=sys.stderr)
+        print(f"{prog_name('kitti_to_bag')}: interrupted; no bag written", file=sys.stderr)
         return 130
     except (ConversionError, FileNotFoundError, FileExistsError, ValueError) as exc:
         print(f"{prog_name('kitti_to_bag')}: error: {exc}", file=sys.stderr)

@@ -175,7 +175,7 @@ def play(player: Player, args, start_ns: int | None) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.rate < 0 or args.qos_depth < 1 or args.start < 0:
-        print("play_bag: error: --rate and --start must be >= 0, --qos-depth >= 1", file=sys.stderr)
+        print(f"{prog_name('play_bag')}: error: --rate and --start must be >= 0, --qos-depth >= 1", file=sys.stderr)
         return 2
     try:
         topics = {t: mt for t, (mt, _) in bag.bag_topics(args.bag).items()}
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
                 if args.topics:
                     raise
                 # e.g. /tf_static without tf2_msgs (BEVO_SKIP_TF2_MSGS): play the rest, say so
-                print(f"play_bag: skipping {t}: {exc}", file=sys.stderr)
+                print(f"{prog_name('play_bag')}: skipping {t}: {exc}", file=sys.stderr)
                 del topics[t]
         if not any(count for t, (_, count) in bag.bag_topics(args.bag).items() if t in topics):
             raise UserError(f"{args.bag}: no messages to play")
@@ -216,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.wait_for_subscribers > 0:
             missing = player.wait_for_subscribers(args.wait_for_subscribers, args.wait_topics)
             if missing and not args.quiet:
-                print(f"play_bag: no subscriber after {args.wait_for_subscribers:g} s on: {', '.join(missing)}",
+                print(f"{prog_name('play_bag')}: no subscriber after {args.wait_for_subscribers:g} s on: "
+                      f"{', '.join(missing)}",
                       file=sys.stderr)
         if not args.quiet:
             print(f"playing {args.bag} ({len(topics)} topics, rate {args.rate:g}, domain "
@@ -224,10 +225,10 @@ def main(argv: list[str] | None = None) -> int:
         play(player, args, start_ns)
         unacked = player.wait_for_acks(args.linger)
         if unacked:  # a subscriber that lags (or died): what it may not have received
-            print(f"play_bag: not acknowledged by every subscriber after --linger {args.linger:g} s: "
+            print(f"{prog_name('play_bag')}: not acknowledged by every subscriber after --linger {args.linger:g} s: "
                   f"{', '.join(unacked)}", file=sys.stderr)
     except KeyboardInterrupt:
-        print("play_bag: interrupted", file=sys.stderr)
+        print(f"{prog_name('play_bag')}: interrupted", file=sys.stderr)
         rc = 130
     except (UserError, ValueError) as exc:
         print(f"{prog_name('play_bag')}: error: {exc}", file=sys.stderr)

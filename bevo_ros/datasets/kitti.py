@@ -15,6 +15,7 @@ Frames (see ``bevo_ros/core/geometry.py``):
 from __future__ import annotations
 
 import calendar
+import math
 import re
 from dataclasses import dataclass
 from datetime import datetime
@@ -320,11 +321,18 @@ def find_raw_calib_dir(start: PathLike, date: str | None = None) -> Path | None:
     """
     start = Path(start).resolve()
 
+    try:
+        day = datetime.strptime(date, "%Y_%m_%d") if date else None
+    except ValueError:
+        day = None
+
     def distance(name: str) -> float:
+        if day is None:
+            return 0.0  # no date to be near: the newest first, as the name order gives
         try:
-            return abs((datetime.strptime(name, "%Y_%m_%d") - datetime.strptime(date, "%Y_%m_%d")).days)
-        except (TypeError, ValueError):
-            return 0.0  # no (valid) date to be near: the newest first, as the name order gives
+            return abs((datetime.strptime(name, "%Y_%m_%d") - day).days)
+        except ValueError:
+            return math.inf  # a date-like name that is no date: last
 
     for base in [start, *start.parents]:
         candidates = [base]

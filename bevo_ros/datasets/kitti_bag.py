@@ -3,6 +3,7 @@ calibration and poses (:func:`load_source`), then write IMU, images, CameraInfo,
 ground truth in stamp order (:func:`convert`)."""
 from __future__ import annotations
 
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from bevo_ros.commands import prog_name
 from bevo_ros.io import bag
 from bevo_ros.datasets import kitti
 
@@ -117,12 +119,21 @@ def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str, intrinsics: b
         if intrinsics:
             raise ConversionError(
                 f"no raw calibration of {date} ({files}, all three) near {near}: found {found.name}'s, but a raw "
-                f"drive's camera matrix (P_rect) is calibrated each day and another day's mis-scales the odometry "
-                f"by percents; give --raw-calib DIR with {date}'s files (or {found} to accept that day's)")
+                f"drive's camera matrix (P_rect) is calibrated each day (and each day's rectified image size "
+                f"differs) and another day's mis-scales the odometry by percents; give --raw-calib DIR with "
+                f"{date}'s files")
         if not opts.quiet:
             print(f"note: using the raw calibration in {found} for a {date} drive (extrinsics only: the same rig; "
                   f"the camera matrix comes from calib.txt)", file=sys.stderr)
     return found
+
+
+def _drive_date(drive_dir: Path) -> str:
+    """A raw drive's day: from its folder's name (``2011_09_30_drive_0020_sync``), else its parent's
+    (``RAW/2011_09_30/...``); absolute, so ``--raw .`` has one too."""
+    drive_dir = drive_dir.resolve()
+    m = re.match(r"(\d{4}_\d{2}_\d{2})_drive", drive_dir.name)
+    return m.group(1) if m else drive_dir.parent.name
 
 
 def _check_rectified_size(cam_calib: dict, key: str, path: Path, image: Path) -> None:
@@ -208,7 +219,7 @@ def odometry_source(opts: ConversionOptions) -> Source:
 
 
 def raw_source(opts: ConversionOptions) -> Source:
-    drive_dir = Path(opts.raw)
+    drive_dir = Path(opts.raw).resolve()  # `--raw .` has a name (the day, the source's description)
     if not drive_dir.is_dir():
         raise ConversionError(f"{drive_dir}: raw drive directory not found")
     cam_dir = drive_dir / f"image_{opts.camera:02d}"
@@ -227,7 +238,7 @@ def raw_source(opts: ConversionOptions) -> Source:
     if len(oxts) != len(images):
         raise ConversionError(f"{oxts_dir}: {len(oxts)} OXTS records but {len(images)} images in {cam_dir / 'data'} "
                         "(synced data pairs them one to one)")
-    date = drive_dir.parent.name
+    date = _drive_date(drive_dir)
     calib_dir = _raw_calib_dir(opts, drive_dir, date, intrinsics=True)
     cam_calib_path = calib_dir / "calib_cam_to_cam.txt"
     cam_calib = kitti.read_raw_calib(cam_calib_path)
@@ -313,8 +324,9 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     if len(found) and not opts.quiet:
         where = (f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})" if opts.leave_out_interpolated_imu
                  else f"written to {opts.imu_topic} as they are (--leave-out-interpolated-imu leaves them out)")
-        print(f"kitti_to_bag: {len(found)} OXTS record(s) {_ranges(found)} are KITTI's linear interpolation over "
-              f"lost packets (all six IMU channels exactly on the line through their neighbours): {where}",
+        print(f"{prog_name('kitti_to_bag')}: {len(found)} OXTS record(s) {_ranges(found)} are KITTI's linear "
+              f"interpolation over lost packets (all six IMU channels exactly on the line through their "
+              f"neighbours): {where}",
               file=sys.stderr)
 
     # Every message as (stamp, rank, kind, index): same-stamp ties keep the IMU before the image,
@@ -328,7 +340,8 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     size = None
     with bag.BagWriter(opts.output, storage=opts.storage, overwrite=opts.overwrite) as writer:
         for partial in writer.removed_partials:  # left by a killed earlier run
-            print(f"kitti_to_bag: removed {partial}, the partial output of an interrupted run", file=sys.stderr)
+            print(f"{prog_name('kitti_to_bag')}: removed {partial}, the partial output of an interrupted run",
+                  file=sys.stderr)
         if src.T_base_cam is not None and events and not opts.no_tf_static:
             # the rig on /tf_static (latched): base = the OXTS IMU (KITTI's convention), and the camera
             writer.write_tf_static(events[0][0], [(opts.base_frame, opts.imu_frame, np.eye(4)),
