@@ -7,12 +7,13 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Iterable
 
 import numpy as np
 import yaml
@@ -293,9 +294,36 @@ def load_params_file(path: str | os.PathLike, node_name: str = "bevo_node") -> d
     return flat
 
 
+# Parameters every ROS 2 node has (not bevo_node's own), which a parameters file may set.
+ROS_STANDARD_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
+
+
+def unknown_parameters(flat: dict[str, Any], known: Iterable[str]) -> list[str]:
+    """The keys of ``flat`` that are none of ``known``, the renamed old names or a ROS node's own
+    (:data:`ROS_STANDARD_PARAMETERS`), each with the nearest known name when one is close:
+    ``"filter.mountng_pitch (did you mean filter.mounting_pitch?)"``."""
+    known = set(known) | set(RENAMED)
+    out = []
+    for key in sorted(flat):
+        if key in known or any(key == p or (p.endswith(".") and key.startswith(p)) for p in ROS_STANDARD_PARAMETERS):
+            continue
+        near = difflib.get_close_matches(key, known, n=1, cutoff=0.8)
+        out.append(key + (f" (did you mean {near[0]}?)" if near else ""))
+    return out
+
+
 def load_config(path: str | os.PathLike, node_name: str = "bevo_node") -> tuple[BevoConfig, dict[str, Any]]:
-    """``(BevoConfig, all flat parameters)`` from a parameters file; learned path made absolute."""
+    """``(BevoConfig, all flat parameters)`` from a parameters file; learned path made absolute. A
+    parameter bevo_node does not have (a typo: ``filter.mountng_pitch`` would leave the mounting at
+    0 and the KITTI sample at 35 % drift) is named in a warning (``UserWarning``, printed once)."""
     flat = load_params_file(path, node_name)
+    if node_name == "bevo_node":
+        from bevo_ros.ros.settings import defaults  # the node's parameters (no ROS import)
+
+        unknown = unknown_parameters(flat, defaults())
+        if unknown:
+            warnings.warn(f"{path}: parameter(s) that bevo_node does not have, ignored: {', '.join(unknown)}",
+                          UserWarning, stacklevel=2)
     config = BevoConfig.from_flat(flat, source=str(path))
     config.learned_params_file = str(resolve_path(config.learned_params_file, Path(path).resolve().parent))
     return config, flat

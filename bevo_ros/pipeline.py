@@ -56,6 +56,9 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
         print(f"run_bag: camera calibration from {calib.describe()}; extrinsics from {source}: camera at "
               f"{np.round(T_base_cam[:3, 3], 3).tolist()} m in {rig.base_frame}", file=sys.stderr)
     rotations: dict[str, np.ndarray | None] = {}  # IMU frame -> R_base_imu (the node's Rig.imu_rotation)
+    if not 0 <= first_frame < len(rec.frame_stamps_ns):
+        raise ValueError(f"{bag_path}: first frame {first_frame} is not one of its {len(rec.frame_stamps_ns)} frames "
+                         f"(0..{len(rec.frame_stamps_ns) - 1})")
     first_stamp = rec.frame_stamps_ns[first_frame] if first_frame else None
     steps: list[OdometryStep] = []
     drops: dict[str, int] = {}
@@ -155,6 +158,8 @@ def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.BagContents, T_
         gt_cam = camera_trajectory(gt_at(stamps, rec.gt_stamps, rec.gt_poses), T_base_cam)
         paths.append(out / "gt_kitti.txt")
         kitti.write_poses(paths[-1], gt_cam)
+    else:  # an earlier run's ground truth into the same folder would be evaluated against this trajectory
+        (out / "gt_kitti.txt").unlink(missing_ok=True)
     return paths
 
 

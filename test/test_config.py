@@ -56,6 +56,26 @@ def test_renamed_parameter_still_read_with_a_deprecation_warning(tmp_path):
         load_config(p)
 
 
+def test_a_parameter_bevo_node_does_not_have_is_named(tmp_path):
+    """A typo (``filter.mountng_pitch``) would leave the real one at its default without a word: the
+    offline commands warn, naming it and the nearest parameter; the shipped files have none."""
+    import warnings
+
+    text = (REPO_ROOT / "params" / "kitti.yaml").read_text().replace("    filter.mounting_pitch:", "    filter.mountng_pitch:")
+    assert "filter.mountng_pitch" in text
+    p = tmp_path / "typo.yaml"
+    p.write_text(text)
+    with pytest.warns(UserWarning, match=r"ignored: filter\.mountng_pitch \(did you mean filter\.mounting_pitch\?\)"):
+        load_config(p)
+    for name in ("kitti.yaml", "synthetic.yaml", "replay.yaml"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            load_config(REPO_ROOT / "params" / name)
+    p.write_text(yaml.safe_dump({"bevo_node": {"ros__parameters": {"use_sim_time": True, "frobnicate": 1}}}))
+    with pytest.warns(UserWarning, match=r"ignored: frobnicate$"):  # use_sim_time is any node's
+        load_config(p)
+
+
 def test_camera_extrinsics_are_validated():
     config = BevoConfig()
     config.camera.fx = config.camera.fy = 500.0
@@ -85,6 +105,7 @@ def test_learned_params_round_trip_is_human_readable_and_atomic(tmp_path):
     (lambda d: d["measurement_noise_variance"].update(pitch=-1.0), "must be finite and > 0"),
     (lambda d: d["measurement_noise_variance"].update(pitch=".nan"), "must be finite and > 0"),
     (lambda d: d.update(process_noise_density=[1, 2]), "missing section"),
+    (lambda d: d.update(suspension_gradient=d.pop("suspension_gradients")), "unknown section.*'suspension_gradient'"),
 ])
 def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, message):
     path = tmp_path / "learned.yaml"
@@ -95,6 +116,16 @@ def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, me
     with pytest.raises(ConfigError, match=message) as err:
         load_learned_params(path)
     assert str(path) in str(err.value)
+
+
+def test_a_learned_file_without_suspension_gradients_says_what_fused_mode_gets(tmp_path):
+    path = tmp_path / "learned.yaml"
+    save_learned_params(LearnedParams(), path)
+    doc = yaml.safe_load(path.read_text())
+    doc.pop("suspension_gradients")
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.warns(UserWarning, match="no 'suspension_gradients': fused mode then models no suspension lean"):
+        assert load_learned_params(path).suspension_gradients == (0.0, 0.0)
 
 
 def test_missing_or_garbage_learned_file(tmp_path):

@@ -275,6 +275,51 @@ def test_run_bag_reports_user_errors(tmp_path, capsys):
     assert "error" in capsys.readouterr().err
 
 
+def test_run_bag_names_wrong_topics_and_frames_and_leaves_no_stale_ground_truth(synthetic_bag, tmp_path, capsys):
+    """A topic of the wrong type or a first frame out of range is a clear error (they were tracebacks);
+    a bag without ground truth run into a folder that holds an earlier run's gt_kitti.txt removes it
+    (evaluated against the new trajectory it read 43 % drift)."""
+    from bevo_ros import pipeline
+
+    drive, path = synthetic_bag
+    out = tmp_path / "o"
+    topics = bag.bag_topics(path)
+    info = next(t for t, (mt, _) in topics.items() if mt == bag.CAMERA_INFO_MSG)
+    for argv, message in ((["--image-topic", info], f"topic {info} carries sensor_msgs/msg/CameraInfo, not "),
+                          (["--imu-topic", bag.IMAGE_TOPIC], "not sensor_msgs/msg/Imu (the imu topic)"),
+                          (["--first-frame", "999"], "first frame 999 is not one of its"),
+                          (["--first-frame", "-5"], "first frame -5 is not one of its")):
+        assert run.main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "-q", *argv]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+    config, _ = load_config(SYNTH_PARAMS)
+    steps, rec, _ = pipeline.run_bag(path, config, config.learned_params_file)
+    out.mkdir()
+    (out / "gt_kitti.txt").write_text("an earlier run's\n")
+    rec.gt_poses = None
+    written = pipeline.write_outputs(out, steps, rec, np.eye(4))
+    assert not (out / "gt_kitti.txt").exists() and all(p.is_file() for p in written)
+
+
+def test_train_and_calibrate_refuse_bad_arguments_before_working(synthetic_bag, tmp_path, capsys):
+    """`bevo train --out DIR` trained to the end and then could not write; `calibrate --frames abc` printed
+    Python's int() error."""
+    from bevo_ros.commands import train
+
+    drive, path = synthetic_bag
+    for argv, message in (([str(path), "--out", str(tmp_path)], "is a directory"),
+                          ([str(path), "--out", str(tmp_path / "l.yaml"), "--lr", "-1"], "--lr -1.0: must be > 0")):
+        assert train.main([*argv, "-q", "--params", SYNTH_PARAMS]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+        assert not (tmp_path / "l.yaml").exists()
+    for frames, message in (("abc", "expected START:STOP"), ("0:11:2", "expected START:STOP"),
+                            ("0:999", "the bag has")):
+        assert calibrate_cmd.main([str(path), "--frames", frames, "--params", SYNTH_PARAMS]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+
+
 def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path, capsys):
     """Render with the camera pitched 1 deg down on the base; calibrate against a level model (the
     params' camera), and through the bag's rig (its /tf_static holds the tilted camera: nothing left

@@ -43,9 +43,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config, flat = load_config(args.params)
         seq = load_sequence(args.bag, config, rig=RigSettings.from_params(flat, str(args.params)))
-        start, stop = (int(v) for v in args.frames.split(":"))
+        try:
+            start, stop = (int(v) for v in args.frames.split(":"))
+        except ValueError:
+            raise ValueError(f"--frames {args.frames!r}: expected START:STOP, two frame numbers") from None
         if not 0 <= start < stop - 1 < len(seq):
-            raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)}")
+            raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)} (STOP excluded), "
+                             f"the bag has {len(seq)}")
         seq = seq.frames(start, stop)
     except (ConfigError, ValueError, FileNotFoundError) as exc:
         print(f"{prog_name('calibrate_mounting')}: error: {exc}", file=sys.stderr)
@@ -61,8 +65,10 @@ def main(argv: list[str] | None = None) -> int:
     params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
     pitch, roll = mounting_for_extrinsics((pitch, roll), seq.camera.T_base_cam, params_chain)
     print(f"calibrated on frames {args.frames} ({float(seq.gt_motion()[:, 0].sum()):.1f} m):")
-    print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, nose down")
-    print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, left side up")
+    print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, "
+          f"{'nose down' if pitch >= 0 else 'nose up'}")
+    print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, "
+          f"{'left side up' if roll >= 0 else 'left side down'}")
     # Written for camera.base_T_camera: the camera's tilt to the road is what was measured.
     print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
     return 0

@@ -20,7 +20,8 @@ import time
 from pathlib import Path
 
 
-from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
+from bevo_ros.commands import (add_params_option, add_threads_option, bag_errors, guarded, new_parser, prog_name,
+                               set_threads)
 from bevo_ros.config import load_config
 
 EPILOG = """\
@@ -114,6 +115,11 @@ def _train(args: argparse.Namespace) -> int:
     from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
     out, checkpoint = Path(args.out), _checkpoint(args)
+    for path, what in ((out, "--out"), (checkpoint, "the checkpoint")):  # before hours of training, not after
+        if path.is_dir():
+            raise ValueError(f"{what} {path} is a directory: give the learned-parameters YAML file to write")
+    if args.lr <= 0:
+        raise ValueError(f"--lr {args.lr}: must be > 0")
     options = TrainOptions(
         epochs=args.epochs, lr=args.lr, patience=args.patience, lr_decay=args.lr_decay, split=args.split,
         steps_per_bag=args.steps_per_bag, window=args.window,
@@ -141,6 +147,10 @@ def _train(args: argparse.Namespace) -> int:
                                "params_file": str(Path(args.params).resolve())})
     result.learned.suspension_gradients = base.suspension_gradients
     result.learned.vehicle = dict(base.vehicle)
+    fits = config.odometry.mode == "fused" and (args.suspension_evals > 0 or args.vehicle_steps > 0)
+    if fits:  # the trained O/Q first (the base's other numbers): a Ctrl-C in the fits below keeps them
+        save_learned_params(result.learned, out)
+        print(f"wrote {out} (O/Q; the suspension and vehicle-filter fits follow)")
     if config.odometry.mode == "fused" and args.suspension_evals > 0:
         fit_suspension_on_sequences(result.learned, seqs, config, args.split, args.suspension_evals)
     if config.odometry.mode == "fused" and args.vehicle_steps > 0:
@@ -152,10 +162,12 @@ def _train(args: argparse.Namespace) -> int:
           + (f" ({b.failed} failed pairs)" if b.failed else ""))
     print(f"validation after:  loss {a.loss:.4f}, RPE {a.trans_m:.4f} m / {a.yaw_deg:.4f} deg per frame"
           + (f" ({a.failed} failed pairs)" if a.failed else "") + f" (best epoch {result.best_epoch})")
+    per_epoch = (f", {result.seconds_per_epoch:.1f} s/epoch" if result.seconds_per_epoch == result.seconds_per_epoch
+                 else "")  # NaN when no epoch ran
     print(f"final variances: O = [{o[0]:.4g}, {o[1]:.4g}] rad^2/s, Q = [{q[0]:.4g}, {q[1]:.4g}] rad^2 "
-          f"(pitch, roll); {result.epochs_run} epoch(s), {result.seconds_per_epoch:.1f} s/epoch")
-    print(f"wrote {out} and {checkpoint}")
+          f"(pitch, roll); {result.epochs_run} epoch(s){per_epoch}")
+    print(f"wrote {out}" + (f" and {checkpoint}" if checkpoint.is_file() else ""))
     if result.status == "diverged":
-        print(f"train_from_bag: {result.message}", file=sys.stderr)
+        print(f"{prog_name('train_from_bag')}: {result.message}", file=sys.stderr)
         return 3
     return 0

@@ -41,6 +41,7 @@ STORAGES = ("sqlite3", "mcap")
 
 IMU_MSG = "sensor_msgs/msg/Imu"
 IMAGE_MSG = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE_MSG = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_MSG = "sensor_msgs/msg/CameraInfo"
 ODOMETRY_MSG = "nav_msgs/msg/Odometry"
 TF_MSG = "tf2_msgs/msg/TFMessage"
@@ -652,6 +653,11 @@ class BagContents:
         return None if self.gt_att_stamps_ns is None else ns_to_seconds(self.gt_att_stamps_ns)
 
 
+# What each topic role of read_recording must carry.
+EXPECTED_TYPES = {"imu": (IMU_MSG,), "image": (IMAGE_MSG, COMPRESSED_IMAGE_MSG), "camera_info": (CAMERA_INFO_MSG,),
+                  "gt_odometry": (ODOMETRY_MSG,), "gt_imu": (IMU_MSG,)}
+
+
 def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: str = IMAGE_TOPIC,
                    camera_info_topic: str = CAMERA_INFO_TOPIC, gt_odometry_topic: str = GT_ODOMETRY_TOPIC,
                    gt_imu_topic: str = GT_IMU_TOPIC, load_images: bool = True,
@@ -677,6 +683,11 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
     if missing:
         raise BagError(f"{path}: required topic(s) {', '.join(missing)} missing "
                        f"(the bag has: {', '.join(sorted(topics)) or 'none'})")
+    for key, types in EXPECTED_TYPES.items():  # `--imu-topic /camera/image_rect` and the like
+        topic = names[key]
+        if topic in topics and topics[topic][0] not in types:
+            raise BagError(f"{path}: topic {topic} carries {topics[topic][0] or 'an unknown type'}, not "
+                           f"{' or '.join(types)} (the {key.replace('_', ' ')} topic)")
     wanted = [t for t in names.values() if t in topics]
     if TF_STATIC_TOPIC in topics and topics[TF_STATIC_TOPIC][0] == TF_MSG:
         wanted.append(TF_STATIC_TOPIC)

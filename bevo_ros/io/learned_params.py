@@ -5,6 +5,7 @@ from __future__ import annotations
 import datetime as _dt
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,6 +62,11 @@ def save_learned_params(params: LearnedParams, path: str | os.PathLike) -> Path:
     return path
 
 
+# The sections a learned-parameters file may have.
+LEARNED_SECTIONS = ("format", "process_noise_density", "measurement_noise_variance", "vehicle_filter",
+                    "suspension_gradients", "info")
+
+
 def load_learned_params(path: str | os.PathLike) -> LearnedParams:
     """Load and validate; raises ConfigError naming the file and the problem."""
     path = Path(path)
@@ -88,6 +94,10 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
             out.append(v)
         return out[0], out[1]
 
+    unknown = sorted(set(doc) - set(LEARNED_SECTIONS))
+    if unknown:  # a misspelt section would otherwise silently be its default (suspension_gradient: no lean)
+        raise ConfigError(f"learned-parameters file {path}: unknown section(s) {', '.join(map(repr, unknown))} "
+                          f"(known: {', '.join(LEARNED_SECTIONS)})")
     info = doc.get("info") or {}
     if not isinstance(info, dict):
         raise ConfigError(f"learned-parameters file {path}: 'info' must be a mapping")
@@ -102,9 +112,14 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
                               f"(known: {', '.join(VehicleNoise.LEARNED)})")
         if not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
             raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number > 0")
-    return LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info,
-                         {k: float(v) for k, v in vehicle.items()},
-                         pair("suspension_gradients", positive=False, default=(0.0, 0.0)))
+    learned = LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info,
+                            {k: float(v) for k, v in vehicle.items()},
+                            pair("suspension_gradients", positive=False, default=(0.0, 0.0)))
+    if "suspension_gradients" not in doc:  # said once the file is known good (a bad one is refused alone)
+        warnings.warn(f"learned-parameters file {path} has no 'suspension_gradients': fused mode then models no "
+                      f"suspension lean (0, 0); params/learned_default.yaml holds the defaults", UserWarning,
+                      stacklevel=2)
+    return learned
 
 
 def provenance(extra: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from bevo_ros.config import RENAMED, BevoConfig, ConfigError, coerce_setting, resolve_path
+from bevo_ros.config import RENAMED, BevoConfig, ConfigError, coerce_setting, resolve_path, unknown_parameters
 from bevo_ros.ros import parameters as ros_params
 
 
@@ -199,6 +199,13 @@ def declare(node, node_name: str) -> tuple[NodeSettings, BevoConfig]:
         why = ros_params.check(name, getattr(settings, name) if hasattr(settings, name) else config_flat.get(name))
         if why:
             raise ConfigError(why)
+    # A parameter the node does not have (a typo in a parameters file) would be ignored without a word
+    # by ROS: named here (rclpy keeps a node's overrides, files and -p alike, in _parameter_overrides).
+    overrides = getattr(node, "_parameter_overrides", None)
+    if isinstance(overrides, dict):
+        unknown = unknown_parameters(overrides, names)
+        if unknown:
+            node.get_logger().warning(f"parameter(s) that {node_name} does not have, ignored: {', '.join(unknown)}")
     return settings, config
 
 
