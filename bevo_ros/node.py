@@ -148,6 +148,9 @@ class BevoNode(Node):
 
     def _set_camera(self, engine_factory: Callable, camera) -> None:
         if self.feed.engine is not None:
+            # e.g. /tf_static arriving after the first frames (a startup race between topics): the engine
+            # moves its DUKF start as if it had begun with this camera (to first order, not bit for bit)
+            self.events["camera_changed"] += 1
             self.feed.engine.set_camera(camera)
             self._log_mounting()
             return
