@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import pytest
 
 from bevo_ros.ros.intake import ImuHold
+from helpers.node_support import delivered_late
 
 
 def msg(t: float):
@@ -50,22 +51,6 @@ def stamp_order(imu: list[float], frames: list[float]) -> list[tuple[str, float]
     return sorted([("imu", t) for t in imu] + [("image", t) for t in frames], key=lambda e: (e[1], e[0] != "imu"))
 
 
-def late(order: list[tuple[str, float]], delay: int) -> list[tuple[str, float]]:
-    """Every image delivered after the next ``delay`` IMU messages (images keep their own order)."""
-    out: list[tuple[str, float]] = []
-    waiting: list[list] = []  # [image, IMU messages still to come before it]
-    for e in order:
-        if e[0] == "image":
-            waiting.append([e, delay])
-        else:
-            out.append(e)
-            for w in waiting:
-                w[1] -= 1
-        while waiting and waiting[0][1] <= 0:
-            out.append(waiting.pop(0)[0])
-    return out + [w[0] for w in waiting]
-
-
 def run(arrivals, hold: bool = True) -> list[tuple[str, float]]:
     engine = EngineOrder()
     h = ImuHold(engine)
@@ -90,7 +75,7 @@ def test_the_engine_sees_the_offline_order_whatever_the_arrival(rig, delay):
     imu, frames = RIGS[rig]
     offline = run(stamp_order(imu, frames), hold=False)
     assert [k for k, _ in offline].count("frame") >= len(frames) - 1
-    arrivals = late(stamp_order(imu, frames), delay)
+    arrivals = delivered_late(stamp_order(imu, frames), delay)
     assert run(arrivals) == offline, (rig, delay)
 
 
@@ -98,10 +83,10 @@ def test_without_the_hold_a_late_image_changes_the_order():
     """The test above can fail: the same late arrivals straight into the engine reorder it."""
     imu, frames = RIGS["100 Hz IMU, 10 Hz camera, equal stamps"]
     offline = run(stamp_order(imu, frames), hold=False)
-    assert run(late(stamp_order(imu, frames), 2), hold=False) != offline
+    assert run(delivered_late(stamp_order(imu, frames), 2), hold=False) != offline
     imu, frames = RIGS["5 Hz IMU, 10 Hz camera (faster than the IMU)"]
     offline = run(stamp_order(imu, frames), hold=False)
-    assert run(late(stamp_order(imu, frames), 1), hold=False) != offline
+    assert run(delivered_late(stamp_order(imu, frames), 1), hold=False) != offline
 
 
 def test_duplicate_and_older_images_do_not_move_the_hold_back():

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers.node_support import (camera_overrides, drive_messages, image_msg, imu_msg, offline_steps,  # noqa: E402
-                                  small_drive, spin_until)
+from helpers.node_support import (camera_overrides, delivered_late, drive_messages, image_msg, imu_msg,  # noqa: E402
+                                  offline_steps, small_drive, spin_until)
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -396,29 +396,13 @@ def test_image_wait_processes_an_image_whose_imu_never_comes(harness_factory, dr
     assert h.odom[-1].header.stamp == img.header.stamp
 
 
-def _late_images(messages: list, delay: int) -> list:
-    """``messages`` with every image moved behind the next ``delay`` IMU messages: a large image
-    delivered after the small IMU messages published after it (DDS orders no topic against another)."""
-    out = list(messages)
-    for k in [i for i, (kind, _) in enumerate(messages) if kind == "image"]:
-        j = out.index(messages[k])
-        item = out.pop(j)
-        n = j
-        for _ in range(delay):
-            while n < len(out) and out[n][0] != "imu":
-                n += 1
-            n += 1
-        out.insert(min(n, len(out)), item)
-    return out
-
-
 @pytest.mark.parametrize("delay", [2, 5])
 def test_an_image_behind_later_imu_gives_the_offline_odometry(harness_factory, drive, delay):
     """Every image arrives after the next ``delay`` IMU samples: with ordered_intake the IMU past the
     sample a frame waits for is held until that frame arrives, so the poses equal the offline core's
     fed in stamp order; without it (executor order) they do not."""
     messages = drive_messages(drive)
-    late = _late_images(messages, delay)
+    late = delivered_late(messages, delay)
     assert [k for k, _ in late] != [k for k, _ in messages]
     ov = base_overrides(drive)
     expected = np.array([s.position for s in offline_steps(messages, ov)])

@@ -162,8 +162,8 @@ def _train(args: argparse.Namespace) -> int:
           + (f" ({b.failed} failed pairs)" if b.failed else ""))
     print(f"validation after:  loss {a.loss:.4f}, RPE {a.trans_m:.4f} m / {a.yaw_deg:.4f} deg per frame"
           + (f" ({a.failed} failed pairs)" if a.failed else "") + f" (best epoch {result.best_epoch})")
-    per_epoch = (f", {result.seconds_per_epoch:.1f} s/epoch" if result.seconds_per_epoch == result.seconds_per_epoch
-                 else "")  # NaN when no epoch ran
+    spe = result.seconds_per_epoch  # NaN when no epoch ran
+    per_epoch = f", {spe:.1f} s/epoch" if math.isfinite(spe) else ""
     print(f"final variances: O = [{o[0]:.4g}, {o[1]:.4g}] rad^2/s, Q = [{q[0]:.4g}, {q[1]:.4g}] rad^2 "
           f"(pitch, roll); {result.epochs_run} epoch(s){per_epoch}")
     print(f"wrote {out}" + (f" and {checkpoint}" if checkpoint.is_file() else ""))

@@ -326,13 +326,16 @@ def find_raw_calib_dir(start: PathLike, date: str | None = None) -> Path | None:
     except ValueError:
         day = None
 
-    def distance(name: str) -> float:
+    def order(p: Path) -> tuple:
+        """Sort key: the drive's own day, then the nearest (the earlier on a tie), a date-like name
+        that is no date last; without a ``date``, the newest first."""
         if day is None:
-            return 0.0  # no date to be near: the newest first, as the name order gives
+            return (True, [-ord(c) for c in p.name])
         try:
-            return abs((datetime.strptime(name, "%Y_%m_%d") - day).days)
+            distance = abs((datetime.strptime(p.name, "%Y_%m_%d") - day).days)
         except ValueError:
-            return math.inf  # a date-like name that is no date: last
+            distance = math.inf
+        return (p.name != date, distance, p.name)
 
     for base in [start, *start.parents]:
         candidates = [base]
@@ -342,8 +345,7 @@ def find_raw_calib_dir(start: PathLike, date: str | None = None) -> Path | None:
             if root.is_dir():
                 try:
                     dated = sorted((p for p in root.iterdir() if p.is_dir() and re.fullmatch(r"\d{4}_\d{2}_\d{2}", p.name)),
-                                   key=lambda p: (p.name != date, distance(p.name),
-                                                  p.name if distance(p.name) else [-ord(c) for c in p.name]))
+                                   key=order)
                 except OSError:
                     dated = []
                 candidates.extend(dated)

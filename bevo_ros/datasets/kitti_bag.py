@@ -8,7 +8,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from bevo_ros.commands import prog_name
@@ -141,9 +140,7 @@ def _check_rectified_size(cam_calib: dict, key: str, path: Path, image: Path) ->
     if key not in cam_calib or cam_calib[key].size != 2:
         return  # older files have no S_rect: nothing to check
     w, h = (int(round(v)) for v in cam_calib[key])
-    img = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ConversionError(f"{image}: cannot read image")
+    img = _load_image(image, colour=False)
     if (img.shape[1], img.shape[0]) != (w, h):
         raise ConversionError(f"{path}: {key} is {w}x{h} but the images are {img.shape[1]}x{img.shape[0]} "
                               f"({image}): that calibration is not this camera's; give --raw-calib DIR with the "

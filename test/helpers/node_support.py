@@ -94,6 +94,24 @@ def drive_messages(drive, start: int = 0, stop: int | None = None, offset: float
     return out
 
 
+def delivered_late(messages: list[tuple[str, Any]], delay: int) -> list[tuple[str, Any]]:
+    """``[(kind, item)]`` in stamp order with every ``"image"`` delivered after the next ``delay``
+    ``"imu"`` messages (images keep their own order): a large image behind the small IMU messages
+    published after it (DDS orders no topic against another)."""
+    out: list[tuple[str, Any]] = []
+    waiting: list[list] = []  # [image, IMU messages still to come before it]
+    for e in messages:
+        if e[0] == "image":
+            waiting.append([e, delay])
+        else:
+            out.append(e)
+            for w in waiting:
+                w[1] -= 1
+        while waiting and waiting[0][1] <= 0:
+            out.append(waiting.pop(0)[0])
+    return out + [w[0] for w in waiting]
+
+
 def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) -> list:
     """The offline core (``build_odometry``) fed the same messages in order, plus a final flush."""
     from bevo_ros.config import BevoConfig, build_odometry, camera_model, resolve_path
