@@ -91,6 +91,22 @@ def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):
     assert (ev / "trajectory.png").stat().st_size > 1000
 
 
+def test_run_bag_without_bevs_keeps_the_poses(synthetic_bag):
+    """``bevo run`` keeps no BEV, mask or correlation surface per frame (~0.2 MB each, gigabytes over a long
+    drive); the poses and covariances are those of the run that keeps them."""
+    from bevo_ros.pipeline import run_bag
+
+    _, path = synthetic_bag
+    config, _ = load_config(SYNTH_PARAMS)
+    full = run_bag(path, config, config.learned_params_file)[0]
+    lean = run_bag(path, config, config.learned_params_file, keep_bevs=False)[0]
+    assert len(lean) == len(full) > 10
+    assert all(s.bev is None and s.bev_mask is None and s.correlation is None for s in lean)
+    assert all(s.bev is not None for s in full)
+    np.testing.assert_array_equal(_positions(lean), _positions(full))
+    np.testing.assert_array_equal(np.array([s.pose_covariance for s in lean]), np.array([s.pose_covariance for s in full]))
+
+
 def _pitched(T: np.ndarray, degrees: float) -> np.ndarray:
     """``T_base_cam`` with the camera pitched ``degrees`` more nose down about the base's y axis."""
     a = math.radians(degrees)

@@ -57,7 +57,7 @@ def _run(args: argparse.Namespace) -> int:
     learned = args.learned or config.learned_params_file
     t0 = time.perf_counter()
     steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
-                              progress=not args.quiet, rig=rig)
+                              progress=not args.quiet, rig=rig, keep_bevs=False)
     elapsed = time.perf_counter() - t0
     if len(steps) < 2:
         raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
