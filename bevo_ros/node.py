@@ -80,7 +80,10 @@ class BevoNode(Node):
                          for kind, label, topic, timeout in (("imu", "IMU", s.imu_topic, s.imu_timeout),
                                                              ("image", "images", self.image_input_topic,
                                                               s.image_timeout))}
-        self.feed = EngineFeed(s, self.config.filter.max_imu_gap, report, self._reset)
+        self._engine_factory = engine_factory
+        self._published_stamp: float | None = None  # the newest frame published since the start (or reset)
+        self.feed = EngineFeed(s, self.config.filter.max_imu_gap, report, self._reset,
+                               lambda kind, t, raw: self.rig.engine_input(kind, t, raw))
         self.intake = Intake(s, report, self.monitors, self._dispatch, self._reset)
         self.static_tf = StaticTransforms(self) if s.extrinsics_from_tf else None
         self._info_sub = None
@@ -148,23 +151,54 @@ class BevoNode(Node):
 
     def _set_camera(self, engine_factory: Callable, camera) -> None:
         if self.feed.engine is not None:
-            # e.g. /tf_static arriving after the first frames (a startup race between topics): the engine
-            # moves its DUKF start as if it had begun with this camera (to first order, not bit for bit)
-            self.events["camera_changed"] += 1
-            self.feed.engine.set_camera(camera)
-            self._log_mounting()
+            self._rig_changed(camera, f"camera extrinsics / calibration ({self.rig.extrinsics_source})")
             return
         # The first calibration: the images held for it go in with the IMU that waited, by stamp.
         # They wait for IMU past their stamps (image_wait) from now, not from their arrival.
-        now, images = time.time(), []
-        for msg, arrival in self.rig.take_held():
-            t = stamp_to_sec(msg.header.stamp)
-            img = self.rig.image(msg, t)
-            if img is not None:
-                images.append((t, img, (msg.header.stamp, arrival, now)))
+        now = time.time()
+        images = [(stamp_to_sec(msg.header.stamp), msg, (msg.header.stamp, arrival, now))
+                  for msg, arrival in self.rig.take_held()]
         engine = engine_factory(self.config, self.learned, camera)
         self._log_mounting(engine)
         self._publish(self.feed.start(engine, images))
+
+    def _rig_changed(self, camera, what: str) -> None:
+        """The rig changed under a running engine (e.g. /tf_static arriving after the first frames: a
+        startup race between topics). Up to its first frame out, a new engine with ``camera`` is fed
+        again every input since the start (the IMU in the new axes, the images through the new
+        calibration): what it would have computed had the rig come first, bit for bit. Later (or
+        past the journal's bounds) the engine keeps its trajectory and moves to the new camera
+        (counted: ``camera_changed``; before its first frame it moves its DUKF start, to first order)."""
+        if self.feed.replayable:
+            n = len(self.feed.journal.entries)
+            self._publish(self.feed.replay(self._engine_factory(self.config, self.learned, camera)), replayed=True)
+            self.events["rig_replayed"] += 1
+            self.report.log("rig_replayed", f"{what} changed before the second frame: the odometry restarted "
+                                            f"with it, its {n} input(s) since the start fed again", level="info")
+        else:
+            self.events["camera_changed"] += 1
+            self.report.log("camera_changed", f"{what} changed after the odometry's second frame (or a start "
+                                              "longer than the inputs kept to feed again): the engine takes it from "
+                                              "now on, its start stays the old rig's", level="info")
+            self.feed.engine.set_camera(camera)
+        self._log_mounting()
+
+    def _check_imu_axes(self, frame: str) -> None:
+        """Before an IMU sample goes in: its frame's axes on /tf_static changed since its last sample
+        went in (the IMU's transform arrived after the first samples)."""
+        if self.feed.engine is None or not self.rig.imu_axes_changed(frame):
+            return
+        replays = self.events["rig_replayed"]
+        self.rig.refresh()  # the camera's transform may have come with it: one replay for both
+        if self.events["rig_replayed"] > replays:
+            return
+        if self.feed.replayable:
+            self._rig_changed(self.rig.camera, f"IMU frame '{frame}' axes (/tf_static)")
+        else:  # the engine has no IMU axes: the samples from now on turn, the start stays as it was
+            self.events["imu_axes_changed"] += 1
+            self.report.log("imu_axes_changed", f"IMU frame '{frame}' axes (/tf_static) changed after the "
+                                                "odometry's second frame: the samples from now on are rotated "
+                                                "by the new ones", level="info")
 
     def _log_mounting(self, engine=None) -> None:
         """Say so when the mounting in use is not the configured one (``filter.mounting_reference:
@@ -206,6 +240,7 @@ class BevoNode(Node):
 
     def _reset(self) -> None:
         self.feed.reset()
+        self._published_stamp = None
         self.intake.clear()  # IMU held for the next image (ordered_intake): the old trajectory's
         self.rig.drop_held("the odometry was reset (time jump or ~/reset) while they waited for a calibration")
         self.outputs.path.clear()
@@ -240,20 +275,16 @@ class BevoNode(Node):
     def _on_imu(self, msg, arrival: float = 0.0) -> None:  # counted (and monitored) by the intake
         t = stamp_to_sec(msg.header.stamp)
         gyro, accel = imu_to_arrays(msg)
-        R = self.rig.imu_rotation(msg.header.frame_id)
-        if R is not None:  # IMU mounted in another orientation (e.g. z down): into base_frame axes
-            gyro, accel = R @ gyro, R @ accel
-        self._publish(self.feed.imu(t, gyro, accel))
+        self._check_imu_axes(msg.header.frame_id)
+        self._publish(self.feed.imu(t, (msg.header.frame_id, gyro, accel)))
 
     def _on_image(self, msg, arrival: float | None = None) -> None:  # counted (and monitored) by the intake
         arrival = time.time() if arrival is None else arrival
         if not self.rig.calibrated_for(msg):  # held; the first calibration hands them to the engine (_set_camera)
             self.rig.hold(msg, stamp_to_sec(msg.header.stamp), arrival)
             return
-        t = stamp_to_sec(msg.header.stamp)
-        img = self.rig.image(msg, t)
-        if img is not None:  # the tag comes back on the image's step: the output stamp, the latency, image_wait's start
-            self._publish(self.feed.image(t, img, (msg.header.stamp, arrival, arrival)))
+        # the tag comes back on the image's step: the output stamp, the latency, image_wait's start
+        self._publish(self.feed.image(stamp_to_sec(msg.header.stamp), msg, (msg.header.stamp, arrival, arrival)))
 
     def _on_flush_timer(self) -> None:
         if self.rig.held_images:  # the parameters' fallback is due even when no further image comes
@@ -283,8 +314,13 @@ class BevoNode(Node):
         self.intake.rejudge()  # held messages: judged again on the new timeline
 
     # ------------------------------------------------------------------ outputs
-    def _publish(self, steps: list | None) -> None:
+    def _publish(self, steps: list | None, replayed: bool = False) -> None:
+        """Publish the engine's steps; of a replay (:meth:`_rig_changed`) only frames after those
+        already published (the first one stays as published: its position is the origin either way)."""
         for step in steps or ():
+            if replayed and self._published_stamp is not None and step.stamp <= self._published_stamp:
+                continue
+            self._published_stamp = step.stamp
             stamp, arrival, _ = step.tag
             odom = self.outputs.odometry(step, stamp)
             self.report.published(arrival, float(step.peak_quality))

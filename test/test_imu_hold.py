@@ -4,6 +4,7 @@ IMU and image messages arrive in, the engine sees the operations of the offline 
 The engine is modelled by what decides the order of its operations: a frame is processed once a
 sample at or past its stamp has been fused (``BevoOdometry.add_image`` / ``_release``), so the
 recorded sequence of "fuse sample" and "process frame" is what the odometry depends on.
+The engine's journal (``Journal``: what an engine rebuilt for a late rig replays) is bounded.
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from bevo_ros.ros.intake import ImuHold
+from bevo_ros.ros.intake import ImuHold, Journal
 from helpers.node_support import delivered_late
 
 
@@ -117,3 +118,29 @@ def test_held_samples_go_on_after_the_wait_and_are_bounded():
     assert [t for _, t in engine.ops if _ == "imu"] == pytest.approx([i / 100 for i in range(7)])
     h.clear()
     assert h.held == 0 and h.last_image is None
+
+
+def test_the_engine_journal_is_bounded_and_ends_after_the_first_frame():
+    """The inputs a rebuilt engine replays (a rig that changed before its second frame): kept while
+    the engine has output at most one frame, bounded; past either it stops and forgets them (the
+    node then applies a rig change as it comes, counted)."""
+    j = Journal(max_imu=3, max_images=2)
+    assert not j.active
+    j.add("imu", 0.0, "raw")  # nothing before a start
+    assert j.entries == []
+    j.restart(frames_out=5)
+    for i in range(3):
+        j.add("imu", i / 100, ("imu_link", i))
+    j.add("image", 0.02, "msg", tag="tag")
+    j.check(6)  # the first frame out
+    assert j.active and [e[0] for e in j.entries] == ["imu"] * 3 + ["image"] and j.entries[-1][3] == "tag"
+    j.check(7)  # the second: published for good
+    assert not j.active and j.entries == []
+    j.restart(frames_out=7)
+    for i in range(4):  # one IMU sample past the bound
+        j.add("imu", i / 100)
+    assert not j.active and j.entries == []
+    j.restart(frames_out=7)
+    for i in range(3):
+        j.add("image", i / 10)
+    assert not j.active and j.entries == []

@@ -16,14 +16,14 @@ import numpy as np
 import pytest
 
 from helpers.node_support import (camera_overrides, delivered_late, drive_messages, image_msg, imu_msg,  # noqa: E402
-                                  offline_steps, small_drive, spin_until)
+                                  offline_steps, pitched, small_drive, spin_until, tf_static_msg)
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from nav_msgs.msg import Odometry, Path as PathMsg  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, Imu  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
@@ -501,6 +501,138 @@ def test_images_held_for_the_calibration_are_dropped_by_a_reset(harness_factory,
     assert spin_until(h.executor, future.done, 5) and future.result().success
     assert h.node.rig.held_images == 0 and h.node.drops["no_camera_info"] == 2
     assert "reset" in h.logged("no_camera_info")[0] and "still waiting" not in h.node.summary()
+
+
+LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+R_IMU_YAWED = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # IMU x along the base's y (left)
+
+
+def _late_rig(harness_factory, drive, after_frame: int, camera_info: bool = False):
+    """A node whose rig arrives on /tf_static after its ``after_frame``-th frame was published (a
+    startup race: another topic than the frames): the params' camera is 1 deg of pitch off the true
+    one (the mounting calibrated through it, ``mounting_reference: camera``), the IMU is yawed 90 deg
+    in ``imu_link``. The intrinsics from the parameters (the engine starts with the node), or from a
+    CameraInfo sent before the first frame (the engine starts with it, the IMU before it its backlog:
+    a bag's replay). Messages in lock step. -> ``(harness, messages sent)``."""
+    pytest.importorskip("tf2_msgs.msg")
+    from tf2_msgs.msg import TFMessage
+
+    from bevo_ros.core.geometry import mounting_for_extrinsics
+
+    T_true = drive.camera.T_base_cam.double().numpy()
+    T_params = pitched(T_true, 1.0)
+    mounting = mounting_for_extrinsics((0.0, 0.0), T_true, T_params)
+    ov = base_overrides(drive, **{"camera.base_T_camera": [float(v) for v in T_params.reshape(-1)],
+                                  "filter.mounting_pitch": mounting[0], "filter.mounting_roll": mounting[1],
+                                  "filter.mounting_reference": "camera"})
+    if camera_info:
+        ov.update(use_camera_info=True, camera_info_timeout=3600.0)
+    h = harness_factory(ov, subscribe_outputs=False)
+    tf_pub = h.tester.create_publisher(TFMessage, "/tf_static", LATCHED)
+    T_imu = np.eye(4)
+    T_imu[:3, :3] = R_IMU_YAWED
+    messages = []
+    for kind, msg in drive_messages(drive, start=3):  # 7 IMU samples before the first frame
+        if kind == "imu":  # what the yawed IMU measures: base vectors in its axes
+            g, a = (R_IMU_YAWED.T @ v for v in _imu_arrays(msg))
+            msg = imu_msg(stamp_to_sec(msg.header.stamp), g, a, frame_id="imu_link")
+        else:
+            msg.header.frame_id = "cam_optical"
+        messages.append((kind, msg))
+    frames = [i for i, (k, _) in enumerate(messages) if k == "image"]
+    first, split = frames[0], frames[after_frame - 1] + 1
+    h.send_all(messages[:first])
+    if camera_info:
+        assert h.node.engine is None
+        K = drive.camera.K.double().numpy()
+        info = CameraInfo(width=drive.camera.width, height=drive.camera.height_px, k=K.reshape(-1).tolist(),
+                          p=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist())
+        h.send("info", info)
+    assert h.node.engine is not None
+    h.send_all(messages[first:split])
+    assert h.node.counts["odometry_out"] == after_frame  # published with the params' rig
+    tf_pub.publish(tf_static_msg([("base_link", "cam_optical", T_true), ("base_link", "imu_link", T_imu)]))
+    assert spin_until(h.executor, lambda: len(h.node.static_tf.tree.edges) == 2, 10)
+    h.send_all(messages[split:])
+    h.settle()
+    images = [m for k, m in messages if k == "image"]
+    assert len(h.odom) == len(images) and not h.node.drops, (len(h.odom), dict(h.node.drops))
+    assert [o.header.stamp for o in h.odom] == [m.header.stamp for m in images]  # each frame once
+    return h, messages
+
+
+def _imu_arrays(msg) -> tuple[np.ndarray, np.ndarray]:
+    from bevo_ros.io.ros_conversions import imu_to_arrays
+
+    return imu_to_arrays(msg)
+
+
+def _engine_run(node, messages, camera, R_imu) -> list:
+    """The offline core with the node's configuration and learned parameters, ``camera`` and the IMU
+    turned by ``R_imu`` (None: as measured): what the node's engine computes with that rig from the start."""
+    from bevo_ros.config import build_odometry
+    from bevo_ros.io.ros_conversions import image_to_gray
+
+    odo = build_odometry(node.config, node.learned, camera)
+    steps = []
+    for kind, msg in messages:
+        t = stamp_to_sec(msg.header.stamp)
+        if kind == "imu":
+            g, a = _imu_arrays(msg)
+            steps += odo.add_imu(t, g, a) if R_imu is None else odo.add_imu(t, R_imu @ g, R_imu @ a)
+        else:
+            steps += odo.add_image(t, image_to_gray(msg))
+    return steps + odo.flush()
+
+
+@pytest.mark.parametrize("camera_info", [False, True], ids=["parameters", "camera_info"])
+def test_a_rig_on_tf_static_after_the_first_frame_gives_the_offline_odometry(harness_factory, drive, camera_info):
+    """/tf_static (camera extrinsics and IMU axes) arriving after the first frame was published: the
+    node rebuilds its engine with the rig and feeds it again what it had since its start, so every
+    pose equals the offline core's with that rig from the start (before: the first frame's BEV and
+    the first IMU samples stayed the params' rig's, ~cm off)."""
+    h, messages = _late_rig(harness_factory, drive, after_frame=1, camera_info=camera_info)
+    node = h.node
+    assert node.rig.extrinsics_source == "/tf_static base_link -> cam_optical"
+    R = node.rig.imu_rotation("imu_link")
+    assert np.allclose(R, R_IMU_YAWED, atol=1e-12)
+    expected = _engine_run(node, messages, node.rig.camera, R)
+    assert len(expected) == len(h.odom)
+    got = np.array([_odom_arrays(m)[0] for m in h.odom])
+    want = np.array([s.position for s in expected])
+    rpy = np.array([_odom_arrays(m)[1] for m in h.odom[1:]])  # the first frame's went out with the params' rig
+    diff = np.abs(got - want).max()
+    print(f"/tf_static after the first frame: max |dp| to the offline core {diff:.2e} m over "
+          f"{np.linalg.norm(np.diff(want, axis=0), axis=1).sum():.2f} m")
+    assert diff < 1e-9
+    assert np.abs(np.angle(np.exp(1j * (rpy - np.array([s.rpy for s in expected[1:]]))))).max() < 1e-9
+    assert node.events["rig_replayed"] == 1 and not node.events["camera_changed"], dict(node.events)
+    assert "before the second frame" in h.logged("rig_replayed")[0]
+    # and the true rig's offline run (base-frame IMU, true extrinsics; /tf_static's quaternions round)
+    truth = [(k, imu_msg(stamp_to_sec(m.header.stamp), *(R_IMU_YAWED @ v for v in _imu_arrays(m))) if k == "imu"
+              else m) for k, m in messages]
+    true_run = offline_steps(truth, camera_overrides(drive.camera))
+    assert np.abs(got - np.array([s.position for s in true_run])).max() < 1e-6
+
+
+def test_a_rig_on_tf_static_after_the_third_frame_is_applied_from_then_and_counted(harness_factory, drive):
+    """Past the second frame the odometry already published stands: the engine takes the new camera
+    and the IMU the new axes from then on, counted (``camera_changed``, ``imu_axes_changed``); the
+    frames before equal the offline core's with the params' rig."""
+    h, messages = _late_rig(harness_factory, drive, after_frame=3)
+    node = h.node
+    assert node.events["camera_changed"] == 1 and node.events["imu_axes_changed"] == 1, dict(node.events)
+    assert not node.events["rig_replayed"]
+    assert "after the odometry's second frame" in h.logged("camera_changed")[0]
+    from bevo_ros.config import camera_model
+
+    got = np.array([_odom_arrays(m)[0] for m in h.odom])
+    before = _engine_run(node, messages, camera_model(node.config.camera), None)
+    assert np.abs(got[:3] - np.array([s.position for s in before[:3]])).max() < 1e-9
+    exact = _engine_run(node, messages, node.rig.camera, node.rig.imu_rotation("imu_link"))
+    late = np.abs(got - np.array([s.position for s in exact])).max()
+    print(f"/tf_static after the third frame: max |dp| to the offline core with the rig from the start {late:.2e} m")
+    assert late > 1e-4  # the start stays the params' rig's: the test can tell
 
 
 def test_use_sim_time_clock_jump_resets(harness_factory, drive):

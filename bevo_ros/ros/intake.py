@@ -8,7 +8,9 @@ with ``ordered_intake`` the IMU past the sample each frame waits for is held (:c
 until the next image arrives (or ``image_wait``), which keeps the offline order.
 :class:`EngineFeed`: the engine calls; stamps not after the previous one (a drop, or a reset and
 retry for a big jump back); what the engine dropped or rejected (its events) turned into counted,
-logged drops and events; the IMU that arrives before the calibration; the ``image_wait`` flush.
+logged drops and events; the IMU that arrives before the calibration; the ``image_wait`` flush;
+the inputs since the engine's start (:class:`Journal`), which an engine rebuilt for a rig that
+changed before its second frame is fed again (:meth:`EngineFeed.replay`).
 """
 from __future__ import annotations
 
@@ -298,43 +300,124 @@ class ImuHold:
         self._period = 0.0
 
 
+class Journal:
+    """The engine's inputs since its (re)start, in the order it had them, while it has output at
+    most ``frames`` frames: what an engine rebuilt for another rig replays (:meth:`EngineFeed.replay`).
+
+    ``(kind, stamp, raw, tag)`` entries (kind ``imu``, ``image`` or ``flush``; ``raw`` the caller's
+    input before the rig made it the engine's: the IMU in its own axes, the image message). Bounded:
+    past ``max_imu`` IMU or ``max_images`` image entries, or past ``frames`` frames out, it stops
+    (``active`` false) and forgets them until the next restart.
+    """
+
+    def __init__(self, max_imu: int, max_images: int, frames: int = 1) -> None:
+        self.max_imu, self.max_images, self.frames = max_imu, max_images, frames
+        self.entries: list[tuple[str, float, Any, Any]] = []
+        self.active = False
+        self._counts = {"imu": 0, "image": 0, "flush": 0}
+        self._frames_base = 0  # the engine's frames_out at the restart
+
+    def restart(self, frames_out: int, max_images: int | None = None) -> None:
+        """Record anew from an engine whose ``counters.frames_out`` is ``frames_out`` now."""
+        self.entries.clear()
+        self._counts = dict.fromkeys(self._counts, 0)
+        self._frames_base, self.active = frames_out, True
+        if max_images is not None:
+            self.max_images = max_images
+
+    def stop(self) -> None:
+        self.entries.clear()
+        self.active = False
+
+    def add(self, kind: str, stamp: float, raw: Any = None, tag: Any = None) -> None:
+        if not self.active:
+            return
+        self._counts[kind] += 1
+        if self._counts["imu"] > self.max_imu or self._counts["image"] > self.max_images:
+            self.stop()  # too long a start to replay: a later rig change is applied as it comes
+            return
+        self.entries.append((kind, stamp, raw, tag))
+
+    def check(self, frames_out: int) -> None:
+        """After an engine call: past its ``frames``-th frame the engine's output is published for good."""
+        if self.active and frames_out - self._frames_base > self.frames:
+            self.stop()
+
+
 class EngineFeed:
     """The engine behind the node (None until the camera is known; IMU meanwhile waits in a
     bounded backlog). ``reset()`` is the node's (engine, path, backlog); each call returns the
-    steps to publish, or None when the input was dropped (counted)."""
+    steps to publish, or None when the input was dropped (counted).
 
-    def __init__(self, settings, max_imu_gap: float, report: Report, reset: Callable[[], None]) -> None:
+    Inputs come raw (``imu``: the IMU in its own axes, ``image``: the message) and ``inputs(kind,
+    stamp, raw)`` (the node's rig) turns them into the engine's arguments (None: dropped, counted
+    there) when they go in, so the IMU that waited for the calibration, and a replay, take the rig
+    known then."""
+
+    def __init__(self, settings, max_imu_gap: float, report: Report, reset: Callable[[], None],
+                 inputs: Callable[[str, float, Any], tuple | None]) -> None:
         self.settings, self.max_imu_gap, self.report, self.reset_node = settings, max_imu_gap, report, reset
+        self.inputs = inputs
         self.engine = None
         self.last_imu_stamp: float | None = None
         self._last_gap = 0.0
         self._states_seen = dict.fromkeys(ENGINE_STATES, 0)  # the engine's state counters already reported
         self._imu_backlog: collections.deque = collections.deque(maxlen=max(settings.imu_qos_depth, 1000))
+        # a start's inputs: the backlog and as much again (100 Hz: 20 s), the held images and two frames
+        self.journal = Journal(2 * self._imu_backlog.maxlen, settings.max_pending_images + 2)
 
     def start(self, engine, images: list | None = None) -> list:
         """Use ``engine`` from now on: the IMU that arrived before it and the ``images``
-        ``(stamp, image, tag)`` held for the calibration, merged by stamp (IMU first on equal
+        ``(stamp, raw, tag)`` held for the calibration, merged by stamp (IMU first on equal
         stamps: the offline order, so the held frames see the IMU they would have). -> the steps."""
         self.engine = engine
         self._states_seen = self._state_counts()
         engine.max_pending_images = self.settings.max_pending_images
-        backlog = [(t, 0, (gyro, accel)) for t, gyro, accel in self._imu_backlog]
+        self.journal.restart(engine.counters.frames_out, self.settings.max_pending_images + 2)
+        backlog = [(t, 0, raw, None) for t, raw in self._imu_backlog]
         self._imu_backlog.clear()
         steps: list = []
-        for t, rank, item in sorted(backlog + [(t, 1, (img, tag)) for t, img, tag in images or ()],
-                                    key=lambda e: (e[0], e[1])):
-            if rank == 0:
-                out = self._call("imu", t, lambda: engine.add_imu(t, *item))
-                if out is not None:
-                    self.last_imu_stamp = t
-            else:
-                out = self.image(t, *item)
+        for t, rank, raw, tag in sorted(backlog + [(t, 1, raw, tag) for t, raw, tag in images or ()],
+                                        key=lambda e: (e[0], e[1])):
+            out = self.imu(t, raw) if rank == 0 else self.image(t, raw, tag)
             steps += out or []
         return steps
+
+    def replay(self, engine) -> list:
+        """Use ``engine`` (another rig) from now on, fed again what the current one had since its
+        start (:attr:`journal`, :attr:`replayable`), in the same order, each input taken through the
+        rig anew: its state is what it would have been had the rig been known from the start. What
+        the inputs gave (drops, events) was reported when they came: not again. -> the steps (the
+        caller publishes those of frames it has not published)."""
+        self._report_events()  # the old engine's, before it goes
+        self.engine = engine
+        engine.max_pending_images = self.settings.max_pending_images
+        steps: list = []
+        for kind, t, raw, tag in self.journal.entries:
+            try:
+                if kind == "flush":
+                    steps += engine.flush()
+                    continue
+                args = self.inputs(kind, t, raw)
+                if args is not None:
+                    steps += engine.add_imu(t, *args) if kind == "imu" else engine.add_image(t, *args, tag=tag)
+            except (ImplausibleImuError, InvalidInputError):
+                pass  # dropped and counted when it came
+        engine.take_events()
+        self._states_seen = self._state_counts()
+        self.journal.check(engine.counters.frames_out)
+        return steps
+
+    @property
+    def replayable(self) -> bool:
+        """The engine has output at most its first frame since its start, and every input since
+        then is in the journal: :meth:`replay` gives what an engine with the new rig would have."""
+        return self.engine is not None and self.journal.active
 
     def reset(self) -> None:
         if self.engine is not None:
             self.engine.reset()
+            self.journal.restart(self.engine.counters.frames_out, self.settings.max_pending_images + 2)
         self._imu_backlog.clear()
         self.last_imu_stamp = None
 
@@ -342,21 +425,37 @@ class EngineFeed:
     def pending_images(self) -> int:
         return self.engine.pending_images if self.engine is not None else 0
 
-    def imu(self, t: float, gyro, accel) -> list | None:
+    def imu(self, t: float, raw) -> list | None:
+        """One IMU sample (``raw``: in its own axes, as ``inputs`` takes it)."""
         if self.engine is None:  # kept (bounded) and fused once the camera is known: the filter warms up
             if len(self._imu_backlog) == self._imu_backlog.maxlen:
                 self.report.drop("no_camera_info", f"IMU at {self._imu_backlog[0][0]:.6f}: more than "
                                                    f"{self._imu_backlog.maxlen} IMU samples waited for the calibration")
-            self._imu_backlog.append((t, gyro, accel))
+            self._imu_backlog.append((t, raw))
+            return None
+        args = self.inputs("imu", t, raw)
+        if args is None:
             return None
         self._last_gap = 0.0 if self.last_imu_stamp is None else t - self.last_imu_stamp
-        steps = self._call("imu", t, lambda: self.engine.add_imu(t, gyro, accel))
+        steps = self._call("imu", t, lambda: self.engine.add_imu(t, *args))
         if steps is not None:
             self.last_imu_stamp = t
+        self._journal("imu", t, raw)
         return steps
 
-    def image(self, t: float, img, tag) -> list | None:
-        return self._call("image", t, lambda: self.engine.add_image(t, img, tag=tag))
+    def image(self, t: float, raw, tag) -> list | None:
+        """One image (``raw``: the message, as ``inputs`` takes it); ``tag`` comes back on its step."""
+        args = self.inputs("image", t, raw)
+        if args is None:
+            return None
+        steps = self._call("image", t, lambda: self.engine.add_image(t, *args, tag=tag))
+        self._journal("image", t, raw, tag)
+        return steps
+
+    def _journal(self, kind: str, t: float, raw=None, tag=None) -> None:
+        """After the engine call (a reset inside it restarted the journal, the input went to the restarted engine)."""
+        self.journal.add(kind, t, raw, tag)
+        self.journal.check(self.engine.counters.frames_out)
 
     def flush_due(self) -> bool:
         """Images have waited for IMU past their stamp longer than ``image_wait``."""
@@ -369,6 +468,7 @@ class EngineFeed:
         """Process the waiting images with the IMU fused so far."""
         n = self.engine.pending_images
         steps = self.engine.flush()
+        self._journal("flush", float("nan"))
         self.report.events["flushed_images"] += len(steps)
         self._report_events()
         self.report.log("image_wait", f"{n} image(s) waited more than image_wait={self.settings.image_wait} s for "
@@ -436,4 +536,4 @@ class EngineFeed:
                                        "accelerometer")
 
 
-__all__ = ["Intake", "EngineFeed", "arrival", "watch_clock_jumps", "ENGINE_DROPS", "ENGINE_REJECTIONS"]
+__all__ = ["Intake", "EngineFeed", "Journal", "arrival", "watch_clock_jumps", "ENGINE_DROPS", "ENGINE_REJECTIONS"]

@@ -7,7 +7,9 @@ the last good calibration), the ``camera.*`` parameters as the fallback after
 and handed back once it is known: DDS does not order one topic against another, so a frame's
 CameraInfo may come after the frame itself. Extrinsics: /tf_static ``base_frame -> image frame`` when
 published, else ``camera.base_T_camera``. Every change rebuilds the camera model and hands it to
-``on_camera`` (the node's engine).
+``on_camera`` (the node's engine). ``engine_input`` turns a raw input into the engine's with the rig
+known then (the IMU into base axes, an image decoded and rectified), and ``imu_axes_changed`` says
+when an IMU frame's axes changed since its last sample went in.
 """
 from __future__ import annotations
 
@@ -28,6 +30,16 @@ from bevo_ros.ros.settings import NodeSettings
 from bevo_ros.ros.tf import StaticTransforms
 from bevo_ros.io.ros_conversions import ImageConversionError, image_to_gray, stamp_to_sec
 
+
+
+MAX_IMU_FRAMES = 64  # IMU frame ids whose axes are watched for a change
+
+
+def same_axes(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    """Two IMU rotations (None: the base's axes) turn every vector alike."""
+    if a is None and b is None:
+        return True
+    return np.allclose(np.eye(3) if a is None else a, np.eye(3) if b is None else b, rtol=0, atol=1e-12)
 
 
 class Rig:
@@ -60,6 +72,7 @@ class Rig:
         self._R_base_imu: dict[str, tuple[int, np.ndarray | None]] = {}  # IMU frame -> (tf version, R_base_imu)
         self._imu_frame_warned: set[str] = set()
         self._held: collections.deque = collections.deque()  # (msg, arrival) of images before any calibration
+        self._axes_used: dict[str, np.ndarray | None] = {}  # IMU frame -> the rotation its last sample went in with
 
     def start(self) -> None:
         """The calibration known at start: the parameters when CameraInfo is off or not waited for."""
@@ -176,6 +189,27 @@ class Rig:
                                          f"{base} -> {frame}: the IMU axes are taken as the base axes (REP-103 x "
                                          "forward, y left, z up)")
         return R
+
+    def imu_axes_changed(self, frame: str) -> bool:
+        """``frame``'s axes (/tf_static) differ from those its last sample went into the engine with."""
+        if frame not in self._axes_used:
+            return False
+        return not same_axes(self.imu_rotation(frame), self._axes_used[frame])
+
+    def engine_input(self, kind: str, t: float, raw: Any) -> tuple | None:
+        """An input as the engine takes it, through the rig known now (the node's EngineFeed
+        ``inputs``): ``imu`` ``(frame, gyro, accel)`` into base_frame axes, ``image`` a message
+        decoded and rectified (None: dropped, counted)."""
+        if kind != "imu":
+            img = self.image(raw, t)
+            return None if img is None else (img,)
+        frame, gyro, accel = raw
+        R = self.imu_rotation(frame)
+        if frame not in self._axes_used and len(self._axes_used) >= MAX_IMU_FRAMES:
+            self._axes_used.clear()  # a stream of bogus frame ids stays bounded
+        self._axes_used[frame] = R
+        # an IMU mounted in another orientation (e.g. z down): into base_frame axes
+        return (gyro, accel) if R is None else (R @ gyro, R @ accel)
 
     # ------------------------------------------------------------------ images
     def calibrated_for(self, msg) -> bool:

@@ -112,6 +112,34 @@ def delivered_late(messages: list[tuple[str, Any]], delay: int) -> list[tuple[st
     return out + [w[0] for w in waiting]
 
 
+def tf_static_msg(transforms):
+    """A tf2_msgs/TFMessage of ``[(parent, child, T (4, 4))]``, as a robot's /tf_static carries them."""
+    from geometry_msgs.msg import TransformStamped
+    from tf2_msgs.msg import TFMessage
+
+    from bevo_ros.io.bag import quaternion_from_matrix
+
+    msg = TFMessage()
+    for parent, child, T in transforms:
+        t = TransformStamped()
+        t.header.frame_id, t.child_frame_id = parent, child
+        t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = (float(v) for v in T[:3, 3])
+        q = quaternion_from_matrix(T[:3, :3])
+        t.transform.rotation.x, t.transform.rotation.y, t.transform.rotation.z, t.transform.rotation.w = \
+            (float(v) for v in q)
+        msg.transforms.append(t)
+    return msg
+
+
+def pitched(T: np.ndarray, degrees: float) -> np.ndarray:
+    """``T_base_cam`` with the camera pitched ``degrees`` more nose down about the base's y axis."""
+    a = np.radians(degrees)
+    R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    return out
+
+
 def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) -> list:
     """The offline core (``build_odometry``) fed the same messages in order, plus a final flush."""
     from bevo_ros.config import BevoConfig, build_odometry, camera_model, resolve_path
