@@ -31,7 +31,8 @@ from bevo_ros.core.odometry import BevoOdometry, InvalidInputError, OdometryStep
 from bevo_ros.core.pose import pose_matrix
 from bevo_ros.datasets import kitti
 from bevo_ros.datasets.rosbag import (PARAMETERS_EXTRINSICS, RigSettings, calibration_for_recording, camera_for_recording,
-                                      extrinsics_for_recording, gt_at, imu_rotation_for_recording)
+                                      extrinsics_for_recording, gt_at, imu_rotation_for_recording,
+                                      rig_disagreements)
 from bevo_ros.evaluation.metrics import evaluate_trajectories, pitch_roll_errors, read_pitch_roll_csv
 from bevo_ros.evaluation.report import write_report
 from bevo_ros.io import bag
@@ -60,6 +61,8 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
     if progress or source != PARAMETERS_EXTRINSICS or calib.maps is not None:
         print(f"run_bag: camera calibration from {calib.describe()}; extrinsics from {source}: camera at "
               f"{np.round(T_base_cam[:3, 3], 3).tolist()} m in {rig.base_frame}", file=sys.stderr)
+    for problem in rig_disagreements(rec, config, rig, calib):  # parameters that do not fit the bag: drift, silently
+        print(f"run_bag: warning: {problem}", file=sys.stderr)
     rotations: dict[str, np.ndarray | None] = {}  # IMU frame -> R_base_imu (the node's Rig.imu_rotation)
     if not 0 <= first_frame < len(rec.frame_stamps_ns):
         raise ValueError(f"{bag_path}: first frame {first_frame} is not one of its {len(rec.frame_stamps_ns)} frames "

@@ -414,3 +414,98 @@ def test_stamp_order_is_the_node_s_arrival_order():
                                                              ("imu", 2), ("image", 2)]
     assert list(stamp_order(imu, frames, image_first=True, by_stamp=True)) == [
         ("imu", 0), ("image", 0), ("image", 1), ("imu", 1), ("imu", 2), ("image", 2)]
+
+
+KITTI_PARAMS = str(REPO_ROOT / "params" / "kitti.yaml")
+
+
+def test_run_warns_when_the_params_describe_another_rig_than_the_bag(synthetic_bag, tmp_path, capsys):
+    """A synthetic bag (level camera 0.31 m left of KITTI's) run with params/kitti.yaml said nothing:
+    the KITTI mounting, re-derived through its camera, tilted the BEV (a drive rendered from OXTS:
+    21.7 % drift, 3.5 % with params/synthetic.yaml). Warned, naming the parameters, both values and
+    which is used; nothing with the matching params/synthetic.yaml."""
+    _, path = synthetic_bag
+    for params, warned in ((KITTI_PARAMS, True), (SYNTH_PARAMS, False)):
+        capsys.readouterr()
+        assert run.main([str(path), "--out", str(tmp_path / "out"), "--params", params, "-q"]) == 0
+        err = capsys.readouterr().err
+        print(err)
+        assert ("run_bag: warning:" in err) == warned, err
+        if warned:
+            for said in ("camera.base_T_camera puts the camera at [1.083, -0.31, 0.73] m",
+                         "/tf_static base_link -> camera_optical_frame at [1.08, 0.0, 0.73] m (0.31 m",
+                         "The bag's camera is used", "filter.mounting_pitch / mounting_roll +1.55 / -1.01 deg",
+                         "to +1.07 / -1.26 deg for the bag's camera, are used", "camera.mount_height 1.65 m",
+                         "params/synthetic.yaml describes the bag's camera"):
+                assert said in err
+
+
+def test_rig_disagreements_name_the_parameters_used_against_the_bag(synthetic_bag):
+    from bevo_ros.datasets.rosbag import rig_disagreements
+
+    _, path = synthetic_bag
+    rec = bag.read_recording(path, load_images=False)
+    synth, _ = load_config(SYNTH_PARAMS)
+    assert rig_disagreements(rec, synth) == []
+    # the camera.* parameters used instead of the bag's CameraInfo (KITTI 03-10's on a 1241x376 camera)
+    kitti_config, _ = load_config(KITTI_PARAMS)
+    synth.camera = kitti_config.camera.__class__(**{**vars(kitti_config.camera),
+                                                    "base_T_camera": synth.camera.base_T_camera})
+    [said] = rig_disagreements(rec, synth, RigSettings(use_camera_info=False))
+    assert said.startswith("camera.fx 707.091 (bag 718.856), camera.fy 707.091 (bag 718.856), camera.cx 601.887 "
+                           "(bag 607.193), camera.width 1226 (bag 1241), camera.height_px 370 (bag 376): ")
+    assert said.endswith("the parameters' are used (use_camera_info: false)")
+    assert rig_disagreements(rec, synth) == []  # CameraInfo used: the fallback is not compared
+    # the parameters' camera used instead of /tf_static's: a quarter degree matters (~6 % of scale)
+    config, _ = load_config(SYNTH_PARAMS)
+    T = np.array(config.camera.base_T_camera).reshape(4, 4)
+    c, s = math.cos(math.radians(0.5)), math.sin(math.radians(0.5))
+    T[:3, :3] = T[:3, :3] @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])  # the optical axis 0.5 deg down
+    config.camera.base_T_camera = T.reshape(-1).tolist()
+    [said] = rig_disagreements(rec, config, RigSettings(extrinsics_from_tf=False))
+    assert "(0.00 m and 0.50 deg apart): the parameters' is used (extrinsics_from_tf: false)" in said
+    assert rig_disagreements(rec, config) == []  # /tf_static's used; 0.5 deg is one rig recalibrated
+
+
+@pytest.mark.kitti
+def test_kitti_bag_with_its_params_or_the_defaults_warns_nothing(kitti_root, tmp_path):
+    """The shipped pairs agree: the KITTI bag with params/kitti.yaml (also taking every camera value
+    from the parameters) or the defaults; with params/synthetic.yaml it is another rig (35.6 % drift)."""
+    from bevo_ros.datasets.rosbag import rig_disagreements
+
+    path = tmp_path / "kitti06"
+    assert convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06", "--count", "3",
+                         "-o", str(path), "-q"]) == 0
+    rec = bag.read_recording(path, load_images=False)
+    kitti_config, _ = load_config(KITTI_PARAMS)
+    assert rig_disagreements(rec, kitti_config) == []
+    assert rig_disagreements(rec, kitti_config, RigSettings(use_camera_info=False, extrinsics_from_tf=False)) == []
+    assert rig_disagreements(rec, BevoConfig()) == []
+    [said] = rig_disagreements(rec, load_config(SYNTH_PARAMS)[0])
+    assert "(0.31 m and 0.54 deg apart)" in said and "+0.00 / +0.00 deg are used as given" in said
+    assert "params/kitti.yaml describes the bag's camera" in said
+
+
+def test_map_refuses_frames_past_the_bag_and_a_negative_margin(synthetic_bag, tmp_path, capsys):
+    """--frames 0:500 of a shorter bag mapped what there was, silently; --margin -1 cut the BEVs'
+    edges off. Clear errors, before the engine's pass where the bag's metadata can tell."""
+    from bevo_ros import cli
+
+    drive, path = synthetic_bag
+    n = len(drive.frame_stamps)
+    out = tmp_path / "map.yaml"
+    common = ["map", str(path), "--out", str(out), "--params", SYNTH_PARAMS]
+    for extra, message in ((["--frames", f"0:{n + 100}"], f"--frames 0:{n + 100}: {path} has {n} frames (0..{n - 1}"),
+                           (["--frames", f"{n}:"], f"--frames {n}:: {path} has {n} frames"),
+                           (["--margin", "-1"], "--margin -1.0: must be >= 0 m"),
+                           (["--margin", "nan"], "--margin nan: must be >= 0 m"),
+                           (["--frames", "abc"], "argument --frames: 'abc': expected FIRST:STOP"),
+                           (["--frames=-5:"], "argument --frames: '-5:': frame numbers count from 0"),
+                           (["--frames", "4:4"], "argument --frames: '4:4': STOP must be after FIRST")):
+        capsys.readouterr()
+        assert cli.main(common + extra) == 2
+        said = capsys.readouterr()
+        assert f"bevo map: error: {message}" in said.err and "Traceback" not in said.err, said.err
+        assert not out.exists() and "run_bag:" not in said.err  # refused before the engine ran
+    assert cli.main(common + ["--frames", f"2:{n}", "--every", "5", "--margin", "0"]) == 0
+    assert f"{len(range(2, n, 5))} BEVs" in capsys.readouterr().out and out.exists()

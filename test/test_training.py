@@ -8,7 +8,10 @@ vibrating accelerometer) lower both the validation loss and the relative pose er
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+import shutil
 import time
 from pathlib import Path
 
@@ -242,3 +245,143 @@ def test_initialisation_units_device_fallback_and_bad_checkpoints(tmp_path):
         TrainOptions(split="1/2").check()
     with pytest.raises(ValueError):
         TrainOptions(init=(1.0, 1.0, 0.0, 1.0)).check()
+
+
+def _train_args(bag, out, *extra) -> list[str]:
+    return [str(bag), "--out", str(out), "--params", str(SYNTH_PARAMS), "--lr", "0.5", "--steps-per-bag", "1",
+            "--window", "64", "--suspension-evals", "0", "--vehicle-steps", "0", "-q", *extra]
+
+
+def test_resume_with_other_bags_or_parameters_is_refused_unless_anyway(synth, tmp_path, capsys):
+    """A checkpoint's best validation loss is its own bags' and settings': resumed on others it may
+    never be beaten and the output silently kept its O/Q (it only warned). Refused, naming what
+    differs, before the bags are read; --resume-anyway takes its O/Q and measures the best anew."""
+    bag_path, _, _ = synth
+    assert train_command.main(_train_args(bag_path, tmp_path / "a.yaml", "--epochs", "1", "--init",
+                                          *map(str, BAD_INIT))) == 0
+    ckpt_path = tmp_path / "a.yaml.ckpt.yaml"
+    ckpt = load_checkpoint(ckpt_path)
+    other = tmp_path / "other_bag"  # the same drive copied: another recording as far as a checkpoint can tell
+    shutil.copytree(bag_path, other)
+    tilted = tmp_path / "tilted.yaml"  # another mounting: another BEV, other losses
+    doc = yaml.safe_load(SYNTH_PARAMS.read_text())
+    doc["/**"]["ros__parameters"]["filter.mounting_pitch"] = 0.01
+    doc["/**"]["ros__parameters"]["learned_params_file"] = str(REPO_ROOT / "params" / "learned_default.yaml")
+    tilted.write_text(yaml.safe_dump(doc))
+    capsys.readouterr()
+    for bag, more, named in ((other, [], [str(other.resolve()), "bumpy_bag"]),
+                             (bag_path, ["--params", str(tilted)], ["filter.mounting_pitch 0.01 (checkpoint: 0.0)"]),
+                             (bag_path, ["--split", "20%"], ["--split '20%' (checkpoint: '3/4')"])):
+        rc = train_command.main(_train_args(bag, tmp_path / "b.yaml", "--resume", str(ckpt_path), "--epochs", "2",
+                                            *more))  # the last --params wins
+        said = capsys.readouterr()
+        print(said.err)
+        assert rc == 2 and f"error: --resume {ckpt_path}: made with other bags or settings" in said.err
+        assert all(n in said.err for n in named) and "--resume-anyway" in said.err
+        assert "frames" not in said.out and not (tmp_path / "b.yaml").exists()  # refused before the bags were read
+
+    # Anyway: the checkpoint's best loss (made unbeatable here, as another bag's may be) is dropped.
+    ckpt["best"]["val_loss"] = 1e-9
+    training.save_checkpoint(ckpt_path, ckpt)
+    out = tmp_path / "c.yaml"
+    rc = train_command.main(_train_args(other, out, "--resume", str(ckpt_path), "--resume-anyway", "--epochs", "2"))
+    said = capsys.readouterr()
+    assert rc == 0 and "resuming anyway" in said.out
+    new = load_checkpoint(tmp_path / "c.yaml.ckpt.yaml")
+    learned = load_learned_params(out)
+    print(f"\nresumed anyway: best {new['best']}, before {new['before']['loss']}")
+    assert new["epoch"] == 2 and new["best"]["val_loss"] > 1e-3  # measured on these bags, not the 1e-9
+    assert new["best"]["epoch"] in (0, 2) and new["setup"]["bags"] == [str(other.resolve())]
+    assert np.allclose(learned.process_noise_density, new["best"]["process_noise_density"])
+    start = ckpt["current"]["process_noise_density"]  # epoch 0 = the checkpoint's O/Q, the start
+    assert new["best"]["epoch"] == 2 or np.allclose(learned.process_noise_density, start)
+    assert learned.info["init"]["resumed_anyway"]["differences"][0].startswith("bags")
+    with pytest.raises(SystemExit) as refused:
+        train_command.main(_train_args(bag_path, out, "--resume-anyway"))
+    assert refused.value.code == 2
+
+
+def test_resume_differences_name_what_the_validation_loss_depends_on():
+    config, _ = load_config(SYNTH_PARAMS)
+    options = TrainOptions()
+    setup = training.training_setup(["/b/x"], config, options, {"use_camera_info": True})
+    state = {"setup": json.loads(json.dumps(setup)), "bags": ["x"], "split": "3/4"}
+    assert training.resume_differences(state, setup) == []
+    other = load_config(SYNTH_PARAMS)[0]
+    other.odometry.gate, other.filter.max_acceleration = 4.0, 50.0
+    other.dpc = dataclasses.replace(other.dpc, rotation_temperature=0.5)  # the loss sets its own
+    other.learned_params_file = "/elsewhere.yaml"  # none of these changes the O/Q validation loss
+    assert training.resume_differences(state, training.training_setup(["/b/x"], other, options,
+                                                                      {"use_camera_info": True})) == []
+    other.camera.mount_height, other.bev.metres_per_pixel = 1.5, 0.2
+    diffs = training.resume_differences(state, training.training_setup(
+        ["/b/x", "/b/y"], other, TrainOptions(temperature=0.3), {"use_camera_info": False}))
+    assert diffs == ["bags ['/b/x', '/b/y'] (checkpoint: ['/b/x'])", "--temperature 0.3 (checkpoint: 0.2)",
+                     "camera.mount_height 1.5 (checkpoint: 1.65)", "bev.metres_per_pixel 0.2 (checkpoint: 0.1)",
+                     "use_camera_info False (checkpoint: True)"]
+    # a checkpoint from before the setup was recorded: its bags' names and split
+    old = {"bags": ["x"], "split": "20%"}
+    assert training.resume_differences(old, setup) == ["--split '3/4' (checkpoint: '20%')"]
+    assert training.resume_differences({"bags": ["y"]}, setup) == ["bags ['x'] (checkpoint: ['y'])"]
+
+
+def _checkpoint_doc() -> dict:
+    pair = {"process_noise_density": [1e-4, 1e-4], "measurement_noise_variance": [1e-2, 1e-2]}
+    return {"format": training.CHECKPOINT_FORMAT, "epoch": 2, "current": dict(pair),
+            "best": {"epoch": 1, "val_loss": 0.5, **pair}, "bad_epochs": 1, "lr": 0.3,
+            "before": {"loss": 0.6, "rpe_trans_m": 0.01, "rpe_yaw_deg": 0.02, "pairs": 10, "failed_pairs": 0},
+            "adam": {"log_process_var": {"step": 6.0, "exp_avg": [0.1, -0.1], "exp_avg_sq": [0.01, 0.02]}},
+            "history": [{"epoch": 1}, {"epoch": 2}]}
+
+
+@pytest.mark.parametrize("edit, field", [
+    (lambda d: d.update(lr=float("nan")), "'lr' must be finite"),
+    (lambda d: d.update(lr=float("inf")), "'lr' must be finite"),
+    (lambda d: d.update(lr=-0.1), "'lr' must be > 0"),
+    (lambda d: d.update(lr=0), "'lr' must be > 0"),
+    (lambda d: d.update(lr="fast"), "'lr' must be a number"),
+    (lambda d: d.update(epoch=-1), "'epoch' must be >= 0"),
+    (lambda d: d.update(epoch=1.5), "'epoch' must be an integer"),
+    (lambda d: d.update(epoch=True), "'epoch' must be an integer"),
+    (lambda d: d.update(bad_epochs=-2), "'bad_epochs' must be >= 0"),
+    (lambda d: d["best"].update(val_loss=float("nan")), "'best.val_loss' must be finite"),
+    (lambda d: d["best"].update(epoch=3), "'best.epoch' 3 is after 'epoch' 2"),
+    (lambda d: d["before"].update(loss=-1.0), "'before.loss' must be >= 0"),
+    (lambda d: d["before"].update(pairs="ten"), "'before.pairs' must be an integer"),
+    (lambda d: d["adam"]["log_process_var"].update(step=float("nan")), "'adam.log_process_var.step' must be finite"),
+    (lambda d: d["adam"]["log_process_var"].update(exp_avg=[float("nan"), 0.1]),
+     "'adam.log_process_var.exp_avg' must be finite"),
+    (lambda d: d["adam"]["log_process_var"].update(exp_avg_sq=[-1.0, 0.1]),
+     "'adam.log_process_var.exp_avg_sq' must be >= 0"),
+    (lambda d: d["adam"]["log_process_var"].update(exp_avg=[0.1]), "'adam.log_process_var.exp_avg' must be 2 numbers"),
+    (lambda d: d["adam"].update(momentum={}), "'adam.momentum' is not Adam state"),
+    (lambda d: d.update(history={"epoch": 1}), "'history' must be a list"),
+    (lambda d: d.update(before=[0.6]), "'before' must be a mapping"),
+])
+def test_a_hand_edited_checkpoint_number_is_named_with_its_file(tmp_path, edit, field):
+    path = tmp_path / "ckpt.yaml"
+    doc = _checkpoint_doc()
+    path.write_text(yaml.safe_dump(doc))
+    assert load_checkpoint(path)["lr"] == 0.3  # the untouched one loads
+    edit(doc)
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ValueError) as exc:
+        load_checkpoint(path)
+    assert str(exc.value).startswith(f"checkpoint {path}: ") and field in str(exc.value)
+
+
+def test_train_resume_with_a_nan_lr_is_an_error_before_training(synth, tmp_path, capsys):
+    """lr: .nan in a checkpoint trained NaNs (reported as a divergence, exit 3, after the bags were
+    read and an epoch run); lr: -0.1 climbed the loss silently. Now exit 2 naming the file and field."""
+    bag_path, _, _ = synth
+    ckpt_path = tmp_path / "ckpt.yaml"
+    doc = _checkpoint_doc()  # records no setup: only the lr can be wrong
+    for lr in (".nan", "-0.1"):
+        ckpt_path.write_text(yaml.safe_dump(doc).replace("lr: 0.3", f"lr: {lr}"))
+        t0 = time.perf_counter()
+        rc = train_command.main(_train_args(bag_path, tmp_path / "l.yaml", "--epochs", "3", "--resume",
+                                            str(ckpt_path)))
+        said = capsys.readouterr()
+        print(said.err.strip(), f"({time.perf_counter() - t0:.1f} s)")
+        assert rc == 2 and f"error: checkpoint {ckpt_path}: 'lr' must be" in said.err and "Traceback" not in said.err
+        assert "frames" not in said.out and not (tmp_path / "l.yaml").exists()

@@ -50,6 +50,12 @@ examples:
   bevo train synth_bag --params params/synthetic.yaml --out out/learned.yaml --epochs 10 --seed 3
   bevo train a_bag b_bag --out l.yaml --split 20% --init 1e-4 1e-4 1e-2 1e-2 --lr 0.2
   bevo train a_bag --out l.yaml --resume l.yaml.ckpt.yaml --epochs 30
+  bevo train b_bag --out l2.yaml --resume l.yaml.ckpt.yaml --resume-anyway   # a_bag's O/Q as the start
+
+resuming: the checkpoint records its setup (the bags' paths, --split, the loss options, the
+parameters the loss depends on); --resume with another is refused, naming what differs: its best
+validation loss was measured on those bags and might never be beaten on these, so the output would
+silently keep its O/Q. --resume-anyway takes it as the start and measures the best anew.
 """
 
 
@@ -77,7 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window", type=int, default=32, help="frame pairs per BEV/DPC chunk: bounds memory (default 32)")
     p.add_argument("--checkpoint", help="checkpoint YAML (default: OUT.ckpt.yaml)")
     p.add_argument("--resume", metavar="CHECKPOINT",
-                   help="continue from a checkpoint (its O/Q, Adam state and learning rate; --epochs is the total)")
+                   help="continue from a checkpoint (its O/Q, Adam state and learning rate; --epochs is the total); "
+                        "one made with other bags, --split, loss options or parameters is refused, naming them")
+    p.add_argument("--resume-anyway", action="store_true",
+                   help="with --resume: take a checkpoint of other bags or parameters as the start (its O/Q, Adam "
+                        "state, learning rate); its best validation loss is dropped and measured anew on these bags")
     p.add_argument("--device", default="cpu", help="cpu (default) or cuda (falls back to CPU with a warning)")
     add_threads_option(p, ": fastest for 100x100 BEVs")
     p.add_argument("--vehicle-steps", type=int, default=100,
@@ -94,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if 0 < args.suspension_evals < 3 or args.suspension_evals < 0:
         parser.error(f"--suspension-evals must be 0 or >= 3, got {args.suspension_evals}")
+    if args.resume_anyway and not args.resume:
+        parser.error("--resume-anyway applies to --resume CHECKPOINT only")
     from bevo_ros.training.trainer import TrainingDiverged
 
     set_threads(args.threads)
@@ -108,9 +120,11 @@ def _checkpoint(args: argparse.Namespace) -> Path:
 
 
 def _train(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from bevo_ros.datasets.rosbag import RigSettings, load_sequence
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
-    from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, train
+    from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, check_resume, train, training_setup
     from bevo_ros.training.suspension import fit_suspension_on_sequences
     from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
@@ -133,10 +147,14 @@ def _train(args: argparse.Namespace) -> int:
     # silently drop the suspension model the engine uses). Read before training, so a bad
     # path fails before the epochs, not after them.
     base = load_learned_params(config.learned_params_file)
+    rig = RigSettings.from_params(flat, str(args.params))
+    setup = training_setup([str(Path(b).resolve()) for b in args.bags], config, options, dataclasses.asdict(rig))
+    if args.resume:  # a bad or mismatched checkpoint is refused before the bags are read, not after
+        check_resume(args.resume, setup, args.resume_anyway)
     t0 = time.perf_counter()
     seqs = []
     for b in args.bags:
-        s = load_sequence(b, config, rig=RigSettings.from_params(flat, str(args.params)))
+        s = load_sequence(b, config, rig=rig)
         seqs.append(s)
         print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
               f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")
@@ -144,7 +162,8 @@ def _train(args: argparse.Namespace) -> int:
           f"{args.epochs} epochs, lr {args.lr}, checkpoint {checkpoint}")
     result = train(seqs, config, options, checkpoint=checkpoint, resume=args.resume, progress=not args.quiet,
                    extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
-                               "params_file": str(Path(args.params).resolve())})
+                               "params_file": str(Path(args.params).resolve())},
+                   setup=setup, resume_anyway=args.resume_anyway)
     result.learned.suspension_gradients = base.suspension_gradients
     result.learned.vehicle = dict(base.vehicle)
     fits = config.odometry.mode == "fused" and (args.suspension_evals > 0 or args.vehicle_steps > 0)

@@ -198,6 +198,114 @@ def camera_for_recording(rec: bag.BagContents, config: BevoConfig, rig: RigSetti
     return camera_model(settings, K=calib.K, width=calib.width, height_px=calib.height)
 
 
+# How far the parameters' camera may be from a bag's before they are taken as another camera. KITTI's
+# raw calibrations of one rig differ by ~1 deg of camera pitch and centimetres from day to day (what
+# filter.mounting_reference: camera re-derives the mounting for); beyond these it is another rig.
+ANOTHER_RIG_M, ANOTHER_RIG_DEG = 0.10, 3.0
+# When the parameters' camera is the one the BEV is projected with: ~25 % of scale per degree of pitch.
+USED_CAMERA_M, USED_CAMERA_DEG = 0.05, 0.25
+USED_FOCAL_REL, USED_CENTRE_PX = 0.01, 5.0  # camera.fx/fy relative, camera.cx/cy in px
+
+
+def _rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
+    """Angle of the rotation between two poses' rotations, degrees."""
+    c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _shipped_params_with_camera(T: np.ndarray) -> list[str]:
+    """The package's params/*.yaml whose camera.base_T_camera is ``T`` (to the centimetre and a
+    tenth of a degree): a hint which one was written for the bag's rig. Read only when warning."""
+    from bevo_ros.config import load_params_file, package_file
+
+    names = []
+    for path in sorted(package_file("params").glob("*.yaml")):
+        try:
+            flat = load_params_file(path)
+        except (ConfigError, OSError):
+            continue
+        value = flat.get("camera.base_T_camera")
+        if isinstance(value, list) and len(value) == 16:
+            P = np.asarray(value, dtype=np.float64).reshape(4, 4)
+            if np.linalg.norm(P[:3, 3] - T[:3, 3]) < 0.01 and _rotation_deg(P, T) < 0.1:
+                names.append(f"params/{path.name}")
+    return names
+
+
+def rig_disagreements(rec: bag.BagContents, config: BevoConfig, rig: RigSettings = RigSettings(),
+                      calibration=None) -> list[str]:
+    """Where the parameters the engine uses for a bag disagree with what the bag says, one message
+    each (parameter, both values, which is used); [] when they agree. Cheap: the bag's CameraInfo
+    and /tf_static only, no image.
+
+    * ``use_camera_info: false`` with a CameraInfo in the bag: ``camera.fx/fy/cx/cy/width/height_px``
+      are used; named where they differ from the bag's (1 % focal length, 5 px, any size).
+    * ``extrinsics_from_tf: false`` with the camera on /tf_static: ``camera.base_T_camera`` is used;
+      named beyond 5 cm or 0.25 deg (a quarter degree of pitch is ~6 % of the BEV's scale).
+    * /tf_static's camera used, more than 10 cm or 3 deg from ``camera.base_T_camera`` (another rig:
+      one rig's calibrations differ by ~1 deg and centimetres): ``filter.mounting_*`` and
+      ``camera.mount_height`` were calibrated for the parameters' rig and are used with the bag's
+      (``mounting_reference: camera`` re-derives the mounting through ``camera.base_T_camera``, which
+      then describes another camera). E.g. a ``bevo convert --render-oxts`` bag (its level camera
+      0.31 m left of KITTI's) with params/kitti.yaml: mounting +1.07 / -1.26 deg instead of 0, 21.7 %
+      drift instead of 3.5 % (drive 0027, 160 frames); the KITTI sample with params/synthetic.yaml:
+      mounting 0 instead of +1.55 / -1.01 deg, 35.6 % instead of 1.72 %."""
+    out: list[str] = []
+    cam = config.camera
+    calib = calibration if calibration is not None else calibration_for_recording(rec, config, rig)
+    if rec.camera_info is not None and not (rig.use_camera_info and calib.source.startswith("CameraInfo")):
+        from bevo_ros.ros.camera import CalibrationError, calibration_from_camera_info
+
+        try:
+            bag_calib = calibration_from_camera_info(rec.camera_info, rig.camera_info_use_p, "off", rec.image_topic)
+        except CalibrationError:
+            bag_calib = None
+        if bag_calib is not None:
+            K, B = calib.K, bag_calib.K
+            checks = [("camera.fx", K[0, 0], B[0, 0], USED_FOCAL_REL * B[0, 0]),
+                      ("camera.fy", K[1, 1], B[1, 1], USED_FOCAL_REL * B[1, 1]),
+                      ("camera.cx", K[0, 2], B[0, 2], USED_CENTRE_PX), ("camera.cy", K[1, 2], B[1, 2], USED_CENTRE_PX),
+                      ("camera.width", calib.width, bag_calib.width, 0), ("camera.height_px", calib.height,
+                                                                          bag_calib.height, 0)]
+            differ = [f"{name} {float(mine):g} (bag {float(theirs):g})" for name, mine, theirs, tol in checks
+                      if abs(float(mine) - float(theirs)) > tol]
+            if differ:
+                out.append(f"{', '.join(differ)}: the camera.* parameters differ from the bag's CameraInfo on "
+                           f"{rec.camera_info_topic}; the parameters' are used (use_camera_info: false)")
+    params_T = np.asarray(cam.base_T_camera, dtype=np.float64).reshape(4, 4)
+    bag_T, source = camera_extrinsics(rec.static_tf, rig.base_frame, rec.image_frame_id, params_T)
+    if source == PARAMETERS_EXTRINSICS:
+        return out  # the bag says nothing about its camera's pose
+    metres = float(np.linalg.norm(bag_T[:3, 3] - params_T[:3, 3]))
+    degrees = _rotation_deg(bag_T, params_T)
+    where = (f"camera.base_T_camera puts the camera at {np.round(params_T[:3, 3], 3).tolist()} m, the bag's {source} "
+             f"at {np.round(bag_T[:3, 3], 3).tolist()} m ({metres:.2f} m and {degrees:.2f} deg apart)")
+    hint = _shipped_params_with_camera(bag_T)
+    hint = f"; {' and '.join(hint)} describe{'s' if len(hint) == 1 else ''} the bag's camera" if hint else ""
+    if not rig.extrinsics_from_tf:
+        if metres > USED_CAMERA_M or degrees > USED_CAMERA_DEG:
+            out.append(f"{where}: the parameters' is used (extrinsics_from_tf: false){hint}")
+        return out
+    if metres <= ANOTHER_RIG_M and degrees <= ANOTHER_RIG_DEG:
+        return out
+    from bevo_ros.config import mounting_in_use
+
+    f = config.filter
+    given = (float(f.mounting_pitch), float(f.mounting_roll))
+    used = mounting_in_use(config, bag_T)
+
+    def deg(pair: tuple[float, float]) -> str:
+        return f"{np.degrees(pair[0]):+.2f} / {np.degrees(pair[1]):+.2f} deg"
+
+    mounting = (f"filter.mounting_pitch / mounting_roll {deg(given)}" +
+                (f", re-derived through camera.base_T_camera (mounting_reference: camera) to {deg(used)} for the "
+                 "bag's camera, are used" if f.mounting_reference == "camera" else " are used as given"))
+    out.append(f"{where}: another rig than the parameters were written for? The bag's camera is used; {mounting}, "
+               f"and camera.mount_height {cam.mount_height:g} m: calibrated for the parameters' rig, not measured "
+               f"for the bag's (bevo calibrate BAG measures its mounting){hint}")
+    return out
+
+
 def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np.ndarray:
     """GT poses at ``stamps``: exact matches (the usual case) else nearest within 5 ms."""
     idx = np.clip(np.searchsorted(gt_stamps, stamps), 1, len(gt_stamps) - 1)

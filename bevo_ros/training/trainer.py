@@ -45,7 +45,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from bevo_ros.config import BevoConfig, bev_spec, mounting_in_use, read_yaml
+from bevo_ros.config import BevoConfig, _flatten, bev_spec, mounting_in_use, read_yaml
 from bevo_ros.io.learned_params import LearnedParams, provenance, save_learned_params
 from bevo_ros.io.files import atomic_write_text
 from bevo_ros.core.device import resolve_device
@@ -411,7 +411,26 @@ def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     atomic_write_text(path, header + yaml.safe_dump(state, sort_keys=False, default_flow_style=None))
 
 
+def _number_problem(value: Any, integer: bool = False, minimum: float | None = None,
+                    positive: bool = False) -> str | None:
+    """Why ``value`` is not a plain finite number (an int with ``integer``) >= ``minimum`` (> 0 with
+    ``positive``), or None. A bool is no number here (YAML's ``yes`` would count as 1)."""
+    kinds = (int,) if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kinds):
+        return f"must be {'an integer' if integer else 'a number'}, got {value!r}"
+    if not math.isfinite(value):
+        return f"must be finite, got {value}"
+    if positive and value <= 0:
+        return f"must be > 0, got {value}"
+    if minimum is not None and value < minimum:
+        return f"must be >= {minimum:g}, got {value}"
+    return None
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """A checkpoint of :func:`save_checkpoint`, every number training reads from it checked (a
+    hand-edited ``lr: .nan`` or ``-0.1`` would train NaNs or climb the loss): a bad one is a
+    ValueError naming the file and the field."""
     path = Path(path)
     doc = read_yaml(path, "checkpoint")  # ConfigError is a ValueError
     if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
@@ -425,7 +444,129 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             if not (isinstance(vals, list) and len(vals) == 2 and all(
                     isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in vals)):
                 raise ValueError(f"checkpoint {path}: '{key}.{sub}' must be 2 finite numbers > 0")
+
+    def check(name: str, value: Any, **rules: Any) -> None:
+        if (problem := _number_problem(value, **rules)) is not None:
+            raise ValueError(f"checkpoint {path}: '{name}' {problem}")
+
+    def section(name: str) -> dict[str, Any]:
+        value = doc.get(name)
+        if value is None:
+            return {}
+        if not isinstance(value, dict):
+            raise ValueError(f"checkpoint {path}: '{name}' must be a mapping, got {value!r}")
+        return value
+
+    check("epoch", doc["epoch"], integer=True, minimum=0)
+    for name in ("lr", "bad_epochs"):  # optional: older checkpoints may lack them (options.lr, 0)
+        if doc.get(name) is not None:
+            check(name, doc[name], **({"positive": True} if name == "lr" else {"integer": True, "minimum": 0}))
+    best = doc["best"]
+    if best.get("val_loss") is not None:  # None: not validated yet (inf); NaN would never be beaten
+        check("best.val_loss", best["val_loss"])
+    if best.get("epoch") is not None:
+        check("best.epoch", best["epoch"], integer=True, minimum=0)
+        if best["epoch"] > doc["epoch"]:
+            raise ValueError(f"checkpoint {path}: 'best.epoch' {best['epoch']} is after 'epoch' {doc['epoch']}")
+    before = section("before")
+    for name in ("loss", "rpe_trans_m", "rpe_yaw_deg"):
+        if before.get(name) is not None:  # None: re-measured at the start
+            check(f"before.{name}", before[name], minimum=0)
+    for name in ("pairs", "failed_pairs"):
+        if name in before:
+            check(f"before.{name}", before[name], integer=True, minimum=0)
+    for name, st in section("adam").items():  # Adam's moments go straight into the steps
+        where = f"adam.{name}"
+        if name not in ("log_process_var", "log_measurement_var") or not isinstance(st, dict):
+            raise ValueError(f"checkpoint {path}: '{where}' is not Adam state of log_process_var or "
+                             "log_measurement_var")
+        check(f"{where}.step", st.get("step"), minimum=0)
+        for moment in ("exp_avg", "exp_avg_sq"):
+            vals = st.get(moment)
+            if not (isinstance(vals, list) and len(vals) == 2):
+                raise ValueError(f"checkpoint {path}: '{where}.{moment}' must be 2 numbers, got {vals!r}")
+            for v in vals:
+                check(f"{where}.{moment}", v, minimum=0 if moment == "exp_avg_sq" else None)
+    history = doc.get("history", [])
+    if not isinstance(history, list) or not all(isinstance(h, dict) for h in history):
+        raise ValueError(f"checkpoint {path}: 'history' must be a list of epoch records")
+    for h in history:
+        check("history[].epoch", h.get("epoch"), integer=True, minimum=0)
+    section("setup")
     return doc
+
+
+# What a checkpoint's validation losses depend on besides O/Q: the bags, their split, the loss's
+# shape, and the settings sequence_pass runs with (the camera, BEV, phase correlation but its
+# temperatures, which the loss sets, and the filter's parts the O/Q training uses). Resumed with
+# another, the checkpoint's best loss is a number from elsewhere that the new bags may never beat:
+# the output would silently keep its O/Q.
+_LOSS_FILTER_SETTINGS = ("filter.motion_model", "filter.road_tilt_time_constant", "filter.max_imu_gap",
+                         "filter.mounting_pitch", "filter.mounting_roll", "filter.mounting_reference",
+                         "filter.turn_compensation")
+_SETUP_NAMES = {"split": "--split", "loss.temperature": "--temperature", "loss.sigma_angle_deg": "--sigma-angle",
+                "loss.sigma_shift_px": "--sigma-shift"}
+
+
+def training_setup(bags: list[str], config: BevoConfig, options: TrainOptions,
+                   rig: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The setup a checkpoint records and a resume must match (plain values): ``bags`` as given
+    (``bevo train``: resolved paths), the split, the loss's temperature and blurs, and the settings
+    the validation loss depends on (``rig``: the rig settings that choose the bags' camera, e.g.
+    ``dataclasses.asdict(RigSettings)``)."""
+    flat = config.to_flat()
+    settings = {k: v for k, v in flat.items()
+                if (k.split(".")[0] in ("camera", "bev", "dpc") and not k.endswith("_temperature"))
+                or k in _LOSS_FILTER_SETTINGS}
+    settings.update(rig or {})
+    # the order differences are named in: the camera's intrinsics last (mostly fallbacks to CameraInfo)
+    intrinsics = {f"camera.{k}" for k in ("fx", "fy", "cx", "cy", "width", "height_px")}
+    settings = dict(sorted(settings.items(), key=lambda kv: (kv[0] in intrinsics, not kv[0].startswith("filter."))))
+    return _plain({"bags": sorted(str(b) for b in bags), "split": options.split,
+                   "loss": {"temperature": options.temperature, "sigma_angle_deg": math.degrees(options.sigma_angle),
+                            "sigma_shift_px": options.sigma_shift},
+                   "settings": settings})
+
+
+def resume_differences(state: dict[str, Any], setup: dict[str, Any]) -> list[str]:
+    """What differs between a checkpoint's setup and ``setup`` (:func:`training_setup`), one
+    ``"NAME NEW (checkpoint: OLD)"`` each; a setting only one of them records is not compared (a
+    checkpoint from before the setup was recorded: only its bags' names and split)."""
+    old = state.get("setup")
+    new = _plain(setup)
+    if not old:
+        old = {"bags": sorted(state.get("bags") or []), "split": state.get("split")}
+        new = {"bags": sorted(Path(b).name for b in new["bags"]) if state.get("bags") else None,
+               "split": new["split"] if state.get("split") else None}
+    old, new = _flatten(old), _flatten(new)
+    out = []
+    for key in new:
+        if key in old and old[key] != new[key] and new[key] is not None:
+            name = _SETUP_NAMES.get(key, key.removeprefix("settings."))
+            out.append(f"{name} {_short(new[key])} (checkpoint: {_short(old[key])})")
+    return out
+
+
+def _short(value: Any, limit: int = 160) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def check_resume(path: str | Path, setup: dict[str, Any], anyway: bool = False) -> tuple[dict[str, Any], list[str]]:
+    """``(checkpoint, differences)``: the checkpoint at ``path`` (:func:`load_checkpoint`) and what
+    differs from ``setup``; differences are a ValueError unless ``anyway`` (then the resumed run
+    measures its best validation loss anew)."""
+    state = load_checkpoint(path)
+    differs = resume_differences(state, setup)
+    if differs and not anyway:
+        best = state["best"]
+        loss = f"{best['val_loss']:.4f}" if best.get("val_loss") is not None else "none yet"
+        shown = differs[:8] + ([f"and {len(differs) - 8} more"] if len(differs) > 8 else [])
+        raise ValueError(f"--resume {path}: made with other bags or settings: {'; '.join(shown)}. Its best "
+                         f"validation loss ({loss}, epoch {best.get('epoch', 0)}) was measured there: these bags "
+                         "might never beat it and the output would keep its O/Q. Train without --resume, or "
+                         "--resume-anyway to start from its O/Q with the best validation loss measured anew")
+    return state, differs
 
 
 def train(
@@ -438,6 +579,8 @@ def train(
     progress: bool = True,
     log: Callable[[str], None] = print,
     extra_info: dict[str, Any] | None = None,
+    setup: dict[str, Any] | None = None,
+    resume_anyway: bool = False,
 ) -> TrainResult:
     """Train O and Q on the training parts of ``seqs``; validate each epoch on the held-out parts.
 
@@ -445,6 +588,11 @@ def train(
     ``steps_per_bag`` chunks of a bag's training part and takes one Adam step on the four
     log-variances. Returns the best validated parameters (``learned``), also when the run diverges
     (``status == "diverged"``).
+
+    ``setup`` (:func:`training_setup`; default: the bags' names, ``config`` and ``options``) is
+    recorded in the checkpoint; ``resume`` from a checkpoint of another setup is a ValueError
+    naming the differences, unless ``resume_anyway``: then its O/Q, Adam state and learning rate
+    are taken and the best validation loss measured anew on ``seqs``.
     """
     options.check()
     if not seqs:
@@ -458,16 +606,20 @@ def train(
     steps, vals = _split_parts(seqs, options.split, options.steps_per_bag)
     imu_dt = median_imu_dt(seqs)
 
-    state: dict[str, Any] | None = load_checkpoint(resume) if resume else None
+    setup = setup if setup is not None else training_setup([s.name for s in seqs], config, options)
+    state: dict[str, Any] | None = None
+    differs: list[str] = []
+    if resume:
+        state, differs = check_resume(resume, setup, resume_anyway)
     init_info: dict[str, Any]
     if state is not None:
         o, q = state["current"]["process_noise_density"], state["current"]["measurement_noise_variance"]
-        init_info = state.get("init", {})
-        names = [s.name for s in seqs]
-        if state.get("bags") and state["bags"] != names:
-            log(f"warning: resuming with bags {names}, checkpoint was trained on {state['bags']}")
-        if state.get("split") and state["split"] != options.split:
-            log(f"warning: resuming with split {options.split!r}, checkpoint used {state['split']!r}")
+        init_info = dict(state.get("init") or {})
+        if differs:
+            log(f"warning: resuming anyway from {resume} (epoch {state['epoch']}), made with other bags or settings: "
+                + "; ".join(differs) + ". Its best validation loss is dropped: measured anew on these bags")
+            init_info["resumed_anyway"] = {"checkpoint": str(resume), "epoch": int(state["epoch"]),
+                                           "differences": differs}
     elif options.init is not None:
         o, q = options.init[:2], options.init[2:]
         init_info = {"mode": "given (--init)", "process_noise_density": _pair(o), "measurement_noise_variance": _pair(q)}
@@ -495,7 +647,11 @@ def train(
         bad_epochs = int(state.get("bad_epochs", 0))
         history = list(state.get("history", []))
         before = Evaluation.from_dict(state["before"]) if state.get("before") else None
-        log(f"resumed from {resume}: epoch {start_epoch - 1} done, best val loss {best_loss:.4f} at epoch {best_epoch}")
+        if differs:  # its numbers are other bags' or settings': the start (its O/Q) is measured anew below
+            before, bad_epochs = None, 0
+        else:
+            log(f"resumed from {resume}: epoch {start_epoch - 1} done, best val loss {best_loss:.4f} at epoch "
+                f"{best_epoch}")
     else:
         start_epoch, bad_epochs, history, before = 1, 0, [], None
     if before is None or not math.isfinite(before.loss):
@@ -504,7 +660,7 @@ def train(
         log(f"initial O {_fmt(variances(dukf)[0])} rad^2/s, Q {_fmt(variances(dukf)[1])} rad^2: "
             f"val loss {before.loss:.4f}, RPE {before.trans_m:.4f} m / {before.yaw_deg:.4f} deg"
             + (f", {before.failed} failed pairs" if before.failed else ""))
-    if state is None:
+    if state is None or differs:  # the start is the best so far (epoch 0: "after" is then "before")
         best_loss, best_params, best_epoch = before.loss, variances(dukf), 0
         if not math.isfinite(best_loss):
             raise TrainingDiverged(f"the initial validation loss is {best_loss}; check the data and --init")
@@ -518,7 +674,7 @@ def train(
         o_, q_ = last_good
         return {
             "format": CHECKPOINT_FORMAT, "epoch": epoch,
-            "bags": [s.name for s in seqs], "split": options.split,
+            "bags": [s.name for s in seqs], "split": options.split, "setup": setup,
             "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(options).items()},
             "init": init_info,
             "current": {"process_noise_density": _pair(o_), "measurement_noise_variance": _pair(q_)},
@@ -684,6 +840,6 @@ def write_learned(result: TrainResult, path: str | Path) -> Path:
 
 __all__ = [
     "LOSS_TEMPERATURE", "PassResult", "TrainOptions", "TrainResult", "TrainingDiverged", "Evaluation", "bev_spec",
-    "load_checkpoint", "loss_dpc", "make_dukf", "median_imu_dt", "random_init",
+    "check_resume", "load_checkpoint", "resume_differences", "training_setup", "loss_dpc", "make_dukf", "median_imu_dt", "random_init",
     "resolve_device", "save_checkpoint", "sequence_pass", "train", "variances", "write_learned",
 ]
