@@ -440,6 +440,23 @@ def test_run_warns_when_the_params_describe_another_rig_than_the_bag(synthetic_b
                 assert said in err
 
 
+def test_training_calibration_and_ablation_loader_warns_as_bevo_run(synthetic_bag):
+    """``load_sequence`` (bevo train, calibrate, ablation) warns of the same disagreements as ``bevo run``:
+    training with params/kitti.yaml on a synthetic bag learned under the wrong mounting, silently."""
+    import warnings
+
+    _, path = synthetic_bag
+    for params, warned in ((KITTI_PARAMS, True), (SYNTH_PARAMS, False)):
+        config, _ = load_config(params)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            load_sequence(path, config)
+        said = [str(w.message) for w in caught if "another rig" in str(w.message)]
+        assert bool(said) == warned, said
+        if warned:
+            assert said[0].startswith(str(path)) and "params/synthetic.yaml describes the bag's camera" in said[0]
+
+
 def test_rig_disagreements_name_the_parameters_used_against_the_bag(synthetic_bag):
     from bevo_ros.datasets.rosbag import rig_disagreements
 

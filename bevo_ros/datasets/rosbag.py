@@ -6,6 +6,7 @@ so every tool reads a recording the same way.
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Iterator
@@ -330,6 +331,8 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
         raise ValueError(f"{bag_path}: needs at least 2 images")
     calib = calibration_for_recording(rec, config, rig)
     camera = camera_for_recording(rec, config, rig, calib)
+    for problem in rig_disagreements(rec, config, rig, calib):  # as bevo run warns: training, calibration, ablation
+        warnings.warn(f"{bag_path}: {problem}", UserWarning, stacklevel=2)
     if len(rec.images) and (problem := calib.size_problem(rec.images[0])) is not None:  # the node drops each (bad_image_size)
         raise ValueError(f"{bag_path}: an image {problem}")
     if calib.maps is not None:  # distorted images: undistorted as the node does, in place
