@@ -385,3 +385,21 @@ def test_train_resume_with_a_nan_lr_is_an_error_before_training(synth, tmp_path,
         print(said.err.strip(), f"({time.perf_counter() - t0:.1f} s)")
         assert rc == 2 and f"error: checkpoint {ckpt_path}: 'lr' must be" in said.err and "Traceback" not in said.err
         assert "frames" not in said.out and not (tmp_path / "l.yaml").exists()
+
+
+def test_resume_takes_the_checkpoints_lr_unless_one_is_given(synth, tmp_path):
+    """Resuming continues the checkpoint's learning rate (its decays included); an --lr given with
+    --resume is the one used (it was silently overridden by the checkpoint's)."""
+    bag_path, _, _ = synth
+    out = tmp_path / "a.yaml"
+    args = [str(bag_path), "--out", str(out), "--params", str(SYNTH_PARAMS), "--steps-per-bag", "1", "--window", "64",
+            "--suspension-evals", "0", "--vehicle-steps", "0", "--lr-decay", "1", "-q"]
+    assert train_command.main(args + ["--epochs", "1", "--lr", "0.05", "--init", *map(str, BAD_INIT)]) == 0
+    ckpt_path = tmp_path / "a.yaml.ckpt.yaml"
+    assert load_checkpoint(ckpt_path)["lr"] == pytest.approx(0.05)
+    assert train_command.main(args + ["--epochs", "2", "--resume", str(ckpt_path)]) == 0
+    ckpt = load_checkpoint(ckpt_path)
+    assert ckpt["history"][-1]["epoch"] == 2 and ckpt["history"][-1]["lr"] == pytest.approx(0.05)  # not the 0.3 default
+    assert train_command.main(args + ["--epochs", "3", "--resume", str(ckpt_path), "--lr", "0.2"]) == 0
+    ckpt = load_checkpoint(ckpt_path)
+    assert ckpt["history"][-1]["epoch"] == 3 and ckpt["history"][-1]["lr"] == pytest.approx(0.2)

@@ -66,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_params_option(p)
     p.add_argument("--split", default="3/4", choices=["3/4", "20%"], help="train/validation split per bag")
     p.add_argument("--epochs", type=int, default=20, help="epochs (total, also when resuming; default 20)")
-    p.add_argument("--lr", type=float, default=0.3, help="Adam learning rate on the log-variances (default 0.3)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="Adam learning rate on the log-variances (default 0.3; with --resume the checkpoint's, "
+                        "its decays included, unless given)")
     p.add_argument("--patience", type=int, default=5, help="early stopping: epochs without a better validation "
                                                            "loss (default 5, 0 = never stop early)")
     p.add_argument("--steps-per-bag", type=int, default=8, help="Adam steps per bag per epoch (default 8)")
@@ -132,10 +134,11 @@ def _train(args: argparse.Namespace) -> int:
     for path, what in ((out, "--out"), (checkpoint, "the checkpoint")):  # before hours of training, not after
         if path.is_dir():
             raise ValueError(f"{what} {path} is a directory: give the learned-parameters YAML file to write")
-    if args.lr <= 0:
+    if args.lr is not None and not args.lr > 0:
         raise ValueError(f"--lr {args.lr}: must be > 0")
     options = TrainOptions(
-        epochs=args.epochs, lr=args.lr, patience=args.patience, lr_decay=args.lr_decay, split=args.split,
+        epochs=args.epochs, lr=0.3 if args.lr is None else args.lr, resume_lr=args.lr is None,
+        patience=args.patience, lr_decay=args.lr_decay, split=args.split,
         steps_per_bag=args.steps_per_bag, window=args.window,
         temperature=LOSS_TEMPERATURE if args.temperature is None else args.temperature,
         sigma_angle=math.radians(args.sigma_angle), sigma_shift=args.sigma_shift, seed=args.seed,
@@ -158,8 +161,9 @@ def _train(args: argparse.Namespace) -> int:
         seqs.append(s)
         print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
               f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")
+    lr_said = "the checkpoint's" if args.resume and args.lr is None else f"{options.lr:g}"
     print(f"loaded {len(seqs)} bag(s) in {time.perf_counter() - t0:.1f} s; split {args.split}, "
-          f"{args.epochs} epochs, lr {args.lr}, checkpoint {checkpoint}")
+          f"{args.epochs} epochs, lr {lr_said}, checkpoint {checkpoint}")
     result = train(seqs, config, options, checkpoint=checkpoint, resume=args.resume, progress=not args.quiet,
                    extra_info={"training_bag_paths": [str(Path(b).resolve()) for b in args.bags],
                                "params_file": str(Path(args.params).resolve())},

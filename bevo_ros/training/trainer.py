@@ -244,6 +244,8 @@ def random_init(seed: int | None, imu_dt: float) -> tuple[tuple[float, float], t
 class TrainOptions:
     epochs: int = 20
     lr: float = 0.3
+    # resuming: continue with the checkpoint's learning rate (its decays included) instead of ``lr``
+    resume_lr: bool = True
     patience: int = 5  # epochs without a better validation loss before stopping (0 = never)
     lr_decay: float = 0.5  # the learning rate is multiplied by this after an epoch without improvement
     split: str = "3/4"
@@ -638,7 +640,7 @@ def train(
     if state is not None:
         _adam_state_from_plain(opt, params, state.get("adam") or {})
         for group in opt.param_groups:
-            group["lr"] = float(state.get("lr", options.lr))
+            group["lr"] = float(state.get("lr", options.lr)) if options.resume_lr else options.lr
         start_epoch = int(state["epoch"]) + 1
         best = state["best"]
         best_loss = float(best["val_loss"]) if best.get("val_loss") is not None else math.inf
