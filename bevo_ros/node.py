@@ -169,13 +169,23 @@ class BevoNode(Node):
         calibration): what it would have computed had the rig come first, bit for bit. Later (or
         past the journal's bounds) the engine keeps its trajectory and moves to the new camera
         (counted: ``camera_changed``; before its first frame it moves its DUKF start, to first order)."""
+        replayed = False
         if self.feed.replayable:
             n = len(self.feed.journal.entries)
-            self._publish(self.feed.replay(self._engine_factory(self.config, self.learned, camera)), replayed=True)
-            self.events["rig_replayed"] += 1
-            self.report.log("rig_replayed", f"{what} changed before the second frame: the odometry restarted "
-                                            f"with it, its {n} input(s) since the start fed again", level="info")
-        else:
+            try:
+                steps = self.feed.replay(self._engine_factory(self.config, self.learned, camera))
+                replayed = True
+            except Exception as exc:  # noqa: BLE001 - the running engine stays and takes the camera below
+                self.feed.journal.stop()  # not tried again for every later change
+                self.report.log("rig_replayed", f"{what} changed before the second frame, but feeding its inputs "
+                                                f"again failed ({type(exc).__name__}: {exc}): the running engine "
+                                                "takes the new camera instead", level="error")
+            if replayed:
+                self._publish(steps, replayed=True)
+                self.events["rig_replayed"] += 1
+                self.report.log("rig_replayed", f"{what} changed before the second frame: the odometry restarted "
+                                                f"with it, its {n} input(s) since the start fed again", level="info")
+        if not replayed:
             self.events["camera_changed"] += 1
             self.report.log("camera_changed", f"{what} changed after the odometry's second frame (or a start "
                                               "longer than the inputs kept to feed again): the engine takes it from "

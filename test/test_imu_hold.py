@@ -144,3 +144,74 @@ def test_the_engine_journal_is_bounded_and_ends_after_the_first_frame():
     for i in range(3):
         j.add("image", i / 10)
     assert not j.active and j.entries == []
+
+
+class _FrameEngine:
+    """An engine stub: one frame out per image; ``fail_at`` makes that image raise (a replay that fails)."""
+
+    def __init__(self, fail_at: float | None = None) -> None:
+        self.counters = SimpleNamespace(frames_out=0, standstill=0, gated_peak=0, pitch_correction_off=0)
+        self.max_pending_images, self.pending_images, self.fail_at = 0, 0, fail_at
+
+    def reset(self) -> None:  # as BevoOdometry.reset: the counters run on
+        pass
+
+    def take_events(self) -> list:
+        return []
+
+    def add_imu(self, t, *args) -> list:
+        return []
+
+    def add_image(self, t, img, tag=None) -> list:
+        if t == self.fail_at:
+            raise RuntimeError("a replay that fails")
+        self.counters.frames_out += 1
+        return [SimpleNamespace(stamp=t, tag=tag)]
+
+    def flush(self) -> list:
+        return []
+
+
+def _feed():
+    from collections import Counter
+
+    from bevo_ros.ros.intake import EngineFeed
+
+    settings = SimpleNamespace(imu_qos_depth=100, max_pending_images=20, image_wait=0.5, max_time_jump_back=1.0)
+    report = SimpleNamespace(events=Counter(), drop=lambda *a, **k: None, log=lambda *a, **k: None)
+    feed = EngineFeed(settings, 0.2, report, lambda: feed.reset(),
+                      lambda kind, t, raw: (raw,) if kind == "image" else raw)
+    return feed
+
+
+def _frames(feed, t0: float, n: int) -> None:
+    for i in range(n):
+        feed.imu(t0 + i * 0.1, ((0.0,) * 3, (0.0, 0.0, 9.8)))
+        feed.image(t0 + i * 0.1 + 0.05, "img", None)
+
+
+def test_a_replay_after_a_reset_ends_its_journal_at_the_second_frame():
+    """After a reset the old engine's frame count runs on; the rebuilt engine's starts at 0. The journal
+    counted the new engine's frames from the old count and stayed open for 22 images: a second late rig
+    change replayed frames already published (the path jumped)."""
+    feed = _feed()
+    feed.start(_FrameEngine())
+    _frames(feed, 0.0, 50)
+    assert not feed.replayable
+    feed.reset()  # ~/reset or a time jump: the journal restarts with the old engine's count (50)
+    _frames(feed, 100.0, 1)
+    assert feed.replayable  # at most its first frame since the reset
+    feed.replay(_FrameEngine())
+    assert feed.replayable  # the rebuilt engine has re-made that one frame
+    _frames(feed, 100.1, 1)
+    assert not feed.replayable and feed.journal.entries == []  # its second frame: published for good
+
+
+def test_a_replay_that_fails_keeps_the_running_engine():
+    feed = _feed()
+    running = _FrameEngine()
+    feed.start(running)
+    _frames(feed, 0.0, 1)
+    with pytest.raises(RuntimeError):
+        feed.replay(_FrameEngine(fail_at=0.05))
+    assert feed.engine is running  # the node then hands the running engine the new camera (camera_changed)

@@ -507,7 +507,7 @@ LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durabilit
 R_IMU_YAWED = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # IMU x along the base's y (left)
 
 
-def _late_rig(harness_factory, drive, after_frame: int, camera_info: bool = False):
+def _late_rig(harness_factory, drive, after_frame: int, camera_info: bool = False, before_tf=None):
     """A node whose rig arrives on /tf_static after its ``after_frame``-th frame was published (a
     startup race: another topic than the frames): the params' camera is 1 deg of pitch off the true
     one (the mounting calibrated through it, ``mounting_reference: camera``), the IMU is yawed 90 deg
@@ -551,6 +551,8 @@ def _late_rig(harness_factory, drive, after_frame: int, camera_info: bool = Fals
     assert h.node.engine is not None
     h.send_all(messages[first:split])
     assert h.node.counts["odometry_out"] == after_frame  # published with the params' rig
+    if before_tf is not None:
+        before_tf(h.node)
     tf_pub.publish(tf_static_msg([("base_link", "cam_optical", T_true), ("base_link", "imu_link", T_imu)]))
     assert spin_until(h.executor, lambda: len(h.node.static_tf.tree.edges) == 2, 10)
     h.send_all(messages[split:])
@@ -633,6 +635,23 @@ def test_a_rig_on_tf_static_after_the_third_frame_is_applied_from_then_and_count
     late = np.abs(got - np.array([s.position for s in exact])).max()
     print(f"/tf_static after the third frame: max |dp| to the offline core with the rig from the start {late:.2e} m")
     assert late > 1e-4  # the start stays the params' rig's: the test can tell
+
+
+def test_a_late_rig_whose_replay_fails_is_taken_by_the_running_engine(harness_factory, drive):
+    """Rebuilding the engine for a late rig fails (here its factory raises): the running engine keeps
+    its trajectory and takes the new camera (counted ``camera_changed``, the failure logged), no input
+    is lost and every frame goes out once."""
+    def failing_factory(node):
+        def factory(*args):
+            raise RuntimeError("no engine today")
+        node._engine_factory = factory
+
+    h, _ = _late_rig(harness_factory, drive, after_frame=1, before_tf=failing_factory)
+    node = h.node
+    assert node.events["camera_changed"] == 1 and not node.events["rig_replayed"], dict(node.events)
+    assert any("feeding its inputs again failed (RuntimeError: no engine today)" in text
+               for text in h.logged("rig_replayed"))
+    assert not node.feed.replayable  # not tried again for the IMU axes or a later change
 
 
 def test_use_sim_time_clock_jump_resets(harness_factory, drive):

@@ -324,7 +324,8 @@ def test_train_and_calibrate_refuse_bad_arguments_before_working(synthetic_bag, 
 
     drive, path = synthetic_bag
     for argv, message in (([str(path), "--out", str(tmp_path)], "is a directory"),
-                          ([str(path), "--out", str(tmp_path / "l.yaml"), "--lr", "-1"], "--lr -1.0: must be > 0")):
+                          ([str(path), "--out", str(tmp_path / "l.yaml"), "--lr", "-1"], "--lr -1.0: must be > 0"),
+                          ([str(path), "--out", str(tmp_path / "l.yaml"), "--lr", "inf"], "--lr inf: must be > 0")):
         assert train.main([*argv, "-q", "--params", SYNTH_PARAMS]) == 2
         err = capsys.readouterr().err
         assert message in err and "Traceback" not in err, err
@@ -512,7 +513,7 @@ def test_map_refuses_frames_past_the_bag_and_a_negative_margin(synthetic_bag, tm
     n = len(drive.frame_stamps)
     out = tmp_path / "map.yaml"
     common = ["map", str(path), "--out", str(out), "--params", SYNTH_PARAMS]
-    for extra, message in ((["--frames", f"0:{n + 100}"], f"--frames 0:{n + 100}: {path} has {n} frames (0..{n - 1}"),
+    for extra, message in ((["--frames", f"0:{n + 100}"], f"--frames 0:{n + 100}: {path} has {n} frames, counted from 0 (--frames : is every frame"),
                            (["--frames", f"{n}:"], f"--frames {n}:: {path} has {n} frames"),
                            (["--margin", "-1"], "--margin -1.0: must be >= 0 m"),
                            (["--margin", "nan"], "--margin nan: must be >= 0 m"),

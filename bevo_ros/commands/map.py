@@ -60,7 +60,8 @@ def _check_frames(args: argparse.Namespace, count: int, what: str) -> None:
     first, stop = args.frames
     if (first is not None and first >= count) or (stop is not None and stop > count):
         spec = f"{'' if first is None else first}:{'' if stop is None else stop}"
-        raise ValueError(f"--frames {spec}: {what} {count} frames (0..{count - 1}: --frames 0:{count} is all)")
+        raise ValueError(f"--frames {spec}: {what} {count} frames, counted from 0 (--frames : is every frame with "
+                         "odometry)")
 
 
 def main(argv: list[str] | None = None) -> int:

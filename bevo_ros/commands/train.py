@@ -134,7 +134,7 @@ def _train(args: argparse.Namespace) -> int:
     for path, what in ((out, "--out"), (checkpoint, "the checkpoint")):  # before hours of training, not after
         if path.is_dir():
             raise ValueError(f"{what} {path} is a directory: give the learned-parameters YAML file to write")
-    if args.lr is not None and not args.lr > 0:
+    if args.lr is not None and not (args.lr > 0 and math.isfinite(args.lr)):
         raise ValueError(f"--lr {args.lr}: must be > 0")
     options = TrainOptions(
         epochs=args.epochs, lr=0.3 if args.lr is None else args.lr, resume_lr=args.lr is None,

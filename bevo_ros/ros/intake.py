@@ -300,6 +300,9 @@ class ImuHold:
         self._period = 0.0
 
 
+JOURNAL_MAX_IMAGES = 20  # a longer start (images waiting for IMU) takes a late rig as it comes
+
+
 class Journal:
     """The engine's inputs since its (re)start, in the order it had them, while it has output at
     most ``frames`` frames: what an engine rebuilt for another rig replays (:meth:`EngineFeed.replay`).
@@ -324,6 +327,10 @@ class Journal:
         self._frames_base, self.active = frames_out, True
         if max_images is not None:
             self.max_images = max_images
+
+    def rebase(self, frames_out: int) -> None:
+        """The engine behind the entries is now one whose ``counters.frames_out`` was ``frames_out`` at their start."""
+        self._frames_base = frames_out
 
     def stop(self) -> None:
         self.entries.clear()
@@ -364,7 +371,7 @@ class EngineFeed:
         self._states_seen = dict.fromkeys(ENGINE_STATES, 0)  # the engine's state counters already reported
         self._imu_backlog: collections.deque = collections.deque(maxlen=max(settings.imu_qos_depth, 1000))
         # a start's inputs: the backlog and as much again (100 Hz: 20 s), the held images and two frames
-        self.journal = Journal(2 * self._imu_backlog.maxlen, settings.max_pending_images + 2)
+        self.journal = Journal(2 * self._imu_backlog.maxlen, self._journal_images())
 
     def start(self, engine, images: list | None = None) -> list:
         """Use ``engine`` from now on: the IMU that arrived before it and the ``images``
@@ -373,7 +380,7 @@ class EngineFeed:
         self.engine = engine
         self._states_seen = self._state_counts()
         engine.max_pending_images = self.settings.max_pending_images
-        self.journal.restart(engine.counters.frames_out, self.settings.max_pending_images + 2)
+        self.journal.restart(engine.counters.frames_out, self._journal_images())
         backlog = [(t, 0, raw, None) for t, raw in self._imu_backlog]
         self._imu_backlog.clear()
         steps: list = []
@@ -383,6 +390,11 @@ class EngineFeed:
             steps += out or []
         return steps
 
+    def _journal_images(self) -> int:
+        """Images a start may take to be replayable: the pending ones and two frames, at most
+        JOURNAL_MAX_IMAGES + 2 (raw messages: 20 of 1080p rgb8 are 124 MB, beside the engine's own)."""
+        return min(self.settings.max_pending_images, JOURNAL_MAX_IMAGES) + 2
+
     def replay(self, engine) -> list:
         """Use ``engine`` (another rig) from now on, fed again what the current one had since its
         start (:attr:`journal`, :attr:`replayable`), in the same order, each input taken through the
@@ -390,9 +402,9 @@ class EngineFeed:
         the inputs gave (drops, events) was reported when they came: not again. -> the steps (the
         caller publishes those of frames it has not published)."""
         self._report_events()  # the old engine's, before it goes
-        self.engine = engine
         engine.max_pending_images = self.settings.max_pending_images
         steps: list = []
+        # Fed as a local first: if it raises, the old engine stays (the caller falls back to it).
         for kind, t, raw, tag in self.journal.entries:
             try:
                 if kind == "flush":
@@ -404,7 +416,10 @@ class EngineFeed:
             except (ImplausibleImuError, InvalidInputError):
                 pass  # dropped and counted when it came
         engine.take_events()
+        self.engine = engine
         self._states_seen = self._state_counts()
+        # the journal counts this engine's frames from its start (the old one's count ran on past a reset)
+        self.journal.rebase(0)
         self.journal.check(engine.counters.frames_out)
         return steps
 
@@ -417,7 +432,7 @@ class EngineFeed:
     def reset(self) -> None:
         if self.engine is not None:
             self.engine.reset()
-            self.journal.restart(self.engine.counters.frames_out, self.settings.max_pending_images + 2)
+            self.journal.restart(self.engine.counters.frames_out, self._journal_images())
         self._imu_backlog.clear()
         self.last_imu_stamp = None
 
