@@ -106,6 +106,10 @@ def test_learned_params_round_trip_is_human_readable_and_atomic(tmp_path):
     (lambda d: d["measurement_noise_variance"].update(pitch=".nan"), "must be finite and > 0"),
     (lambda d: d.update(process_noise_density=[1, 2]), "missing section"),
     (lambda d: d.update(suspension_gradient=d.pop("suspension_gradients")), "unknown section.*'suspension_gradient'"),
+    (lambda d: d.update(vehicle_filter={"jerk_density": "fast"}), r"'vehicle_filter.jerk_density' = 'fast' must be"),
+    (lambda d: d.update(vehicle_filter={"jerk_density": True}), r"'vehicle_filter.jerk_density' = True must be"),
+    (lambda d: d.update(vehicle_filter={"jerk_density": -1.0}), r"'vehicle_filter.jerk_density' = -1.0 must be"),
+    (lambda d: d.update(vehicle_filter={"jerk_densty": 1.0}), r"unknown 'vehicle_filter.jerk_densty'"),
 ])
 def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, message):
     path = tmp_path / "learned.yaml"
@@ -116,6 +120,19 @@ def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, me
     with pytest.raises(ConfigError, match=message) as err:
         load_learned_params(path)
     assert str(path) in str(err.value)
+
+
+def test_learned_numbers_written_as_yaml_reads_them(tmp_path):
+    """A hand-edited ``jerk_density: 1e-3`` (no dot: a string to YAML 1.1) was refused in the
+    vehicle_filter section while the other sections took it: every section reads it as the number."""
+    path = tmp_path / "learned.yaml"
+    save_learned_params(LearnedParams(), path)
+    text = path.read_text()
+    assert "vehicle_filter: {}" in text and "  pitch: 0.05\n" in text
+    path.write_text(text.replace("vehicle_filter: {}", "vehicle_filter:\n  jerk_density: 1e-3").replace(
+        "  pitch: 0.05\n", "  pitch: 5e-2\n", 1))
+    loaded = load_learned_params(path)
+    assert loaded.vehicle["jerk_density"] == 1e-3 and loaded.measurement_noise_variance[0] == 5e-2
 
 
 def test_a_learned_file_without_suspension_gradients_says_what_fused_mode_gets(tmp_path):

@@ -106,14 +106,18 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
     vehicle = doc.get("vehicle_filter") or {}
     if not isinstance(vehicle, dict):
         raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter' must be a mapping")
+    numbers = {}
     for k, v in vehicle.items():
         if k not in VehicleNoise.LEARNED:
             raise ConfigError(f"learned-parameters file {path}: unknown 'vehicle_filter.{k}' "
                               f"(known: {', '.join(VehicleNoise.LEARNED)})")
-        if not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+        try:  # a number as the other sections take it: YAML reads 1e-3 (no dot) as a string
+            numbers[k] = float(v) if not isinstance(v, bool) else math.nan
+        except (TypeError, ValueError):
+            numbers[k] = math.nan
+        if not (math.isfinite(numbers[k]) and numbers[k] > 0):
             raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number > 0")
-    learned = LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info,
-                            {k: float(v) for k, v in vehicle.items()},
+    learned = LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info, numbers,
                             pair("suspension_gradients", positive=False, default=(0.0, 0.0)))
     if "suspension_gradients" not in doc:  # said once the file is known good (a bad one is refused alone)
         warnings.warn(f"learned-parameters file {path} has no 'suspension_gradients': fused mode then models no "
