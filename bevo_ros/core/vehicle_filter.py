@@ -46,9 +46,10 @@ class VehicleNoise:
         slip_std: lateral motion not explained by the no-sideslip arc, per metre travelled.
         imu_accel_density: m^2/s^3, noise density of the accelerometer's forward acceleration
             (``f_x + g sin(pitch)``, vibration and bias); its mean over a frame interval measures ``a``.
-            0 = not used (the default): it needs the gravity pitch to ~0.1 deg, which a 10 Hz IMU
-            does not give (KITTI sample: 6.9 -> 9.7 cm per frame with 0.01; the 100 Hz braking
-            preset: 28 -> 5 % per frame).
+            0 = not used (the default). 1.0 (2026-12-04): better per frame everywhere (KITTI sample
+            5.15 -> 4.50 cm, 1.72 -> 1.27 %; presets 5.54 -> 4.84 %), but the real-IMU clips drift more
+            (16 s 1.63 -> 1.73 %): an accelerometer bias integrates into the speed
+            (docs/FUSED_ODOMETRY.md, the tried list).
         accel_bias_walk_density: m^2/s^5, random walk of ``beta``, the forward accelerometer bias
             (a pitch error of 0.1 deg is 0.017 m/s^2).
         image_rotation_std: rad, the images' rotation error beyond its correlation spread (an
