@@ -389,6 +389,28 @@ def test_eval_real_imu_acceptance_table(tmp_path):
     assert len(list(tmp_path.glob("*_hills.npy"))) == 1
     bent = re.search(r"braking/1 +fused +[\d.]+ / +[\d.]+ \w+ +([\d.]+) ", hills.stdout)
     assert bent and float(bent.group(1)) != fused[2], hills.stdout  # other images, another per-frame error
+    # --learned: a candidate learned file for fused mode (the inertial speed input on), on the same frames
+    candidate = tmp_path / "candidate.yaml"
+    candidate.write_text((REPO_ROOT / "params" / "learned_default.yaml").read_text().replace(
+        "  slip_std: 0.03\n", "  slip_std: 0.03\n  imu_accel_density: 1.0\n"))
+    other = subprocess.run([sys.executable, tool, "--presets", "braking", "--acceptance", "--modes", "fused",
+                            "--cache", str(tmp_path), "--learned", str(candidate)], capture_output=True, text=True,
+                           timeout=600)
+    assert other.returncode == 0, other.stderr
+    moved = re.search(r"braking/1 +fused +[\d.]+ / +[\d.]+ \w+ +([\d.]+) ", other.stdout)
+    assert moved and float(moved.group(1)) != fused[2], other.stdout
+    bad = subprocess.run([sys.executable, tool, "--presets", "braking", "--learned", str(tmp_path / "none.yaml")],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode != 0 and "none.yaml" in bad.stderr
+    # tools/eval_set.py reads this table into its one-line summary
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("eval_set", REPO_ROOT / "tools" / "eval_set.py")
+    eval_set = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(eval_set)
+    line = eval_set.clips(["--presets", "braking", "--acceptance", "--cache", str(tmp_path)], None)
+    assert line == (f"road pitch / roll {fused[0]:.2f} / {fused[1]:.2f} deg, per frame {fused[2]:.2f} %, "
+                    f"yaw {fused[3]:.3f} deg, drift {fused[4]:.2f} %"), line
     bad = subprocess.run([sys.executable, tool, "--acceptance"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--acceptance needs --presets" in bad.stderr
     bad = subprocess.run([sys.executable, tool, "--presets", "braking", "--vertical-curves", "--traffic"],

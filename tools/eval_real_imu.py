@@ -57,6 +57,8 @@ FIRST_PAIRS = 5  # the cold start's pairs, reported apart from the rest
 # Issue 9's acceptance on the synthetic presets: road attitude RMS (deg), per-frame translation
 # (% of the mean motion), yaw per frame (deg), endpoint drift (% of the path).
 TARGETS = {"attitude": 0.3, "trans_pct": 3.0, "yaw": 0.05, "drift": 1.0}
+# The learned parameters of each mode (--learned replaces the fused one's: a candidate file, e.g. bevo train's).
+LEARNED = {"fused": REPO_ROOT / "params" / "learned_default.yaml", "paper": REPO_ROOT / "params" / "learned_paper.yaml"}
 
 
 def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -65,7 +67,7 @@ def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = No
     engine's ``OdometryStep`` s are appended to ``steps_out`` if given."""
     config = BevoConfig()
     config.odometry.mode = mode
-    learned = load_learned_params(REPO_ROOT / "params" / ("learned_default.yaml" if mode == "fused" else "learned_paper.yaml"))
+    learned = load_learned_params(LEARNED[mode])
     odo = build_odometry(config, learned, camera=d.camera)
     imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
     steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
@@ -169,7 +171,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--acceptance", action="store_true",
                    help="with --presets: each drive whole, issue 9's acceptance table (instead of clips: "
                         "--length, --step, --starts, --pairs and --verbose do not apply)")
+    p.add_argument("--learned", type=Path, help="fused mode's learned-parameters YAML (default "
+                                                "params/learned_default.yaml): a candidate against the default")
     args = p.parse_args(argv)
+    if args.learned is not None:
+        LEARNED["fused"] = args.learned.resolve()
+        load_learned_params(LEARNED["fused"])  # a bad file: its error now, not after the renders
     if args.acceptance and args.presets is None:
         print("eval_real_imu: --acceptance needs --presets (the targets are the synthetic presets')", file=sys.stderr)
         return 2
