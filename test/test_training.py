@@ -296,6 +296,8 @@ def test_resume_with_other_bags_or_parameters_is_refused_unless_anyway(synth, tm
     start = ckpt["current"]["process_noise_density"]  # epoch 0 = the checkpoint's O/Q, the start
     assert new["best"]["epoch"] == 2 or np.allclose(learned.process_noise_density, start)
     assert learned.info["init"]["resumed_anyway"]["differences"][0].startswith("bags")
+    # the checkpoint's epoch records are kept, marked as another setup's; this run's are not
+    assert [h.get("other_setup", False) for h in new["history"]] == [True, False], new["history"]
     with pytest.raises(SystemExit) as refused:
         train_command.main(_train_args(bag_path, out, "--resume-anyway"))
     assert refused.value.code == 2

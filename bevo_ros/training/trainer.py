@@ -651,6 +651,7 @@ def train(
         before = Evaluation.from_dict(state["before"]) if state.get("before") else None
         if differs:  # its numbers are other bags' or settings': the start (its O/Q) is measured anew below
             before, bad_epochs = None, 0
+            history = [{**h, "other_setup": True} for h in history]  # kept, but not these bags' losses
         else:
             log(f"resumed from {resume}: epoch {start_epoch - 1} done, best val loss {best_loss:.4f} at epoch "
                 f"{best_epoch}")
