@@ -69,6 +69,7 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
                          f"(0..{len(rec.frame_stamps_ns) - 1})")
     first_stamp = rec.frame_stamps_ns[first_frame] if first_frame else None
     steps: list[OdometryStep] = []
+    kept = _with_bevs if keep_bevs else _without_bevs
     drops: dict[str, int] = {}
     total = len(rec.frame_stamps_ns)
     bar = None
@@ -107,14 +108,18 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
             if drops[reason] <= 3:  # the first few of each reason, then a summary (no flood)
                 print(f"run_bag: dropped {topic} at {stamp:.9f}: {exc}", file=sys.stderr)
             continue
-        steps.extend(out if keep_bevs else map(_without_bevs, out))
-    steps.extend(odo.flush() if keep_bevs else map(_without_bevs, odo.flush()))
+        steps.extend(map(kept, out))
+    steps.extend(map(kept, odo.flush()))
     for reason, n in drops.items():
         if n > 3:
             print(f"run_bag: dropped {n} message(s) in all for {reason}", file=sys.stderr)
     if bar is not None:
         bar.close()
     return steps, rec, odo
+
+
+def _with_bevs(step: OdometryStep) -> OdometryStep:
+    return step
 
 
 def _without_bevs(step: OdometryStep) -> OdometryStep:
