@@ -33,6 +33,7 @@ whether the fused mode beats the paper's on all four.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -48,6 +49,7 @@ from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry
 from bevo_ros.datasets.kitti import read_oxts
 from bevo_ros.datasets.rosbag import feed_engine
 from bevo_ros.datasets.synthetic import PRESETS, kitti_like_camera, preset_drive
+from bevo_ros.datasets.synthetic.imu import ImuNoise
 from bevo_ros.datasets.synthetic.oxts_drive import drive_from_oxts
 from bevo_ros.evaluation.metrics import motion_scores
 from bevo_ros.io.learned_params import load_learned_params
@@ -162,6 +164,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="synthetic preset drives instead of the shared OXTS (comma-separated, or 'all')")
     p.add_argument("--seeds", default="1", help="with --presets: seeds (comma-separated, default 1)")
     p.add_argument("--imu-rate", type=float, default=10.0, help="with --presets: IMU rate, Hz (default 10, KITTI's)")
+    p.add_argument("--gyro-bias", type=float, default=None, metavar="DEG_S",
+                   help="with --presets: the synthetic gyro's turn-on bias, standard deviation per axis in deg/s (default "
+                        f"{math.degrees(ImuNoise().gyro_bias):.2f}, a calibrated MEMS part; 0.5-1 is an uncalibrated one). "
+                        "The same seeded draw scaled: the images and the truth stay the same")
     p.add_argument("--traffic", action="store_true",
                    help="other vehicles in the images: a car ahead, parked cars, oncoming cars (synthetic.TrafficOptions)")
     p.add_argument("--vertical-curves", action="store_true",
@@ -179,6 +185,10 @@ def main(argv: list[str] | None = None) -> int:
         load_learned_params(LEARNED["fused"])  # a bad file: its error now, not after the renders
     if args.acceptance and args.presets is None:
         print("eval_real_imu: --acceptance needs --presets (the targets are the synthetic presets')", file=sys.stderr)
+        return 2
+    if args.gyro_bias is not None and (args.presets is None or not (math.isfinite(args.gyro_bias) and args.gyro_bias >= 0)):
+        print("eval_real_imu: --gyro-bias needs --presets and a finite number >= 0 (deg/s; the shared drives' IMU is "
+              "the real one)", file=sys.stderr)
         return 2
     if args.vertical_curves and args.traffic:
         print("eval_real_imu: --vertical-curves and --traffic cannot be combined (the vehicles stand on the road's "
@@ -207,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     for drive, name, seed in sources:
         if args.presets is not None:
             d = preset_drive(name, seed=seed, imu_rate=args.imu_rate, camera=camera, render="lazy", traffic=args.traffic,
+                             noise=True if args.gyro_bias is None else ImuNoise(gyro_bias=math.radians(args.gyro_bias)),
                              vertical_curves=args.vertical_curves)
             cache = args.cache / f"preset_{name}_seed{seed}_{args.imu_rate:g}hz_620x188{traffic}.npy"
         else:
@@ -256,7 +267,8 @@ def main(argv: list[str] | None = None) -> int:
                           f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)
     if args.acceptance:
         extra = " with traffic" if args.traffic else " over crests and sags" if args.vertical_curves else ""
-        print(f"{args.imu_rate:g} Hz IMU, 620x188 camera, whole drives{extra}:")
+        bias = "" if args.gyro_bias is None else f" (gyro bias {args.gyro_bias:g} deg/s per axis)"
+        print(f"{args.imu_rate:g} Hz IMU{bias}, 620x188 camera, whole drives{extra}:")
         print_acceptance(results, modes)
         return 0
     if not rows[modes[0]]:
