@@ -19,6 +19,7 @@ from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS, camera_extrinsics, imu_
 from bevo_ros.config import BevoConfig, ConfigError, camera_model, coerce_setting, extrinsics_problem
 from bevo_ros.core.validation import intrinsics_problem
 from bevo_ros.core.geometry import CameraModel, rpy_from_rotation
+from bevo_ros.evaluation.metrics import rotation_error
 
 PathLike = str | os.PathLike
 
@@ -210,8 +211,7 @@ USED_FOCAL_REL, USED_CENTRE_PX = 0.01, 5.0  # camera.fx/fy relative, camera.cx/c
 
 def _rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
     """Angle of the rotation between two poses' rotations, degrees."""
-    c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    return float(np.degrees(rotation_error(A[:3, :3].T @ B[:3, :3])))
 
 
 def _shipped_params_with_camera(T: np.ndarray) -> list[str]:
