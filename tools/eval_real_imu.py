@@ -168,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --presets: the synthetic gyro's turn-on bias, standard deviation per axis in deg/s (default "
                         f"{math.degrees(ImuNoise().gyro_bias):.2f}, a calibrated MEMS part; 0.5-1 is an uncalibrated one). "
                         "The same seeded draw scaled: the images and the truth stay the same")
+    p.add_argument("--grade", type=float, default=None, metavar="DEG",
+                   help="with --presets: a constant road grade added to the drive's slope, deg (the pitch's sign: positive is "
+                        "downhill; 3 deg is a 5 %% grade). The images and the truth stay the same; the IMU feels it: every clip is a "
+                        "cold start on a hill")
     p.add_argument("--traffic", action="store_true",
                    help="other vehicles in the images: a car ahead, parked cars, oncoming cars (synthetic.TrafficOptions)")
     p.add_argument("--vertical-curves", action="store_true",
@@ -189,6 +193,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.gyro_bias is not None and (args.presets is None or not (math.isfinite(args.gyro_bias) and args.gyro_bias >= 0)):
         print("eval_real_imu: --gyro-bias needs --presets and a finite number >= 0 (deg/s; the shared drives' IMU is "
               "the real one)", file=sys.stderr)
+        return 2
+    if args.grade is not None and (args.presets is None or not (math.isfinite(args.grade) and abs(args.grade) <= 20)):
+        print("eval_real_imu: --grade needs --presets and a number within +-20 deg (the shared drives have their own "
+              "slope)", file=sys.stderr)
         return 2
     if args.vertical_curves and args.traffic:
         print("eval_real_imu: --vertical-curves and --traffic cannot be combined (the vehicles stand on the road's "
@@ -218,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.presets is not None:
             d = preset_drive(name, seed=seed, imu_rate=args.imu_rate, camera=camera, render="lazy", traffic=args.traffic,
                              noise=True if args.gyro_bias is None else ImuNoise(gyro_bias=math.radians(args.gyro_bias)),
-                             vertical_curves=args.vertical_curves)
+                             vertical_curves=args.vertical_curves, grade=math.radians(args.grade or 0.0))
             cache = args.cache / f"preset_{name}_seed{seed}_{args.imu_rate:g}hz_620x188{traffic}.npy"
         else:
             d = drive_from_oxts(read_oxts(args.raw / f"2011_09_30_drive_{name}_sync" / "oxts"), seed=seed, camera=camera,
@@ -268,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.acceptance:
         extra = " with traffic" if args.traffic else " over crests and sags" if args.vertical_curves else ""
         bias = "" if args.gyro_bias is None else f" (gyro bias {args.gyro_bias:g} deg/s per axis)"
+        bias += "" if args.grade is None else f" (on a {args.grade:+g} deg grade)"
         print(f"{args.imu_rate:g} Hz IMU{bias}, 620x188 camera, whole drives{extra}:")
         print_acceptance(results, modes)
         return 0

@@ -178,6 +178,7 @@ def make_drive(
     gyro_sampling: str = "interval_mean",
     traffic: TrafficOptions | bool | None = None,
     vertical_curves: bool = False,
+    grade: float = 0.0,
 ) -> SyntheticDrive:
     """Simulate a drive: trajectory, IMU at ``imu_rate`` and camera frames at ``frame_rate``.
 
@@ -214,6 +215,10 @@ def make_drive(
             and the images show the road ahead bent by them (``road_profile``; the BEV's plane is
             no longer the road under the car, as on real roads). The road-relative attitude stays
             the one to the road under the base. Not with ``traffic`` (its vehicles stand on the plane).
+        grade: a constant road grade (rad; the pitch's sign, REP-103: positive is nose down, downhill) added to the road's slope
+            (``road_tilt``'s, seeded or given): the IMU feels it, the images and the motion on the
+            road do not change (they are relative to the road), so a drive's cached frames serve any
+            grade. A cold start on a hill (``tools/eval_real_imu.py --grade``).
 
     Returns:
         a :class:`SyntheticDrive`.
@@ -243,6 +248,8 @@ def make_drive(
     traffic = as_traffic_options(traffic)
     if vertical_curves and traffic is not None:
         raise ValueError("vertical_curves and traffic cannot be combined: the vehicles stand on the road's plane")
+    if not (math.isfinite(float(grade)) and abs(float(grade)) <= 0.35):
+        raise ValueError(f"grade must be a finite angle within +-0.35 rad (20 deg), got {grade!r}")
     if render not in (True, False, "lazy"):
         raise ValueError(f"render must be True, False or 'lazy', got {render!r}")
     if not (road_tilt is True or road_tilt is False or (isinstance(road_tilt, (tuple, list)) and len(road_tilt) == 2)):
@@ -276,6 +283,8 @@ def make_drive(
         curvature=curvature, max_yaw_rate=max_yaw_rate, max_lateral_accel=max_lateral_accel, bumps=bumps,
         road_tilt=road_tilt, camera=camera, start_yaw=float(start_pose[2]),
     )
+    if grade:
+        motion = replace(motion, slope0=motion.slope0 + float(grade))
     v_ref = speed_range[1]  # vibration envelope: relative to the fastest speed
     if pre_set is not None:
         motion = _with_preset(motion, pre_set, np.random.default_rng([int(seed), 5]), -pre, t_imu[-1] + post, bumps)
