@@ -169,9 +169,9 @@ def main(argv: list[str] | None = None) -> int:
                         f"{math.degrees(ImuNoise().gyro_bias):.2f}, a calibrated MEMS part; 0.5-1 is an uncalibrated one). "
                         "The same seeded draw scaled: the images and the truth stay the same")
     p.add_argument("--grade", type=float, default=None, metavar="DEG",
-                   help="with --presets: a constant road grade added to the drive's slope, deg (the pitch's sign: positive is "
-                        "downhill; 3 deg is a 5 %% grade). The images and the truth stay the same; the IMU feels it: every clip is a "
-                        "cold start on a hill")
+                   help="with --presets: a constant road grade added to the drive's slope, deg (the pitch's "
+                        "sign: positive is downhill; 3 deg is a 5 %% grade). The images and the truth stay the same; "
+                        "the IMU feels it: every clip is a cold start on a hill")
     p.add_argument("--traffic", action="store_true",
                    help="other vehicles in the images: a car ahead, parked cars, oncoming cars (synthetic.TrafficOptions)")
     p.add_argument("--vertical-curves", action="store_true",
@@ -273,16 +273,18 @@ def main(argv: list[str] | None = None) -> int:
                 if args.verbose:
                     print(f"  {drive:>14s} {f0:5d} {mode:5s} {dist:6.1f} m: drift {drift:6.2f} %, scale {scale:+6.2f} %, "
                           f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)
+    bias = "" if args.gyro_bias is None else f" (gyro bias {args.gyro_bias:g} deg/s per axis)"
+    bias += "" if args.grade is None else f" (on a {args.grade:+g} deg grade)"
     if args.acceptance:
         extra = " with traffic" if args.traffic else " over crests and sags" if args.vertical_curves else ""
-        bias = "" if args.gyro_bias is None else f" (gyro bias {args.gyro_bias:g} deg/s per axis)"
-        bias += "" if args.grade is None else f" (on a {args.grade:+g} deg grade)"
         print(f"{args.imu_rate:g} Hz IMU{bias}, 620x188 camera, whole drives{extra}:")
         print_acceptance(results, modes)
         return 0
     if not rows[modes[0]]:
         print(f"eval_real_imu: no clip of {args.length} frames covers 20 m or more", file=sys.stderr)
         return 1
+    if bias:
+        print(f"synthetic presets{bias}:")
     for mode in modes:
         r = np.array(rows[mode])
         print(f"{mode} ({len(r)} clips of {args.length} frames): drift mean {r[:, 0].mean():.2f} %, median "

@@ -215,10 +215,11 @@ def make_drive(
             and the images show the road ahead bent by them (``road_profile``; the BEV's plane is
             no longer the road under the car, as on real roads). The road-relative attitude stays
             the one to the road under the base. Not with ``traffic`` (its vehicles stand on the plane).
-        grade: a constant road grade (rad; the pitch's sign, REP-103: positive is nose down, downhill) added to the road's slope
-            (``road_tilt``'s, seeded or given): the IMU feels it, the images and the motion on the
-            road do not change (they are relative to the road), so a drive's cached frames serve any
-            grade. A cold start on a hill (``tools/eval_real_imu.py --grade``).
+        grade: a constant road grade (rad; the pitch's sign, REP-103: positive is nose down, i.e.
+            downhill) added to the road's slope (``road_tilt``'s, seeded or given): the IMU feels it,
+            the images and the motion on the road do not change (they are relative to the road), so
+            a drive's cached frames serve any grade. A cold start on a hill
+            (``tools/eval_real_imu.py --grade``).
 
     Returns:
         a :class:`SyntheticDrive`.
