@@ -358,26 +358,19 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
     bad = subprocess.run([sys.executable, tool, "--presets", "curve", "--starts", "60,x"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "expected comma-separated frame numbers" in bad.stderr
-    # --gyro-bias: an uncalibrated MEMS gyro's 1 deg/s (the same draw, the same frames from the cache):
-    # the pitch bias passes the road-tilt high-pass into the BEV (measured 1.8 -> 5.6 % drift on these clips)
-    biased = subprocess.run([sys.executable, tool, "--presets", "curve", "--length", "40", "--step", "60",
-                             "--modes", "fused", "--cache", str(tmp_path), "--gyro-bias", "1.0"],
-                            capture_output=True, text=True, timeout=600)
-    assert biased.returncode == 0, biased.stderr
-    mb = re.search(r"fused \((\d+) clips of 40 frames\): drift mean ([\d.]+) %", biased.stdout)
-    assert mb and int(mb.group(1)) == 3 and float(mb.group(2)) > float(m.group(2)) + 2.0, (out.stdout, biased.stdout)
-    bad = subprocess.run([sys.executable, tool, "--gyro-bias", "0.5"], capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "--gyro-bias needs --presets" in bad.stderr
-    # --grade: every clip a cold start on a 5 deg hill (the same frames from the cache, the IMU tilted):
-    # the DUKF's start converges to the slope over seconds (measured 1.8 -> 5.5 % drift on these clips)
-    hill = subprocess.run([sys.executable, tool, "--presets", "curve", "--length", "40", "--step", "60",
-                           "--modes", "fused", "--cache", str(tmp_path), "--grade", "5"],
-                          capture_output=True, text=True, timeout=600)
-    assert hill.returncode == 0, hill.stderr
-    mh = re.search(r"fused \((\d+) clips of 40 frames\): drift mean ([\d.]+) %", hill.stdout)
-    assert mh and int(mh.group(1)) == 3 and float(mh.group(2)) > float(m.group(2)) + 2.0, (out.stdout, hill.stdout)
-    bad = subprocess.run([sys.executable, tool, "--grade", "3"], capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "--grade needs --presets" in bad.stderr
+    # The same clips from the same cached frames with the IMU changed, each refused without --presets:
+    # --gyro-bias, an uncalibrated MEMS gyro's 1 deg/s, whose pitch bias passes the road-tilt high-pass into
+    # the BEV (measured 1.8 -> 5.6 % drift); --grade, a 5 deg hill under every cold start, whose slope the
+    # DUKF's start converges to over seconds (1.8 -> 5.5 %).
+    for option, value in (("--gyro-bias", "1.0"), ("--grade", "5")):
+        varied = subprocess.run([sys.executable, tool, "--presets", "curve", "--length", "40", "--step", "60",
+                                 "--modes", "fused", "--cache", str(tmp_path), option, value],
+                                capture_output=True, text=True, timeout=600)
+        assert varied.returncode == 0, varied.stderr
+        mv = re.search(r"fused \((\d+) clips of 40 frames\): drift mean ([\d.]+) %", varied.stdout)
+        assert mv and int(mv.group(1)) == 3 and float(mv.group(2)) > float(m.group(2)) + 2.0, (out.stdout, varied.stdout)
+        bad = subprocess.run([sys.executable, tool, option, value], capture_output=True, text=True, timeout=120)
+        assert bad.returncode == 2 and f"{option} needs --presets" in bad.stderr
 
 
 def test_eval_real_imu_acceptance_table(tmp_path):
