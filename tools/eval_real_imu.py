@@ -63,6 +63,27 @@ TARGETS = {"attitude": 0.3, "trans_pct": 3.0, "yaw": 0.05, "drift": 1.0}
 LEARNED = {"fused": REPO_ROOT / "params" / "learned_default.yaml", "paper": REPO_ROOT / "params" / "learned_paper.yaml"}
 
 
+TRUE_ROAD_PITCH = False  # --true-road-pitch: the BEV projected at the truth's road pitch (fused mode)
+
+
+def use_true_road_pitch(odo, d) -> None:
+    """An oracle for the measurement, not for use: every IMU sample's road-relative attitude, which
+    the engine projects each frame's BEV with, gets the drive's true road pitch (its roll and all
+    else stay the engine's), and the pitch-change correction goes off (it would take the true pitch's
+    own changes for the engine's). What is left is the vision and the motion filter: the ceiling a
+    perfect road pitch would reach."""
+    fuse = odo._fuse_imu
+
+    def fuse_with_true_pitch(stamp: float, gyro, accel) -> None:
+        fuse(stamp, gyro, accel)
+        i = int(np.argmin(np.abs(d.imu_stamps - stamp)))
+        t, road, *rest = odo._history[-1]
+        odo._history[-1] = (t, (float(d.imu_pitch_roll_road[i, 0]) + odo._mounting[0], road[1]), *rest)
+
+    odo._fuse_imu = fuse_with_true_pitch
+    odo.pitch_change_correction = False
+
+
 def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The engine over frames f0..f1 fed by stamp (IMU first on equal stamps). -> ``(F-1, 3)``
     motions and ``(F, 2)`` the BEV's road-relative pitch and roll less the mounting (rad); the
@@ -71,6 +92,8 @@ def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = No
     config.odometry.mode = mode
     learned = load_learned_params(LEARNED[mode])
     odo = build_odometry(config, learned, camera=d.camera)
+    if TRUE_ROAD_PITCH:
+        use_true_road_pitch(odo, d)
     imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
     steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
                         lambda k: np.asarray(images[f0 + k]), by_stamp=True)
@@ -172,6 +195,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --presets: a constant road grade added to the drive's slope, deg (the pitch's "
                         "sign: positive is downhill; 3 deg is a 5 %% grade). The images and the truth stay the same; "
                         "the IMU feels it: every clip is a cold start on a hill")
+    p.add_argument("--true-road-pitch", action="store_true",
+                   help="fused mode only: project every BEV at the truth's road pitch (the engine's roll and all else "
+                        "kept; the pitch-change correction off): the ceiling a perfect road pitch would reach")
     p.add_argument("--traffic", action="store_true",
                    help="other vehicles in the images: a car ahead, parked cars, oncoming cars (synthetic.TrafficOptions)")
     p.add_argument("--vertical-curves", action="store_true",
@@ -198,6 +224,12 @@ def main(argv: list[str] | None = None) -> int:
         print("eval_real_imu: --grade needs --presets and a number within +-20 deg (the shared drives have their own "
               "slope)", file=sys.stderr)
         return 2
+    if args.true_road_pitch and args.modes != "fused":
+        print("eval_real_imu: --true-road-pitch needs --modes fused (paper mode has no road-pitch estimate to replace)",
+              file=sys.stderr)
+        return 2
+    global TRUE_ROAD_PITCH
+    TRUE_ROAD_PITCH = args.true_road_pitch
     if args.vertical_curves and args.traffic:
         print("eval_real_imu: --vertical-curves and --traffic cannot be combined (the vehicles stand on the road's "
               "plane)", file=sys.stderr)
@@ -275,6 +307,7 @@ def main(argv: list[str] | None = None) -> int:
                           f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)
     bias = "" if args.gyro_bias is None else f" (gyro bias {args.gyro_bias:g} deg/s per axis)"
     bias += "" if args.grade is None else f" (on a {args.grade:+g} deg grade)"
+    bias += " (the BEV at the true road pitch)" if args.true_road_pitch else ""
     if args.acceptance:
         extra = " with traffic" if args.traffic else " over crests and sags" if args.vertical_curves else ""
         print(f"{args.imu_rate:g} Hz IMU{bias}, 620x188 camera, whole drives{extra}:")
@@ -284,14 +317,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"eval_real_imu: no clip of {args.length} frames covers 20 m or more", file=sys.stderr)
         return 1
     if bias:
-        print(f"synthetic presets{bias}:")
+        print(f"{'synthetic presets' if args.presets else 'real drives'}{bias}:")
     for mode in modes:
         r = np.array(rows[mode])
         print(f"{mode} ({len(r)} clips of {args.length} frames): drift mean {r[:, 0].mean():.2f} %, median "
               f"{np.median(r[:, 0]):.2f}, p90 {np.percentile(r[:, 0], 90):.2f}, max {r[:, 0].max():.2f}; over 3 %: "
               f"{(r[:, 0] > 3).sum()}, over 5 %: {(r[:, 0] > 5).sum()}; per frame {r[:, 1].mean():.2f} cm; "
               f"scale error RMS {np.sqrt(np.mean(r[:, 2] ** 2)):.2f} %")
-        if len(r) > 2 and np.std(r[:, 3]) > 0:
+        if len(r) > 2 and np.std(r[:, 3]) > 1e-6:  # none with --true-road-pitch
             slope = np.polyfit(r[:, 3], r[:, 2], 1)[0]
             print(f"{mode}: the BEV's road pitch error while moving (motion-weighted mean per clip) RMS "
                   f"{np.sqrt(np.mean(r[:, 3] ** 2)):.3f} deg; the clips' scale error follows it at {slope / 10:+.2f} % "
