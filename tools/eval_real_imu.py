@@ -63,9 +63,6 @@ TARGETS = {"attitude": 0.3, "trans_pct": 3.0, "yaw": 0.05, "drift": 1.0}
 LEARNED = {"fused": REPO_ROOT / "params" / "learned_default.yaml", "paper": REPO_ROOT / "params" / "learned_paper.yaml"}
 
 
-TRUE_ROAD_PITCH = False  # --true-road-pitch: the BEV projected at the truth's road pitch (fused mode)
-
-
 def use_true_road_pitch(odo, d) -> None:
     """An oracle for the measurement, not for use: every IMU sample's road-relative attitude, which
     the engine projects each frame's BEV with, gets the drive's true road pitch (its roll and all
@@ -76,7 +73,7 @@ def use_true_road_pitch(odo, d) -> None:
 
     def fuse_with_true_pitch(stamp: float, gyro, accel) -> None:
         fuse(stamp, gyro, accel)
-        i = int(np.argmin(np.abs(d.imu_stamps - stamp)))
+        i = min(int(np.searchsorted(d.imu_stamps, stamp)), len(d.imu_stamps) - 1)  # fed d's own stamps
         t, road, *rest = odo._history[-1]
         odo._history[-1] = (t, (float(d.imu_pitch_roll_road[i, 0]) + odo._mounting[0], road[1]), *rest)
 
@@ -84,15 +81,17 @@ def use_true_road_pitch(odo, d) -> None:
     odo.pitch_change_correction = False
 
 
-def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = None,
+             true_road_pitch: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The engine over frames f0..f1 fed by stamp (IMU first on equal stamps). -> ``(F-1, 3)``
     motions and ``(F, 2)`` the BEV's road-relative pitch and roll less the mounting (rad); the
-    engine's ``OdometryStep`` s are appended to ``steps_out`` if given."""
+    engine's ``OdometryStep`` s are appended to ``steps_out`` if given; ``true_road_pitch``:
+    :func:`use_true_road_pitch`."""
     config = BevoConfig()
     config.odometry.mode = mode
     learned = load_learned_params(LEARNED[mode])
     odo = build_odometry(config, learned, camera=d.camera)
-    if TRUE_ROAD_PITCH:
+    if true_road_pitch:
         use_true_road_pitch(odo, d)
     imu = (d.imu_stamps >= d.frame_stamps[f0] - 0.15) & (d.imu_stamps <= d.frame_stamps[f1 - 1] + 0.15)
     steps = feed_engine(odo, d.imu_stamps[imu], d.gyro[imu], d.accel[imu], d.frame_stamps[f0:f1],
@@ -103,10 +102,10 @@ def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = No
     return np.array([s.motion for s in steps[1:]]), attitude
 
 
-def acceptance_row(d, images, mode: str) -> dict[str, float]:
+def acceptance_row(d, images, mode: str, true_road_pitch: bool = False) -> dict[str, float]:
     """One preset drive whole through the engine in ``mode``: ``evaluation.metrics.motion_scores``
     (the issue 9 figures, :data:`TARGETS`' keys with the attitude as ``pitch`` and ``roll``)."""
-    est, road = run_clip(d, images, 0, d.num_frames, mode)
+    est, road = run_clip(d, images, 0, d.num_frames, mode, true_road_pitch=true_road_pitch)
     return motion_scores(est, d.relative_motion, road, d.pitch_roll_road)
 
 
@@ -228,8 +227,6 @@ def main(argv: list[str] | None = None) -> int:
         print("eval_real_imu: --true-road-pitch needs --modes fused (paper mode has no road-pitch estimate to replace)",
               file=sys.stderr)
         return 2
-    global TRUE_ROAD_PITCH
-    TRUE_ROAD_PITCH = args.true_road_pitch
     if args.vertical_curves and args.traffic:
         print("eval_real_imu: --vertical-curves and --traffic cannot be combined (the vehicles stand on the road's "
               "plane)", file=sys.stderr)
@@ -272,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
             np.save(tmp, images)
             tmp.replace(cache)  # atomic: a killed run leaves no half cache
         if args.acceptance:
-            results[drive] = {mode: acceptance_row(d, images, mode) for mode in modes}
+            results[drive] = {mode: acceptance_row(d, images, mode, args.true_road_pitch) for mode in modes}
             continue
         last = d.num_frames - args.length
         starts = range(0, last + 1, args.step) if args.starts is None else [f for f in args.starts if f <= last]
@@ -287,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             for mode in modes:
                 steps: list = []
-                est, bev_attitude = run_clip(d, images, f0, f1, mode, steps)
+                est, bev_attitude = run_clip(d, images, f0, f1, mode, steps, args.true_road_pitch)
                 bev_pitch = bev_attitude[:, 0]
                 score = motion_scores(est, gt)
                 drift, scale = score["drift"], score["scale"]
@@ -305,19 +302,19 @@ def main(argv: list[str] | None = None) -> int:
                 if args.verbose:
                     print(f"  {drive:>14s} {f0:5d} {mode:5s} {dist:6.1f} m: drift {drift:6.2f} %, scale {scale:+6.2f} %, "
                           f"per frame {trans:5.2f} cm, BEV pitch error {pitch_err:+.3f} deg", flush=True)
-    bias = "" if args.gyro_bias is None else f" (gyro bias {args.gyro_bias:g} deg/s per axis)"
-    bias += "" if args.grade is None else f" (on a {args.grade:+g} deg grade)"
-    bias += " (the BEV at the true road pitch)" if args.true_road_pitch else ""
+    variant = "" if args.gyro_bias is None else f" (gyro bias {args.gyro_bias:g} deg/s per axis)"
+    variant += "" if args.grade is None else f" (on a {args.grade:+g} deg grade)"
+    variant += " (the BEV at the true road pitch)" if args.true_road_pitch else ""
     if args.acceptance:
         extra = " with traffic" if args.traffic else " over crests and sags" if args.vertical_curves else ""
-        print(f"{args.imu_rate:g} Hz IMU{bias}, 620x188 camera, whole drives{extra}:")
+        print(f"{args.imu_rate:g} Hz IMU{variant}, 620x188 camera, whole drives{extra}:")
         print_acceptance(results, modes)
         return 0
     if not rows[modes[0]]:
         print(f"eval_real_imu: no clip of {args.length} frames covers 20 m or more", file=sys.stderr)
         return 1
-    if bias:
-        print(f"{'synthetic presets' if args.presets else 'real drives'}{bias}:")
+    if variant:
+        print(f"{'synthetic presets' if args.presets else 'real drives'}{variant}:")
     for mode in modes:
         r = np.array(rows[mode])
         print(f"{mode} ({len(r)} clips of {args.length} frames): drift mean {r[:, 0].mean():.2f} %, median "
