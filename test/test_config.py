@@ -110,6 +110,8 @@ def test_learned_params_round_trip_is_human_readable_and_atomic(tmp_path):
     (lambda d: d.update(vehicle_filter={"jerk_density": True}), r"'vehicle_filter.jerk_density' = True must be"),
     (lambda d: d.update(vehicle_filter={"jerk_density": -1.0}), r"'vehicle_filter.jerk_density' = -1.0 must be"),
     (lambda d: d.update(vehicle_filter={"jerk_densty": 1.0}), r"unknown 'vehicle_filter.jerk_densty'"),
+    (lambda d: d.update(vehicle_filter={"jerk_density": 0.0}), r"'vehicle_filter.jerk_density' = 0.0 must be .*> 0$"),
+    (lambda d: d.update(vehicle_filter={"imu_accel_density": -1.0}), r"imu_accel_density' = -1.0 must be .*>= 0 \(0 = off\)"),
 ])
 def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, message):
     path = tmp_path / "learned.yaml"
@@ -120,6 +122,14 @@ def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, me
     with pytest.raises(ConfigError, match=message) as err:
         load_learned_params(path)
     assert str(path) in str(err.value)
+
+
+def test_the_inertial_speed_input_can_be_switched_off_in_a_learned_file(tmp_path):
+    """``imu_accel_density: 0`` (fused item 16 off) is the one vehicle_filter number that may be 0."""
+    path = tmp_path / "learned.yaml"
+    save_learned_params(LearnedParams(), path)
+    path.write_text(path.read_text().replace("vehicle_filter: {}", "vehicle_filter:\n  imu_accel_density: 0"))
+    assert load_learned_params(path).vehicle["imu_accel_density"] == 0.0
 
 
 def test_learned_numbers_written_as_yaml_reads_them(tmp_path):

@@ -195,30 +195,36 @@ def test_a_stop_rocking_on_its_suspension_gives_no_gyro_bias(kitti_root, monkeyp
     """0018 braking to a 6 s stop (real IMU and motion, rendered frames, fed by stamp): the car
     rocks back on its suspension as it stops, which the rest intervals' gyro-bias estimate must
     not take for a bias (engine REST_BIAS_SETTLE, REST_BIAS_PRIOR). Measured: 62 of 63 frames at
-    rest found, 4.7 cm of creep over the stop, pitch-rate bias -0.017 deg/s. Taken from the first
+    rest found, 4.6 cm of creep over the stop, pitch-rate bias -0.017 deg/s. Taken from the first
     still frames with no prior it read -1.25 deg/s: the DUKF's pitch ran off, the BEVs moved, the
-    standstill was lost after 3 frames and the stop crept 9.9 m (the test can fail: checked with
-    those settings below)."""
+    standstill was lost after 3 frames and the stop crept 9.9 m. The inertial speed input (fused
+    item 16) now holds that stop by itself (the accelerometer says the car does not move: 61 of 63,
+    5 cm), so the rest-bias settings are checked with it off too, where they are all that holds it
+    (the test can fail: checked with those settings below)."""
     import bevo_ros.core.odometry as engine_module
+    from dataclasses import replace
 
     ox = read_oxts(kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0018_sync" / "oxts")
     d = drive_from_oxts(ox.slice(2240, 2240 + 175), seed=1, camera=small_camera())
     rest = d.relative_motion[:159, 0] < 0.005
     assert rest.sum() > 50
+    no_inertial = replace(FUSED, vehicle={**FUSED.vehicle, "imu_accel_density": 0.0})
 
-    def run() -> tuple[int, float, tuple]:
-        odo = build_odometry(BevoConfig(), FUSED, camera=d.camera)
+    def run(learned) -> tuple[int, float, tuple]:
+        odo = build_odometry(BevoConfig(), learned, camera=d.camera)
         steps = _feed_clip(odo, d, 0, 160, by_stamp=True)
         est = np.array([s.motion for s in steps[1:]])
         return sum(s.standstill for s in steps[1:]), float(np.abs(est[rest, 0]).sum()), odo.gyro_bias
 
-    still, creep, bias = run()
-    print(f"\nfound {still} frames at rest of {rest.sum()}; creep {creep * 100:.1f} cm; gyro bias {np.degrees(bias)} deg/s")
-    assert still >= 0.9 * rest.sum() and creep < 0.2 and max(abs(b) for b in bias[:2]) < math.radians(0.1)
+    for name, learned in (("default", FUSED), ("inertial input off", no_inertial)):
+        still, creep, bias = run(learned)
+        print(f"\n{name}: found {still} frames at rest of {rest.sum()}; creep {creep * 100:.1f} cm; gyro bias "
+              f"{np.degrees(bias)} deg/s")
+        assert still >= 0.9 * rest.sum() and creep < 0.2 and max(abs(b) for b in bias[:2]) < math.radians(0.1)
     monkeypatch.setattr(engine_module, "REST_BIAS_SETTLE", 0.0)
     monkeypatch.setattr(engine_module, "REST_BIAS_PRIOR", 1e-9)
     monkeypatch.setattr(engine_module, "REST_BIAS_MAX", 0.05)
-    still, creep, bias = run()
+    still, creep, bias = run(no_inertial)
     print(f"without the settling and the prior: {still} frames at rest; creep {creep:.2f} m; gyro bias {np.degrees(bias)} deg/s")
     assert still < 0.5 * rest.sum() and creep > 1.0
 
@@ -414,10 +420,11 @@ def test_eval_real_imu_acceptance_table(tmp_path):
     assert len(list(tmp_path.glob("*_hills.npy"))) == 1
     bent = re.search(r"braking/1 +fused +[\d.]+ / +[\d.]+ \w+ +([\d.]+) ", hills.stdout)
     assert bent and float(bent.group(1)) != fused[2], hills.stdout  # other images, another per-frame error
-    # --learned: a candidate learned file for fused mode (the inertial speed input on), on the same frames
+    # --learned: a candidate learned file for fused mode (the inertial speed input off), on the same frames
     candidate = tmp_path / "candidate.yaml"
-    candidate.write_text((REPO_ROOT / "params" / "learned_default.yaml").read_text().replace(
-        "  slip_std: 0.03\n", "  slip_std: 0.03\n  imu_accel_density: 1.0\n"))
+    default = (REPO_ROOT / "params" / "learned_default.yaml").read_text()
+    assert "  imu_accel_density: 1.0\n" in default
+    candidate.write_text(default.replace("  imu_accel_density: 1.0\n", "  imu_accel_density: 0.0\n"))
     other = subprocess.run([sys.executable, tool, "--presets", "braking", "--acceptance", "--modes", "fused",
                             "--cache", str(tmp_path), "--learned", str(candidate)], capture_output=True, text=True,
                            timeout=600)
@@ -511,7 +518,9 @@ def test_a_corner_after_a_braking_start_keeps_the_pitch_change_correction_off(ki
     nor the road's. Taken as the car's by the pitch-change correction, it came off the forward
     motion (+0.1..+0.2 m of 0.37 m per pair: scale -19 % over the 5 s); with the correction off
     while yaw rate x sqrt(the DUKF's roll variance above steady state) is over
-    TURN_ROLL_RATE_GATE, about half that."""
+    TURN_ROLL_RATE_GATE, about half that. Measured with the inertial speed input (fused item 16):
+    -21.5 % without the gate, -11.6 % with it (-10.7 % with the input off: a braking start's
+    gravity error is what the input's bias state has not learnt yet)."""
     import bevo_ros.core.odometry as odometry
 
     d = drive_from_oxts(read_oxts(kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0018_sync" / "oxts"),
@@ -537,4 +546,4 @@ def test_a_corner_after_a_braking_start_keeps_the_pitch_change_correction_off(ki
     assert turning.sum() >= 15 and by_the_gate.sum() >= turning.sum() // 2
     assert off >= by_the_gate.sum() + off_ungated // 2 and off > off_ungated  # counted (Counters, /diagnostics)
     assert ungated < -14.0  # the case
-    assert gated > -11.0
+    assert gated > -12.5

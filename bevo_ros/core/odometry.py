@@ -31,7 +31,7 @@ from .road_tilt import RoadTiltFilter
 from .standstill import CHECK_BELOW as STANDSTILL_CHECK_BELOW, StandstillDetector
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
 from .vehicle_dynamics import GRAVITY, compensate_floats, suspension_attitude
-from .vehicle_filter import VehicleFilter, VehicleNoise, forget_speed, initial_vehicle_state
+from .vehicle_filter import VehicleFilter, VehicleNoise, forget_accel_bias, forget_speed, initial_vehicle_state
 
 MODES = ("fused", "paper")
 ACCEL_CORRELATION_TIME = 0.25  # s, how long a car's unexplained forward acceleration stays the same
@@ -63,6 +63,20 @@ TURN_ROLL_RATE_GATE = math.radians(0.5)  # rad/s
 # the 10 Hz presets 6.16 / 2.08 -> 6.09 / 2.06 %, the demo's start 3.32 -> 3.39 cm, traffic clips
 # 2.46 -> 2.49 % (5 s: the sample 1.67 %, the demo 3.49 cm).
 KEPT_OUT_MEMORY = 2.0
+# s: the inertial speed input (VehicleNoise.imu_accel_density, fused item 16) removes gravity from
+# the forward accelerometer at the DUKF's pitch less its accelerometer updates of about this long:
+# the gyro's pitch since the (re)start, brought to the DUKF's level only this slowly. The DUKF's
+# own pitch carries every acceleration it misreads as tilt and its convergence from the start,
+# each an error g x pull in the acceleration that changes within seconds, which the motion
+# filter's bias state beta (a slow walk) cannot follow; the gyro's pitch is off by a constant (the
+# start's error) that beta takes. The memory bounds a gyro bias's ramp (0.11 deg/s: 3.3 deg, a
+# constant again). Measured 2026-12-04 with density 1.0 (and the per-frame sum of the samples that
+# _inertial_accel replaced), the DUKF's pitch -> this: the 94 real-IMU 5 s cuts 2.54 -> 2.40 %
+# drift (3.65 -> 3.54 cm per frame), the 59 16 s clips 1.73 -> 1.67 %, the 10 Hz presets 4.84 /
+# 1.72 -> 4.76 / 1.66 %, the KITTI sample 4.50 -> 4.45 cm (1.27 -> 1.28 %). 10 s: 16 s clips
+# 1.70 %, presets 1.68 %; without the memory (the gyro's pitch for good) 1.65 / 1.64 %, but
+# unbounded under a gyro bias.
+INERTIAL_PULL_MEMORY = 30.0
 # m: a frame's measurement error the translation's peak prior allows for besides the filter's
 # prediction (the correlation's per-frame error on real roads is ~5 cm: twice that).
 PEAK_PRIOR_MEASUREMENT_STD = 0.1
@@ -355,8 +369,11 @@ class BevoOdometry:
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
         self._gyro_prev = None  # fused: the previous IMU sample's rates
         self._gyro_prev2 = None  # fused: the sample before that, (rates, yaw rate about the vertical); its interval is the previous _imu_dt
-        self._fwd_sum = 0.0  # integral of the accelerometer's forward acceleration since the last frame, m/s
-        self._fwd_time = 0.0  # the time it covers, s
+        # fused: (stamp, integral of the forward acceleration, DUKF start count) per IMU sample, read at
+        # the frames' stamps (_inertial_accel) as the gyro's yaw is
+        self._inertial_log: deque[tuple[float, float, int]] = deque(maxlen=4000)
+        self._inertial_cum = 0.0  # that integral, m/s
+        self._pitch_pull_inertial = 0.0  # fused: the DUKF's pitch pulls over INERTIAL_PULL_MEMORY (since a restart), rad
         self._direction = 1  # fused: direction of travel, +1 forward, -1 reverse, 0 either (after a stop)
         # fused: the raw gyro's (stamp, x, y) rates, for the rest intervals' mean (REST_BIAS_MEMORY)
         self._gyro_xy: deque[tuple[float, float, float]] = deque(maxlen=4000)
@@ -419,6 +436,7 @@ class BevoOdometry:
         self._state = ((p + sp, r + sr), cov)
         self._pull_kept_out -= kept
         self._pitch_kept_out_recent -= kept
+        self._pitch_pull_inertial -= kept  # the gyro's pitch (the inertial input's gravity) starts at the new mounting
         self._road_tilt.shift(dp, sr)  # the inputs: the pitch less its kept-out pull moves by dp, the roll by sr
         return sp, sr, kept
 
@@ -626,10 +644,15 @@ class BevoOdometry:
             0.0 if restarted else self._pitch_kept_out_recent * math.exp(-self._imu_dt / KEPT_OUT_MEMORY))
         self._pull_cum += pull[0] - kept_out
         (pitch, roll) = self._state[0]
-        if self.vehicle.noise.imu_accel_density > 0 and not restarted:  # the optional inertial speed input
+        if restarted:  # the gyro's pitch starts at the DUKF's start, the mounting attitude
+            self._pitch_pull_inertial = pull[0]
+            self._vstate = forget_accel_bias(self._vstate)  # beta held the old start's error
+        else:
             step = stamp - self._last_imu
-            self._fwd_sum += (a[0] + GRAVITY * math.sin(pitch)) * step
-            self._fwd_time += step
+            self._pitch_pull_inertial = pull[0] + self._pitch_pull_inertial * math.exp(-step / INERTIAL_PULL_MEMORY)
+            if self.vehicle.noise.imu_accel_density > 0:  # the inertial speed input (an interval mean)
+                self._inertial_cum += (a[0] + GRAVITY * math.sin(pitch - self._pitch_pull_inertial)) * step
+        self._inertial_log.append((stamp, self._inertial_cum, self._imu_restarts))
         # Yaw rate about the vertical (Z-Y-X Euler kinematics), integrated by the same rule.
         rate = (g[1] * math.sin(roll) + g[2] * math.cos(roll)) / math.cos(pitch)
         if self._yaw_rate is not None:
@@ -849,11 +872,8 @@ class BevoOdometry:
         dyaw = gyro_yaw - predicted_bias * dt
         dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.var(2) * dt * dt)
         dev, dt_ = self.device, self.dtype
-        imu_accel = imu_var = None
-        if self._fwd_time > 0.5 * dt and n.imu_accel_density > 0:
-            imu_accel = self._fwd_sum / self._fwd_time
-            imu_var = 0.0  # vibration: imu_accel_density; a pitch error's share is the bias state beta
-        self._fwd_sum = self._fwd_time = 0.0
+        imu_accel = self._inertial_accel(self._prev_stamp, stamp) if n.imu_accel_density > 0 else None
+        imu_var = None if imu_accel is None else 0.0  # vibration: imu_accel_density; gravity's error: beta
         predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_var), dt)
         # The BEV shift (px) of no motion of the base over this frame: the pitch-change shift and the
         # turn about the BEV's centre. A base motion (dx, dy) adds (dx, dy) / mpp to it (core/motion).
@@ -1040,6 +1060,30 @@ class BevoOdometry:
                 state = (tuple(a + (b - a) * w for a, b in zip(state[0], state1[0])), state[1])
                 pull = (pull[0] + (pull1[0] - pull[0]) * w, pull[1] + (pull1[1] - pull[1]) * w)
         return pr_road, state, yaw, epoch, pull
+
+    def _inertial_accel(self, t0: float, t1: float) -> float | None:
+        """The inertial speed input's mean forward acceleration between two frame stamps (m/s^2):
+        its integral read at each stamp, linear between IMU samples (each an interval mean), as the
+        gyro's yaw. A 10 Hz IMU on its own clock beside the camera's (KITTI with `times.txt`) puts
+        no sample between some pairs of frames and two between others; a sum per frame then read
+        None and a 0.2 s mean in turn. None when the samples cover less than half the interval
+        (the start, a gap) or a DUKF restart lies between the stamps."""
+        log = self._inertial_log
+
+        def at(t: float) -> tuple[float, float, int] | None:
+            i = bisect.bisect_right(log, t, key=lambda e: e[0]) - 1
+            if i < 0:
+                return None
+            t_a, c_a, e_a = log[i]
+            if i + 1 < len(log) and log[i + 1][2] == e_a:
+                t_b, c_b, _ = log[i + 1]
+                return t, c_a + (c_b - c_a) * (t - t_a) / (t_b - t_a), e_a
+            return t_a, c_a, e_a  # beyond the samples: covered up to the last one
+
+        a, b = at(t0), at(t1)
+        if a is None or b is None or a[2] != b[2] or b[0] - a[0] <= 0.5 * (t1 - t0):
+            return None
+        return (b[1] - a[1]) / (b[0] - a[0])
 
     def _vehicle_motion(self, reg) -> np.ndarray:
         """The registration's (dx, dy, dyaw), float64 ``(3,)`` (the engine's batch of one)."""

@@ -32,7 +32,8 @@ import torch
 
 Tensor = torch.Tensor
 
-__all__ = ["VehicleNoise", "VehicleState", "VehicleFrame", "VehicleFilter", "initial_vehicle_state", "forget_speed"]
+__all__ = ["VehicleNoise", "VehicleState", "VehicleFrame", "VehicleFilter", "initial_vehicle_state", "forget_speed",
+           "forget_accel_bias"]
 
 
 @dataclass
@@ -45,11 +46,13 @@ class VehicleNoise:
         gyro_yaw_density: rad^2/s, the yaw increment's variance per second (angle random walk).
         slip_std: lateral motion not explained by the no-sideslip arc, per metre travelled.
         imu_accel_density: m^2/s^3, noise density of the accelerometer's forward acceleration
-            (``f_x + g sin(pitch)``, vibration and bias); its mean over a frame interval measures ``a``.
-            0 = not used (the default). 1.0 (2026-12-04): better per frame everywhere (KITTI sample
-            5.15 -> 4.50 cm, 1.72 -> 1.27 %; presets 5.54 -> 4.84 %), but the real-IMU clips drift more
-            (16 s 1.63 -> 1.73 %): an accelerometer bias integrates into the speed
-            (docs/FUSED_ODOMETRY.md, the tried list).
+            (``f_x + g sin(pitch)``, vibration and bias); its mean over a frame interval measures
+            ``a`` (the inertial speed input, fused item 16; 0 = off). The engine removes gravity at
+            the gyro's pitch since the start (``odometry.INERTIAL_PULL_MEMORY``), whose constant
+            error ``beta`` takes. 1.0 (2026-12-04, against off): per frame better on every set (KITTI
+            sample 5.15 -> 4.45 cm, 1.72 -> 1.28 % drift; real-IMU 16 s clips 3.70 -> 3.33 cm; presets
+            5.54 -> 4.76 %); drift better on the presets (1.80 -> 1.66 %) and with traffic (2.16 ->
+            2.10 %), worse on the real-IMU clips' cold starts (16 s 1.63 -> 1.69 %, 5 s 2.31 -> 2.44 %).
         accel_bias_walk_density: m^2/s^5, random walk of ``beta``, the forward accelerometer bias
             (a pitch error of 0.1 deg is 0.017 m/s^2).
         image_rotation_std: rad, the images' rotation error beyond its correlation spread (an
@@ -73,7 +76,7 @@ class VehicleNoise:
     bias_walk_density: float = 1e-8
     gyro_yaw_density: float = 1e-6
     slip_std: float = 0.03
-    imu_accel_density: float = 0.0
+    imu_accel_density: float = 1.0
     accel_bias_walk_density: float = 1e-4
     image_rotation_std: float = 0.0175
     min_quality: float = 0.05
@@ -82,6 +85,7 @@ class VehicleNoise:
 
     LEARNED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std", "imu_accel_density",
                "accel_bias_walk_density", "image_rotation_std")
+    OFF_WHEN_ZERO = ("imu_accel_density",)  # 0 in a learned file switches that input off
 
 
 N_STATE = 4  # v, a, b (yaw gyro bias), beta (forward accelerometer bias)
@@ -135,6 +139,15 @@ def initial_vehicle_state(speed_std: float = 30.0, accel_std: float = 3.0, bias_
     var = [speed_std**2, accel_std**2, bias_std**2, accel_bias_std**2]
     z = 0.0 if like is None else torch.zeros_like(like)
     return VehicleState([z] * N_STATE, [[(z + var[i]) if i == j else z for j in range(N_STATE)] for i in range(N_STATE)])
+
+
+def forget_accel_bias(s: VehicleState, accel_bias_std: float = 0.3) -> VehicleState:
+    """``s`` with the forward accelerometer bias ``beta`` unknown again (zero mean, the start's
+    variance, no correlation): the attitude it held the gravity error of started anew."""
+    fresh = initial_vehicle_state(accel_bias_std=accel_bias_std, like=s.v if isinstance(s.v, Tensor) else None)
+    x = list(s.x[:3]) + [fresh.x[3]]
+    P = [[fresh.P[i][j] if i == 3 or j == 3 else s.P[i][j] for j in range(N_STATE)] for i in range(N_STATE)]
+    return VehicleState(x, P)
 
 
 def forget_speed(s: VehicleState, speed_std: float = 30.0, accel_std: float = 3.0) -> VehicleState:

@@ -115,8 +115,10 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
             numbers[k] = float(v) if not isinstance(v, bool) else math.nan
         except (TypeError, ValueError):
             numbers[k] = math.nan
-        if not (math.isfinite(numbers[k]) and numbers[k] > 0):
-            raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number > 0")
+        zero_ok = k in VehicleNoise.OFF_WHEN_ZERO
+        if not (math.isfinite(numbers[k]) and (numbers[k] >= 0 if zero_ok else numbers[k] > 0)):
+            raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number "
+                              + (">= 0 (0 = off)" if zero_ok else "> 0"))
     learned = LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info, numbers,
                             pair("suspension_gradients", positive=False, default=(0.0, 0.0)))
     if "suspension_gradients" not in doc:  # said once the file is known good (a bad one is refused alone)

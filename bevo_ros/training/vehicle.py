@@ -21,9 +21,10 @@ from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_ve
 Tensor = torch.Tensor
 
 # The learned fields and how each enters the filter (all positive: learned as logs).
-TRAINED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std")  # image_rotation_std: in the engine
+# image_rotation_std: in the engine. imu_accel_density only where it is on (> 0: a log).
+TRAINED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std", "imu_accel_density")
 
-__all__ = ["TRAINED", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise", "record_inputs", "fit_vehicle_on_sequences"]
+__all__ = ["TRAINED", "trained_fields", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise", "record_inputs", "fit_vehicle_on_sequences"]
 
 
 @dataclass
@@ -36,8 +37,13 @@ class VehicleFit:
     steps: int
 
 
+def trained_fields(base: VehicleNoise) -> tuple[str, ...]:
+    """The :data:`TRAINED` fields ``base`` has on (an input switched off by 0 stays off)."""
+    return tuple(k for k in TRAINED if k not in VehicleNoise.OFF_WHEN_ZERO or getattr(base, k) > 0)
+
+
 def _noise_with(base: VehicleNoise, log_params: Tensor) -> VehicleNoise:
-    return replace(base, **{k: log_params[i].exp() for i, k in enumerate(TRAINED)})
+    return replace(base, **{k: log_params[i].exp() for i, k in enumerate(trained_fields(base))})
 
 
 def replay(noise: VehicleNoise, inputs: list[dict]) -> tuple[Tensor, Tensor]:
@@ -78,7 +84,8 @@ def fit_vehicle_noise(sequences: list[tuple[list[dict], np.ndarray]], init: Vehi
     if not sequences or not any(len(i) for i, _ in sequences):
         raise ValueError("no frames to fit the vehicle filter on")
     truths = [torch.as_tensor(np.asarray(t), dtype=torch.float64) for _, t in sequences]
-    params = torch.tensor([math.log(getattr(base, k)) for k in TRAINED], dtype=torch.float64, requires_grad=True)
+    params = torch.tensor([math.log(getattr(base, k)) for k in trained_fields(base)], dtype=torch.float64,
+                          requires_grad=True)
     opt = torch.optim.Adam([params], lr=lr)
 
     def evaluate(p: Tensor) -> tuple[Tensor, list[Tensor]]:
@@ -108,7 +115,7 @@ def fit_vehicle_noise(sequences: list[tuple[list[dict], np.ndarray]], init: Vehi
     with torch.no_grad():
         nll1, outs1 = evaluate(best[1])
     m0, m1, t = torch.cat(outs0), torch.cat(outs1), torch.cat(truths)
-    fitted = replace(base, **{k: float(best[1][i].exp()) for i, k in enumerate(TRAINED)})
+    fitted = replace(base, **{k: float(best[1][i].exp()) for i, k in enumerate(trained_fields(base))})
     return VehicleFit(fitted, float(nll0), float(nll1), _rmse(m0, t), _rmse(m1, t), steps)
 
 
