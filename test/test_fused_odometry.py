@@ -734,6 +734,29 @@ def test_replay_reproduces_the_engine(camera):
     assert np.abs(m.numpy() - engine_motion).max() > 1e-6
 
 
+def test_replay_reproduces_the_engine_across_a_dukf_restart(camera):
+    """An IMU gap longer than ``max_imu_gap`` restarts the DUKF, and the engine forgets the motion
+    filter's accelerometer bias (the inertial input's gravity starts anew): the frame's filter inputs
+    say so and the replay does the same, so training fits the filter the engine ran."""
+    from bevo_ros.training.vehicle import RESETS, replay
+
+    d = preset_drive("curve", seed=3, duration=3.0, render="lazy", camera=camera, imu_rate=10.0)
+    keep = (d.imu_stamps < d.imu_stamps[0] + 1.2) | (d.imu_stamps > d.imu_stamps[0] + 1.9)  # a 0.7 s gap
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+    odo = engine(camera, "fused")
+    steps = feed_engine(odo, d.imu_stamps[keep], d.gyro[keep], d.accel[keep], d.frame_stamps,
+                        lambda k: images[k], trailing=False)
+    assert odo.counters.imu_gaps == 1
+    inputs = [s.filter_inputs for s in steps[1:]]
+    assert sum(bool(i["forget_accel_bias"]) for i in inputs[1:]) == 1  # the restart (frame 1: the start's, a no-op)
+    engine_motion = np.array([s.motion for s in steps[1:]])
+    m, _ = replay(VehicleNoise(**FUSED.vehicle), inputs)
+    assert np.abs(m.numpy() - engine_motion).max() < 1e-9
+    ignored = [{k: (False if k in RESETS else v) for k, v in i.items()} for i in inputs]
+    m, _ = replay(VehicleNoise(**FUSED.vehicle), ignored)
+    assert np.abs(m.numpy() - engine_motion).max() > 1e-9  # the reset matters
+
+
 def test_learning_the_suspension_beats_the_default_on_a_held_out_drive():
     """Issue 9 item 6 for the suspension gradients: the synthetic car dives 0.3 deg per m/s^2
     (0.00524 rad) when it brakes, the default (KITTI's car) says 0.004. Searched on one braking
@@ -895,3 +918,26 @@ def test_forget_accel_bias_keeps_the_motion():
     t.x = [torch.full((2,), 8.0), torch.zeros(2), torch.full((2,), 0.002), torch.full((2,), 0.05)]
     ft = forget_accel_bias(t)
     assert torch.equal(ft.x[0], torch.full((2,), 8.0)) and torch.equal(ft.x[3], torch.zeros(2))
+
+
+def test_vehicle_fit_keeps_the_learned_files_other_numbers(monkeypatch):
+    """A kept fit of the motion filter's noise writes the fitted fields over the learned file's own:
+    the ones training does not fit (``accel_bias_walk_density``, ``image_rotation_std``) stay as the
+    file had them (they fell back to the defaults before)."""
+    from dataclasses import replace
+
+    import bevo_ros.training.vehicle as vehicle_training
+
+    inputs, truth = _measurement_drive(120, 1)
+    monkeypatch.setattr(vehicle_training, "record_inputs", lambda sequence, config, learned: (inputs, truth))
+
+    class Recording:  # what the fit reads of a sequence besides its recorded inputs: its length
+        def __len__(self) -> int:
+            return len(inputs) + 1
+
+    own = {"accel_bias_walk_density": 5e-3, "image_rotation_std": 0.03}
+    learned = replace(FUSED, vehicle={**FUSED.vehicle, **own}, info=dict(FUSED.info))
+    vehicle_training.fit_vehicle_on_sequences(learned, [Recording()], BevoConfig(), steps=20)
+    assert "vehicle_filter_fit" in learned.info  # kept (else this test says nothing)
+    assert {k: learned.vehicle[k] for k in own} == own
+    assert learned.vehicle["slip_std"] != FUSED.vehicle["slip_std"]  # and the fitted ones moved

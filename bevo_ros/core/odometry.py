@@ -158,7 +158,8 @@ class OdometryStep:
     measured_motion: np.ndarray | None = None  # (3,) the correlation's own (dx, dy, dyaw); None first
     accepted: tuple[bool, bool] = (True, True)  # fused mode: (translation, rotation) measurement used
     speed: float = float("nan")  # fused mode: the motion filter's forward speed, m/s
-    filter_inputs: dict | None = None  # fused mode: VehicleFilter.step's arguments this frame (training replays them)
+    # fused mode: VehicleFilter.step's arguments this frame and the resets before it (training replays them)
+    filter_inputs: dict | None = None
     tag: Any = None  # the caller's tag given to add_image with this image
     pitch_shift: float = 0.0  # fused: forward shift (m) taken off the correlation by the pitch-change correction
     standstill: bool = False  # fused: the images say the vehicle stood still since the previous frame
@@ -373,7 +374,8 @@ class BevoOdometry:
         # the frames' stamps (_inertial_accel) as the gyro's yaw is
         self._inertial_log: deque[tuple[float, float, int]] = deque(maxlen=4000)
         self._inertial_cum = 0.0  # that integral, m/s
-        self._pitch_pull_inertial = 0.0  # fused: the DUKF's pitch pulls over INERTIAL_PULL_MEMORY (since a restart), rad
+        self._pitch_pull_inertial = 0.0  # fused: the DUKF's pitch pulls over INERTIAL_PULL_MEMORY, rad
+        self._beta_forgotten = False  # fused: forget_accel_bias since the last frame
         self._direction = 1  # fused: direction of travel, +1 forward, -1 reverse, 0 either (after a stop)
         # fused: the raw gyro's (stamp, x, y) rates, for the rest intervals' mean (REST_BIAS_MEMORY)
         self._gyro_xy: deque[tuple[float, float, float]] = deque(maxlen=4000)
@@ -647,6 +649,7 @@ class BevoOdometry:
         if restarted:  # the gyro's pitch starts at the DUKF's start, the mounting attitude
             self._pitch_pull_inertial = pull[0]
             self._vstate = forget_accel_bias(self._vstate)  # beta held the old start's error
+            self._beta_forgotten = True  # said in the next frame's filter inputs (training replays it)
         else:
             step = stamp - self._last_imu
             self._pitch_pull_inertial = pull[0] + self._pitch_pull_inertial * math.exp(-step / INERTIAL_PULL_MEMORY)
@@ -868,6 +871,7 @@ class BevoOdometry:
         the raw ``image`` when the correlation reads little motion, filter, gate."""
         gyro_yaw = yaw_cum - self._prev_yaw_cum
         n = self.vehicle.noise
+        speed_forgotten = False
         predicted_bias = self._vstate.b
         dyaw = gyro_yaw - predicted_bias * dt
         dyaw_std = math.sqrt(n.gyro_yaw_density * dt + self._vstate.var(2) * dt * dt)
@@ -931,6 +935,7 @@ class BevoOdometry:
                         innovation = float(measured[0]) - predicted.v * dt
                         if innovation**2 >= n.gate**2 * (predicted.var(0) * dt * dt + float(cov[0, 0])):
                             self._vstate = forget_speed(self._vstate)  # its speed followed that peak
+                            speed_forgotten = True
         if reg.shift_gated is not None and bool(reg.shift_gated[0]):
             self.counters.gated_peak += 1  # a state, not an event: following a car would crowd the events out
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
@@ -938,7 +943,10 @@ class BevoOdometry:
                       quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, rest_var=rest_var)
         frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
-        self._last_filter_inputs = inputs
+        # what training's replay must do to the state before this step, as the engine did
+        self._last_filter_inputs = {**inputs, "forget_speed": speed_forgotten,
+                                    "forget_accel_bias": self._beta_forgotten}
+        self._beta_forgotten = False
         if still:
             self._direction = 0
         elif self._direction == 0 and abs(frame.state.v) > DIRECTION_SPEED:

@@ -255,7 +255,8 @@ class VehicleFilter:
                 None (or a quality below ``min_quality``) = no image information this frame.
             quality: the correlation peak quality in [0, 1].
             imu_accel: the accelerometer's mean forward acceleration over the interval (m/s^2,
-                gravity removed with the filtered pitch) and ``imu_accel_var`` the variance of its
+                gravity removed at the gyro's pitch since the start, fused item 16; its constant
+                error is ``beta``'s) and ``imu_accel_var`` the variance of its
                 attitude part; it updates ``a`` before the prediction (inertial speed propagation:
                 a braking onset is in the prediction, not a surprise for the gate).
             rest_var: > 0 when the vehicle stood still over the interval

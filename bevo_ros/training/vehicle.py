@@ -16,15 +16,18 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
+from bevo_ros.core.vehicle_filter import (VehicleFilter, VehicleNoise, forget_accel_bias, forget_speed,
+                                          initial_vehicle_state)
 
 Tensor = torch.Tensor
 
 # The learned fields and how each enters the filter (all positive: learned as logs).
 # image_rotation_std: in the engine. imu_accel_density only where it is on (> 0: a log).
 TRAINED = ("jerk_density", "bias_walk_density", "gyro_yaw_density", "slip_std", "imu_accel_density")
+RESETS = ("forget_speed", "forget_accel_bias")  # OdometryStep.filter_inputs flags, not VehicleFilter.step arguments
 
-__all__ = ["TRAINED", "trained_fields", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise", "record_inputs", "fit_vehicle_on_sequences"]
+__all__ = ["TRAINED", "RESETS", "trained_fields", "VehicleFit", "replay", "motion_nll", "fit_vehicle_noise",
+           "record_inputs", "fit_vehicle_on_sequences"]
 
 
 @dataclass
@@ -55,8 +58,13 @@ def replay(noise: VehicleNoise, inputs: list[dict]) -> tuple[Tensor, Tensor]:
     state = initial_vehicle_state(like=like)
     motions, variances = [], []
     for inp in inputs:
+        # the engine's resets before this frame's step (a speed that followed another peak, a DUKF restart)
+        if inp.get("forget_speed"):
+            state = forget_speed(state)
+        if inp.get("forget_accel_bias"):
+            state = forget_accel_bias(state)
         kw = {k: (torch.as_tensor(v, dtype=torch.float64).reshape(1) if v is not None and k != "dt" else v)
-              for k, v in inp.items()}
+              for k, v in inp.items() if k not in RESETS}
         frame = vf.step(state, **kw)
         state = frame.state
         motions.append(torch.stack([torch.as_tensor(m, dtype=torch.float64).reshape(1) for m in frame.motion], -1))
@@ -161,7 +169,8 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
           f"validation NLL {before:.3f} -> {after:.3f}; per-frame RMSE (train) dx {fit.rmse_before[0]:.4f} -> "
           f"{fit.rmse_after[0]:.4f} m, dy {fit.rmse_before[1]:.4f} -> {fit.rmse_after[1]:.4f} m")
     if after <= before:
-        learned.vehicle = {k: float(getattr(fit.noise, k)) for k in TRAINED}
+        # the fitted fields over the file's own (accel_bias_walk_density, image_rotation_std stay as they were)
+        learned.vehicle = {**learned.vehicle, **{k: float(getattr(fit.noise, k)) for k in trained_fields(fit.noise)}}
         learned.info["vehicle_filter_fit"] = {"train_nll": [fit.nll_before, fit.nll_after],
                                              "validation_nll": [before, after]}
     else:
