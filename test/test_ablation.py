@@ -118,19 +118,24 @@ def test_fused_row_scores_the_poses_bevo_run_writes_over_crests_and_sags(ablatio
     gt = load_sequence(bag_path, config).gt_poses.double().numpy()
     gt = np.linalg.inv(gt[0]) @ gt
     run = evaluate_trajectories(gt, np.linalg.inv(est[0]) @ est, convention="base")
-    planar = ablation_planar_drift(steps, gt)
-    print(f"\nfused row drift {by['fused']['drift_percent']:.3f} %, bevo run {run.drift_percent:.3f} %, "
-          f"motions on a plane {planar:.3f} %")
+    planar = ablation_planar_metrics(steps, gt)
+    print(f"\nfused row drift {by['fused']['drift_percent']:.3f} %, RPE yaw {by['fused']['rpe_yaw_rmse_deg']:.4f} deg; "
+          f"bevo run {run.drift_percent:.3f} %, {run.rpe_yaw_rmse:.4f} deg; motions on a plane {planar.drift_percent:.3f} %, "
+          f"{planar.rpe_yaw_rmse:.4f} deg")
     assert by["fused"]["drift_percent"] == pytest.approx(run.drift_percent, abs=1e-6)
     assert by["fused"]["ate_rmse_m"] == pytest.approx(run.ate_rmse, abs=1e-6)
-    assert abs(planar - run.drift_percent) > 0.02  # measured 1.90 against 1.97 %: the check can tell them apart
+    assert by["fused"]["rpe_yaw_rmse_deg"] == pytest.approx(run.rpe_yaw_rmse, abs=1e-9)
+    # The check can tell them apart: the 3-D poses' relative rotations hold the attitude (measured 0.0131 against
+    # 0.0185 deg per frame). The drift no longer does on this drive (2.670 against 2.669 %; 1.97 against 1.90 before
+    # fused item 17): the published positions are planar, only the orientation moves the camera's.
+    assert abs(planar.rpe_yaw_rmse - run.rpe_yaw_rmse) > 0.002
 
 
-def ablation_planar_drift(steps, gt) -> float:
+def ablation_planar_metrics(steps, gt):
     import numpy as np
 
     from bevo_ros.evaluation.metrics import evaluate_trajectories
     from bevo_ros.training.ablation import planar_poses
 
     motion = np.array([s.motion for s in steps[1:]])
-    return evaluate_trajectories(gt, planar_poses(motion), convention="base").drift_percent
+    return evaluate_trajectories(gt, planar_poses(motion), convention="base")
