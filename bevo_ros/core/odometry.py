@@ -380,6 +380,7 @@ class BevoOdometry:
         self._inertial_cum = 0.0  # that integral, m/s
         self._pitch_pull_inertial = 0.0  # fused: the DUKF's pitch pulls over INERTIAL_PULL_MEMORY, rad
         self._beta_forgotten = False  # fused: forget_accel_bias since the last frame
+        self._accel_has_inertial = False  # fused: the motion filter's last step had the inertial input
         self._direction = 1  # fused: direction of travel, +1 forward, -1 reverse, 0 either (after a stop)
         # fused: the raw gyro's (stamp, x, y) rates, for the rest intervals' mean (REST_BIAS_MEMORY)
         self._gyro_xy: deque[tuple[float, float, float]] = deque(maxlen=4000)
@@ -596,9 +597,11 @@ class BevoOdometry:
             dt_imu = max(self._imu_dt, 1e-4)
             if self.vehicle.noise.imu_accel_density > 0:
                 # Fused item 17. With the inertial speed input the motion filter's dv/dt is the
-                # accelerometer's forward reading with gravity removed at the gyro's pitch since the
-                # start (not the DUKF's), less the bias beta that the images' speed observes: the
-                # forward acceleration is subtracted with it, at its own variance (3 m/s^2 std at a
+                # accelerometer's forward reading with gravity removed at the gyro's pitch (since the
+                # start, the DUKF's level let in over INERTIAL_PULL_MEMORY), less the bias beta that
+                # the images' speed observes: the forward acceleration is subtracted with it (only
+                # if the filter's last frame had that input: the images' dv/dt alone would close
+                # the loop described below), at its own variance (3 m/s^2 std at a
                 # start, ~1.5 m/s^2 at 10 Hz later: the pitch then rests mostly on the gyro, and an
                 # acceleration is no longer read as tilt). Against the variance-only model below, on
                 # real IMU: the gravity pitch's RMS error 1.50 -> 0.65 deg (94 5 s clips) and 1.14 ->
@@ -606,7 +609,8 @@ class BevoOdometry:
                 # error converges over tens of seconds, not seconds (10 Hz synthetic `curve`, 6 s:
                 # 0.08 -> 0.54 deg; the BEV's road-relative pitch, high-passed, does not see it).
                 per_second = max(1.0, ACCEL_ESTIMATE_CORRELATION_TIME / dt_imu)
-                f, extra = compensate_floats(a, g, speed, vs.a, speed_var, vs.var(1) * per_second)
+                f, extra = compensate_floats(a, g, speed, vs.a if self._accel_has_inertial else 0.0, speed_var,
+                                             vs.var(1) * per_second)
             else:
                 # With the visual speed alone the forward acceleration is not subtracted: a visual
                 # dv/dt closes a loop (a pitch error scales the BEV's speed, whose rate tilts the
@@ -967,6 +971,7 @@ class BevoOdometry:
         self._last_filter_inputs = {**inputs, "forget_speed": speed_forgotten,
                                     "forget_accel_bias": self._beta_forgotten}
         self._beta_forgotten = False
+        self._accel_has_inertial = imu_accel is not None
         if still:
             self._direction = 0
         elif self._direction == 0 and abs(frame.state.v) > DIRECTION_SPEED:
