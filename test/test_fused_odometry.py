@@ -6,6 +6,7 @@ README quotes come from the same code at full resolution (printed with ``-s``).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,6 +22,8 @@ from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive
 from bevo_ros.evaluation.metrics import motion_scores
 
 FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
+# the default with the inertial speed input (fused item 16, and so item 17) switched off
+FUSED_NO_INERTIAL = replace(FUSED, vehicle={**FUSED.vehicle, "imu_accel_density": 0.0})
 PAPER = load_learned_params(REPO_ROOT / "params" / "learned_paper.yaml")
 
 
@@ -301,10 +304,7 @@ def test_pitch_change_correction_acts_from_the_start_and_the_dukf_start_stays_ou
     # With the inertial speed input off the DUKF takes the accelerometer at its start (the variance-
     # only model of its forward acceleration): the case. With it on (fused item 17) the unknown
     # acceleration of a start keeps the DUKF on its gyro: no jump to keep out.
-    from dataclasses import replace
-
-    no_inertial = replace(FUSED, vehicle={**FUSED.vehicle, "imu_accel_density": 0.0})
-    for name, learned, converges in (("input off", no_inertial, True), ("default", FUSED, False)):
+    for name, learned, converges in (("input off", FUSED_NO_INERTIAL, True), ("default", FUSED, False)):
         first = feed_engine(engine(camera, "fused", learned), d100.imu_stamps[:n], d100.gyro[:n], d100.accel[:n],
                             d100.frame_stamps[:3], d100.image, trailing=False)
         dukf_change = first[1].rpy[1] - first[0].rpy[1]
@@ -641,8 +641,6 @@ def test_road_pitch_on_real_drives(kitti_root):
     the OXTS unit's own velocity implies (its pitch minus the slope atan(vu / v)), on the four
     shared drives. The defaults (road-tilt low-pass 1 s, suspension pitch 0.004 rad per m/s^2)
     beat the previous ones (2 s, no suspension pitch)."""
-    from dataclasses import replace
-
     from bevo_ros.datasets.kitti import read_oxts
 
     config = BevoConfig()
@@ -901,13 +899,10 @@ def test_the_dukf_subtracts_the_motion_filters_acceleration(camera):
     widening its variance by the acceleration's size (the model with the input off). Noise-free
     10 Hz ``stop_and_go`` (8 s, stops and starts at 1.5-2 m/s^2): the gravity pitch's RMS error
     after the first second 0.64 deg, 1.27 with the input off (1.18 before item 17 with it on)."""
-    from dataclasses import replace
-
     d = preset_drive("stop_and_go", seed=1, duration=8.0, render="lazy", camera=camera, imu_rate=10.0, noise=False)
     images = [d.image(k) for k in range(d.num_frames)]
-    no_inertial = replace(FUSED, vehicle={**FUSED.vehicle, "imu_accel_density": 0.0})
     rms = {}
-    for name, learned in (("default", FUSED), ("input off", no_inertial)):
+    for name, learned in (("default", FUSED), ("input off", FUSED_NO_INERTIAL)):
         steps = feed(engine(camera, "fused", learned), d, images)
         err = np.array([s.rpy[1] for s in steps]) - d.pitch_roll_gravity[:len(steps), 0]
         rms[name] = math.degrees(float(np.sqrt(np.mean(err[10:] ** 2))))
@@ -982,8 +977,6 @@ def test_vehicle_fit_keeps_the_learned_files_other_numbers(monkeypatch):
     """A kept fit of the motion filter's noise writes the fitted fields over the learned file's own:
     the ones training does not fit (``accel_bias_walk_density``, ``image_rotation_std``) stay as the
     file had them (they fell back to the defaults before)."""
-    from dataclasses import replace
-
     import bevo_ros.training.vehicle as vehicle_training
 
     inputs, truth = _measurement_drive(120, 1)

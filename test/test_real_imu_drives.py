@@ -5,6 +5,7 @@ delivered after it (a camera's latency; ``datasets.stamp_order``, the tests' fee
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,6 +22,8 @@ from bevo_ros.datasets.synthetic.oxts_drive import (EARTH_RADIUS, _camera_clock,
 from bevo_ros.io.learned_params import load_learned_params
 
 FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
+# the default with the inertial speed input (fused item 16, and so item 17) switched off
+FUSED_NO_INERTIAL = replace(FUSED, vehicle={**FUSED.vehicle, "imu_accel_density": 0.0})
 PAPER = load_learned_params(REPO_ROOT / "params" / "learned_paper.yaml")
 CAMERA_PERIOD = 0.1037  # s, KITTI's camera (the OXTS runs at 100 Hz)
 
@@ -202,13 +205,11 @@ def test_a_stop_rocking_on_its_suspension_gives_no_gyro_bias(kitti_root, monkeyp
     5 cm), so the rest-bias settings are checked with it off too, where they are all that holds it
     (the test can fail: checked with those settings below)."""
     import bevo_ros.core.odometry as engine_module
-    from dataclasses import replace
 
     ox = read_oxts(kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0018_sync" / "oxts")
     d = drive_from_oxts(ox.slice(2240, 2240 + 175), seed=1, camera=small_camera())
     rest = d.relative_motion[:159, 0] < 0.005
     assert rest.sum() > 50
-    no_inertial = replace(FUSED, vehicle={**FUSED.vehicle, "imu_accel_density": 0.0})
 
     def run(learned) -> tuple[int, float, tuple]:
         odo = build_odometry(BevoConfig(), learned, camera=d.camera)
@@ -216,7 +217,7 @@ def test_a_stop_rocking_on_its_suspension_gives_no_gyro_bias(kitti_root, monkeyp
         est = np.array([s.motion for s in steps[1:]])
         return sum(s.standstill for s in steps[1:]), float(np.abs(est[rest, 0]).sum()), odo.gyro_bias
 
-    for name, learned in (("default", FUSED), ("inertial input off", no_inertial)):
+    for name, learned in (("default", FUSED), ("inertial input off", FUSED_NO_INERTIAL)):
         still, creep, bias = run(learned)
         print(f"\n{name}: found {still} frames at rest of {rest.sum()}; creep {creep * 100:.1f} cm; gyro bias "
               f"{np.degrees(bias)} deg/s")
@@ -224,7 +225,7 @@ def test_a_stop_rocking_on_its_suspension_gives_no_gyro_bias(kitti_root, monkeyp
     monkeypatch.setattr(engine_module, "REST_BIAS_SETTLE", 0.0)
     monkeypatch.setattr(engine_module, "REST_BIAS_PRIOR", 1e-9)
     monkeypatch.setattr(engine_module, "REST_BIAS_MAX", 0.05)
-    still, creep, bias = run(no_inertial)
+    still, creep, bias = run(FUSED_NO_INERTIAL)
     print(f"without the settling and the prior: {still} frames at rest; creep {creep:.2f} m; gyro bias {np.degrees(bias)} deg/s")
     assert still < 0.5 * rest.sum() and creep > 1.0
 
@@ -491,13 +492,10 @@ def test_a_cold_start_in_an_acceleration_keeps_the_suspensions_input(kitti_root)
     - By default (fused item 17) the DUKF subtracts the motion filter's acceleration at its
       variance: 0.8 deg off at most, the suspension's input 0.17 m/s^2 RMS from the truth.
     """
-    from dataclasses import replace
-
     d = drive_from_oxts(read_oxts(kitti_root / "raw" / "2011_09_30" / "2011_09_30_drive_0027_sync" / "oxts"),
                         seed=1, camera=small_camera())
     f0, f1 = 480, 501
-    no_inertial = replace(FUSED, vehicle={**FUSED.vehicle, "imu_accel_density": 0.0})
-    for name, learned, pitch_bound in (("inertial input off", no_inertial, None), ("default", FUSED, 1.5)):
+    for name, learned, pitch_bound in (("inertial input off", FUSED_NO_INERTIAL, None), ("default", FUSED, 1.5)):
         odo = build_odometry(BevoConfig(), learned, camera=d.camera)
         seen: list[tuple[float, float, float]] = []
         fuse = odo._fuse_imu

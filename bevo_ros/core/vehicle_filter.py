@@ -49,7 +49,8 @@ class VehicleNoise:
             (``f_x + g sin(pitch)``, vibration and bias); its mean over a frame interval measures
             ``a`` (the inertial speed input, fused item 16; 0 = off). The engine removes gravity at
             the gyro's pitch since the start (``odometry.INERTIAL_PULL_MEMORY``), whose constant
-            error ``beta`` takes. 1.0 (2026-12-04, against off): per frame better on every set (KITTI
+            error ``beta`` takes; with it on, the DUKF subtracts the filter's ``a`` from its
+            accelerometer (fused item 17). 1.0 (2026-12-04, against off): per frame better on every set (KITTI
             sample 5.15 -> 4.45 cm, 1.72 -> 1.28 % drift; real-IMU 16 s clips 3.70 -> 3.33 cm; presets
             5.54 -> 4.76 %); drift better on the presets (1.80 -> 1.66 %) and with traffic (2.16 ->
             2.10 %), worse on the real-IMU clips' cold starts (16 s 1.63 -> 1.69 %, 5 s 2.31 -> 2.44 %).
