@@ -346,6 +346,10 @@ def test_eval_real_imu_tool_on_synthetic_presets(tmp_path):
                       r"follows it at ([-+\d.]+) % per 0.1 deg \(correlation ([-+\d.]+)\)", out.stdout)
     assert pitch, out.stdout
     assert 0.0 < float(pitch.group(1)) < 0.3 and -1.0 <= float(pitch.group(3)) <= 1.0
+    # the published gravity attitude after each clip's first second, against the exact truth
+    gravity = re.search(r"fused: the published gravity attitude \(after each clip's first 1 s\) pitch / roll RMS "
+                        r"([\d.]+) / ([\d.]+) deg", out.stdout)
+    assert gravity and all(0.0 < float(v) < 5.0 for v in gravity.groups()), out.stdout
     assert (tmp_path / "preset_curve_seed1_10hz_620x188.npy").exists()
     # --starts picks one clip, --pairs prints its frame pairs: error = engine - truth, and the
     # correlation's own reading less the pitch-change shift is what the filter was given
@@ -413,6 +417,14 @@ def test_eval_real_imu_acceptance_table(tmp_path):
     assert re.search(r"fused: targets met \(of 1 drives\): attitude <= 0.3 deg [01], per frame <= 3.0 % [01], "
                      r"yaw <= 0.05 deg [01], drift <= 1.0 % [01]", out.stdout), out.stdout
     assert "fused beats paper on every metric in 1 of 1 drives" in out.stdout, out.stdout
+    # the published gravity attitude (OdometryStep.rpy, after the first second): paper mode reads the
+    # -5 m/s^2 braking as ~30 deg of tilt in the accelerometer (measured 9.9 deg RMS), fused mode subtracts
+    # the car's acceleration (1.1 deg)
+    gravity = {m.group(1): (float(m.group(2)), float(m.group(3))) for m in re.finditer(
+        r"(fused|paper): the published gravity attitude \(after the first 1 s\), pitch / roll RMS, mean of the "
+        r"drives ([\d.]+) / ([\d.]+) deg", out.stdout)}
+    assert set(gravity) == {"fused", "paper"}, out.stdout
+    assert 0.0 < gravity["fused"][0] < 0.5 * gravity["paper"][0] and 0.0 < gravity["fused"][1] < 3.0, out.stdout
     # over crests and sags: its own frames (a cache of their own), the same table
     hills = subprocess.run([sys.executable, tool, "--presets", "braking", "--acceptance", "--vertical-curves", "--modes",
                             "fused", "--cache", str(tmp_path)], capture_output=True, text=True, timeout=600)
@@ -443,7 +455,8 @@ def test_eval_real_imu_acceptance_table(tmp_path):
     spec.loader.exec_module(eval_set)
     line = eval_set.clips(["--presets", "braking", "--acceptance", "--cache", str(tmp_path)], None)
     assert line == (f"road pitch / roll {fused[0]:.2f} / {fused[1]:.2f} deg, per frame {fused[2]:.2f} %, "
-                    f"yaw {fused[3]:.3f} deg, drift {fused[4]:.2f} %"), line
+                    f"yaw {fused[3]:.3f} deg, drift {fused[4]:.2f} %; gravity pitch / roll "
+                    f"{gravity['fused'][0]:.2f} / {gravity['fused'][1]:.2f} deg"), line
     bad = subprocess.run([sys.executable, tool, "--acceptance"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--acceptance needs --presets" in bad.stderr
     bad = subprocess.run([sys.executable, tool, "--presets", "braking", "--vertical-curves", "--traffic"],

@@ -62,13 +62,16 @@ def clips(extra: list[str], learned: Path | None) -> str:
     lines = done.stdout.splitlines()
     if done.returncode != 0 or not lines:
         raise RuntimeError(f"eval_real_imu {' '.join(extra)} failed ({done.returncode}):\n{done.stderr[-2000:]}")
+    # "fused: the published gravity attitude ... pitch / roll RMS[, mean of the drives] P / R deg"
+    gravity = next(line for line in lines if line.startswith("fused: the published gravity attitude"))
+    pitch, roll = gravity.split(" deg")[0].split()[-3::2]
     if "--acceptance" in extra:  # "mean of 9  fused  pitch / roll  per frame  yaw  drift  scale"
         row = next(line for line in lines if line.startswith("mean of")).split()
         return (f"road pitch / roll {row[4]} / {row[6]} deg, per frame {row[7]} %, yaw {row[8]} deg, "
-                f"drift {row[9]} %")
+                f"drift {row[9]} %; gravity pitch / roll {pitch} / {roll} deg")
     row = next(line for line in lines if line.startswith("fused ("))
     head, _, rest = row.partition("): ")
-    return f"{head.removeprefix('fused (')}: {rest}"
+    return f"{head.removeprefix('fused (')}: {rest}; gravity pitch / roll {pitch} / {roll} deg"
 
 
 def main(argv: list[str] | None = None) -> int:
