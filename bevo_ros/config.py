@@ -248,9 +248,12 @@ def coerce_setting(value: Any, default: Any, name: str, source: str | None = Non
             return value
     except (TypeError, ValueError):
         pass
+    # YAML 1.1 reads a bare on / off / yes / no as a bool: where text is expected, say how to write it
+    hint = (f" (YAML reads a bare {'on' if value else 'off'} as true/false: quote it, '{'on' if value else 'off'}')"
+            if isinstance(value, bool) and isinstance(default, str) else "")
     raise ConfigError((f"{source}: " if source else "") + f"parameter '{name}' = {value!r} is not a valid "
                       f"{type(default).__name__}" + (f" of length {len(default)}" if isinstance(default, (list, tuple))
-                                                     else ""))
+                                                     else "") + hint)
 
 
 def read_yaml(path: Path, what: str) -> Any:
@@ -437,6 +440,21 @@ def package_file(rel: str) -> Path:
         return Path(get_package_share_directory("bevo_ros")) / rel
     except Exception:  # noqa: BLE001 - ament index absent or package not installed
         return here
+
+
+# The shipped learned files, one per odometry.mode (each file's header says which).
+SHIPPED_LEARNED = {"fused": "params/learned_default.yaml", "paper": "params/learned_paper.yaml"}
+
+
+def shipped_learned_for_mode(path: str | Path, mode: str) -> Path:
+    """``path`` unless it is one of the shipped learned files of the other mode, which is swapped for
+    ``mode``'s (``bevo run --mode paper`` with a params file naming the fused default gets the paper
+    pipeline's O/Q, as the README's paper figures do); a user's own file is kept as it is."""
+    path = Path(path)
+    for other, rel in SHIPPED_LEARNED.items():
+        if other != mode and mode in SHIPPED_LEARNED and path.resolve() == package_file(rel).resolve():
+            return package_file(SHIPPED_LEARNED[mode])
+    return path
 
 
 def resolve_path(name: str, base_dir: Path | None = None) -> Path:

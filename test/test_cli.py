@@ -95,6 +95,36 @@ def test_dump_config_of_a_changed_config_reads_back_equal(tmp_path):
     assert load_params_file(path)["bev.size"] == 64
 
 
+def test_a_warning_is_one_line_naming_the_command(tmp_path, capsys):
+    """A parameters file with a typo: the warning reads as the errors do (``bevo run: warning: ...``),
+    not as Python's (file, line number, ``UserWarning``, the source line)."""
+    params = tmp_path / "typo.yaml"
+    params.write_text((REPO_ROOT / "params" / "kitti.yaml").read_text().replace("    odometry.mode:", "    odometry.mod:"))
+    assert cli.main(["run", str(tmp_path / "no_bag"), "--out", str(tmp_path / "out"), "--params", str(params)]) == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "odometry.mod" in line]
+    assert len(lines) == 1 and lines[0].startswith("bevo run: warning: ") and "did you mean odometry.mode?" in lines[0], err
+    assert "UserWarning" not in err and "load_config(" not in err and "bevo run: error:" in err, err
+
+
+def test_dump_config_from_a_params_file_keeps_its_rig(tmp_path, capsys):
+    """``--params FILE``: every setting, FILE's where it sets one (the KITTI rig's mounting, its node
+    wiring), the defaults elsewhere; the dump reads back as FILE does. Without it the defaults' mounting
+    is 0 (a KITTI bag run with them drifted ~37 %), hence the option; a missing file is a clear error."""
+    kitti = REPO_ROOT / "params" / "kitti.yaml"
+    out = tmp_path / "k.yaml"
+    assert cli.main([cli.DUMP_CONFIG, "--params", str(kitti), "-o", str(out)]) == 0
+    dumped, flat = load_config(out)
+    original, original_flat = load_config(kitti)
+    assert dumped == original and dumped.filter.mounting_pitch != BevoConfig().filter.mounting_pitch
+    assert set(BevoConfig().to_flat()) <= set(flat)  # complete
+    for name in ("camera_info_topic", "imu_topic"):  # the node's settings, as the file sets them or defaulted
+        assert flat[name] == original_flat.get(name, flat[name])
+    assert "learned_params_file: \"params/learned_default.yaml\"" in out.read_text()  # as written, portable
+    assert cli.main([cli.DUMP_CONFIG, "--params", str(tmp_path / "none.yaml")]) == 2
+    assert "bevo dump-config: error: parameters file not found" in capsys.readouterr().err
+
+
 def test_dump_config_to_a_file_and_run_as_a_module(tmp_path):
     out = tmp_path / "p.yaml"
     r = subprocess.run([sys.executable, "-m", "bevo_ros.cli", "dump-config", "--engine-only", "-o", str(out)],
@@ -120,3 +150,18 @@ def test_calibrate_prints_the_params_lines_with_their_reference(tmp_path, capsys
     assert set(params) == {"filter.mounting_pitch", "filter.mounting_roll", "filter.mounting_reference"}
     assert params["filter.mounting_reference"] == "camera"
     assert abs(params["filter.mounting_pitch"]) < 0.001  # rad: the drive's rig sits level on the road
+
+
+def test_an_empty_folder_and_a_bare_on_are_named_for_what_they_are(tmp_path, capsys):
+    """Two slips a user makes: an empty folder given as the bag (rosbags named the folder as the
+    metadata file) and ``undistort: on`` unquoted (YAML reads a bool where the setting is text)."""
+    from bevo_ros.config import ConfigError, coerce_setting
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert cli.main(["run", str(empty), "--out", str(tmp_path / "out")]) == 2
+    assert f"bevo run: error: {empty}: not a rosbag2 folder (it has no metadata.yaml)" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match=r"'undistort' = True is not a valid str \(YAML reads a bare on as "
+                                          r"true/false: quote it, 'on'\)"):
+        coerce_setting(True, "auto", "undistort")
+    assert coerce_setting("on", "auto", "undistort") == "on"

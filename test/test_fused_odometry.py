@@ -977,10 +977,13 @@ def test_vehicle_fit_keeps_the_learned_files_other_numbers(monkeypatch):
     """A kept fit of the motion filter's noise writes the fitted fields over the learned file's own:
     the ones training does not fit (``accel_bias_walk_density``, ``image_rotation_std``) stay as the
     file had them (they fell back to the defaults before)."""
+    import bevo_ros.training.suspension as suspension_training
     import bevo_ros.training.vehicle as vehicle_training
 
     inputs, truth = _measurement_drive(120, 1)
     monkeypatch.setattr(vehicle_training, "record_inputs", lambda sequence, config, learned: (inputs, truth))
+    # the engine's judgement of the fit (validation_rmse, test_vehicle_fit_is_judged_in_the_engine): no worse
+    monkeypatch.setattr(suspension_training, "validation_rmse", lambda seqs, config, learned, split: 0.05)
 
     class Recording:  # what the fit reads of a sequence besides its recorded inputs: its length
         def __len__(self) -> int:
@@ -992,3 +995,27 @@ def test_vehicle_fit_keeps_the_learned_files_other_numbers(monkeypatch):
     assert "vehicle_filter_fit" in learned.info  # kept (else this test says nothing)
     assert {k: learned.vehicle[k] for k in own} == own
     assert learned.vehicle["slip_std"] != FUSED.vehicle["slip_std"]  # and the fitted ones moved
+
+
+def test_vehicle_fit_is_judged_in_the_engine(monkeypatch, capsys):
+    """A fit whose likelihood improves on the validation frames is still refused when the engine, run
+    with it, reads those frames worse (the replay keeps the old noise's measurements; in the engine the
+    noise moves the gates and the prediction too): the learned file's noise stays, and says why."""
+    import bevo_ros.training.suspension as suspension_training
+    import bevo_ros.training.vehicle as vehicle_training
+
+    inputs, truth = _measurement_drive(120, 1)
+    monkeypatch.setattr(vehicle_training, "record_inputs", lambda sequence, config, learned: (inputs, truth))
+    monkeypatch.setattr(suspension_training, "validation_rmse",
+                        lambda seqs, config, learned, split: 0.05 if learned.vehicle == FUSED.vehicle else 0.07)
+
+    class Recording:
+        def __len__(self) -> int:
+            return len(inputs) + 1
+
+    learned = replace(FUSED, vehicle=dict(FUSED.vehicle), info=dict(FUSED.info))
+    vehicle_training.fit_vehicle_on_sequences(learned, [Recording()], BevoConfig(), steps=20)
+    out = capsys.readouterr().out
+    assert "validation per-frame translation RMSE 0.0500 -> 0.0700 m" in out, out
+    assert "the fit made the engine's validation frames worse; keeping the previous values" in out
+    assert learned.vehicle == FUSED.vehicle and "vehicle_filter_fit" not in learned.info

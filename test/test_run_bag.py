@@ -91,6 +91,41 @@ def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):
     assert (ev / "trajectory.png").stat().st_size > 1000
 
 
+def test_run_mode_paper_takes_the_paper_pipelines_shipped_file(synthetic_bag, tmp_path, capsys):
+    """``bevo run --mode paper`` with a params file naming the shipped fused file runs the paper's pipeline
+    with its own shipped O/Q (``params/learned_paper.yaml``, as the README's paper figures), says so, and
+    equals the engine built with that file; a ``--learned`` file is taken as given."""
+    from bevo_ros.config import shipped_learned_for_mode
+    from bevo_ros.io.learned_params import load_learned_params
+
+    drive, path = synthetic_bag
+    out = tmp_path / "paper"
+    assert run.main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "--mode", "paper", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "note: --mode paper: the learned parameters from" in err and "learned_paper.yaml" in err, err
+    config, _ = load_config(SYNTH_PARAMS)
+    config.odometry.mode = "paper"
+    paper_file = REPO_ROOT / "params" / "learned_paper.yaml"
+    assert (load_learned_params(paper_file).process_noise_density
+            != load_learned_params(config.learned_params_file).process_noise_density)  # the two files differ
+    odo = build_odometry(config, load_learned_params(paper_file), camera=drive.camera)
+    steps = feed_engine(odo, drive.imu_stamps, drive.gyro, drive.accel, drive.frame_stamps,
+                        lambda k: np.asarray(drive.image(k)), trailing=False)
+    tum = np.loadtxt(out / "trajectory_tum.txt")
+    np.testing.assert_allclose(tum[:, 1:3], np.array([s.position[:2] for s in steps]), atol=1e-6)
+    own = tmp_path / "own.yaml"
+    own.write_text((REPO_ROOT / "params" / "learned_default.yaml").read_text())
+    assert run.main([str(path), "--out", str(tmp_path / "own"), "--params", SYNTH_PARAMS, "--mode", "paper",
+                     "--learned", str(own), "-q"]) == 0
+    assert "note: --mode" not in capsys.readouterr().err
+    # the swap: only the shipped files, each to its mode's; a user's file stays
+    fused_file = REPO_ROOT / "params" / "learned_default.yaml"
+    assert shipped_learned_for_mode(fused_file, "paper").resolve() == paper_file.resolve()
+    assert shipped_learned_for_mode(paper_file, "fused").resolve() == fused_file.resolve()
+    assert shipped_learned_for_mode(fused_file, "fused") == fused_file
+    assert shipped_learned_for_mode(own, "paper") == own
+
+
 def test_run_bag_without_bevs_keeps_the_poses(synthetic_bag):
     """``bevo run`` keeps no BEV, mask or correlation surface per frame (~0.2 MB each, gigabytes over a long
     drive); the poses and covariances are those of the run that keeps them."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from typing import Callable, Mapping
 
 from bevo_ros.config import package_file
@@ -52,8 +53,15 @@ def guarded(prog: str, work: Callable[[], int], errors: tuple[type[BaseException
     else is a bug and propagates with its traceback. Run as ``bevo COMMAND`` (``bevo_ros.cli`` sets
     ``sys.argv[0]`` to it) PROG is that, as in the usage lines; ``prog`` names the executable run alone."""
     prog = prog_name(prog)
+
+    def one_line(message, category, filename, lineno, file=None, line=None) -> None:
+        # a warning is for the user, as an error is: one line naming the command, no source line
+        print(f"{prog}: warning: {message}", file=sys.stderr if file is None else file)
+
     try:
-        return work()
+        with warnings.catch_warnings():
+            warnings.showwarning = one_line
+            return work()
     except errors as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return next((code for kind, code in (codes or {}).items() if isinstance(exc, kind)), 2)

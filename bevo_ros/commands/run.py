@@ -22,7 +22,7 @@ from pathlib import Path
 
 from bevo_ros.commands import DEFAULT_PARAMS  # noqa: F401 (re-exported: tests load the default parameters)
 from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
-from bevo_ros.config import load_config
+from bevo_ros.config import load_config, shipped_learned_for_mode
 from bevo_ros.datasets.rosbag import RigSettings, extrinsics_for_recording
 from bevo_ros.io import bag
 from bevo_ros.pipeline import run_bag, write_outputs
@@ -52,9 +52,15 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     config, flat = load_config(args.params)
     rig = RigSettings.from_params(flat, str(args.params))
+    learned = args.learned or config.learned_params_file
     if args.mode:
         config.odometry.mode = args.mode
-    learned = args.learned or config.learned_params_file
+        if not args.learned:
+            swapped = shipped_learned_for_mode(learned, args.mode)
+            if swapped != Path(learned):
+                print(f"note: --mode {args.mode}: the learned parameters from {swapped} (the shipped file for that mode; "
+                      f"--learned FILE to choose another)", file=sys.stderr)
+                learned = str(swapped)
     t0 = time.perf_counter()
     steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
                               progress=not args.quiet, rig=rig, keep_bevs=False)

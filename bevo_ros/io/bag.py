@@ -500,6 +500,8 @@ def _open_reader(bag_path: PathLike):
         raise FileNotFoundError(f"{path}: bag not found")
     if path.is_file() and path.suffix in (".db3", ".mcap"):
         path = path.parent  # accept the storage file of a bag directory too
+    if path.is_dir() and not (path / "metadata.yaml").is_file():  # rosbags would name the folder as the file
+        raise BagError(f"{path}: not a rosbag2 folder (it has no metadata.yaml)")
     try:
         reader = AnyReader([path], default_typestore=typestore())
         reader.open()

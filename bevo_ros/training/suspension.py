@@ -60,6 +60,16 @@ def translation_errors(sequence, config, learned) -> np.ndarray:
     return np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
 
 
+def validation_rmse(seqs, config, learned, split: str = "3/4") -> float:
+    """The fused engine's per-frame translation RMSE (m) over the validation pairs of each recording
+    (``split``, as training splits them), run with ``learned``; nan without validation pairs. What
+    ``bevo train`` judges every fused-mode fit by: O/Q learned on the paper pipeline's loss and the
+    vehicle noise learned on a replay's likelihood are kept only if the engine itself does not get worse."""
+    from bevo_ros.datasets.rosbag import split_frames
+
+    return _rmse([translation_errors(s, config, learned)[split_frames(len(s), split)[0][1] - 1:] for s in seqs])
+
+
 def _rmse(errors: list[np.ndarray]) -> float:
     e = np.concatenate(errors) if errors else np.zeros(0)
     return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
