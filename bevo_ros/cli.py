@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 
 # bevo COMMAND (= module bevo_ros.commands.<COMMAND>) -> one-line help
 COMMANDS: dict[str, str] = {
@@ -117,8 +118,15 @@ def dump_config_main(argv: list[str]) -> int:
         except (ConfigError, FileNotFoundError, ValueError) as exc:
             print(f"bevo {DUMP_CONFIG}: error: {exc}", file=sys.stderr)
             return 2
-        if "learned_params_file" in flat:  # as the file wrote it (load_config made it absolute)
-            config.learned_params_file = str(flat["learned_params_file"])
+        if "learned_params_file" in flat:
+            # as the file wrote it if that still names the same file beside the dump (load_config made it
+            # absolute: a relative name resolves beside the file that sets it), else the absolute path
+            from bevo_ros.config import resolve_path
+
+            written = str(flat["learned_params_file"])
+            dump_dir = Path(args.out).resolve().parent if args.out else Path.cwd()
+            if resolve_path(written, dump_dir) == Path(config.learned_params_file):
+                config.learned_params_file = written
     node = None
     if not args.engine_only:
         try:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -193,9 +194,12 @@ def evaluate_files(gt_path: str | Path, est_path: str | Path, out: str | Path, p
         print(f"note: using GT frames {first}..{first + len(est) - 1} of {len(gt)}", file=sys.stderr)
     gt = gt[first: first + len(est)]
     pr = read_pitch_roll_csv(pitch_roll) if pitch_roll else None
-    if pr is not None and len(pr["stamp"]) != len(est):  # another run's attitude would be scored silently
-        raise ValueError(f"{pitch_roll}: {len(pr['stamp'])} rows, but {est_path} has {len(est)} poses: not the same "
-                         f"run's (bevo run writes both, one row per pose, into its --out folder)")
+    if pr is not None and len(pr["stamp"]) != len(est):
+        # bevo run writes one row per pose; another count may be another run's attitude (scored on its own
+        # columns all the same) or a CSV at another rate: said, not refused
+        warnings.warn(f"{pitch_roll}: {len(pr['stamp'])} rows, but {est_path} has {len(est)} poses: not the same "
+                      f"run's? (bevo run writes both, one row per pose, into its --out folder); its attitude is "
+                      f"scored on its own rows", UserWarning, stacklevel=2)
     metrics = evaluate_trajectories(gt, est, convention)
     if pr is not None:
         metrics.pitch_roll = pitch_roll_errors(pr)

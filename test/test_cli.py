@@ -100,8 +100,11 @@ def test_a_warning_is_one_line_naming_the_command(tmp_path, capsys):
     not as Python's (file, line number, ``UserWarning``, the source line)."""
     params = tmp_path / "typo.yaml"
     params.write_text((REPO_ROOT / "params" / "kitti.yaml").read_text().replace("    odometry.mode:", "    odometry.mod:"))
-    assert cli.main(["run", str(tmp_path / "no_bag"), "--out", str(tmp_path / "out"), "--params", str(params)]) == 2
-    err = capsys.readouterr().err
+    # as a user runs it (in the test process pytest records warnings instead of printing them)
+    r = subprocess.run([sys.executable, "-m", "bevo_ros.cli", "run", str(tmp_path / "no_bag"), "--out",
+                        str(tmp_path / "out"), "--params", str(params)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    err = r.stderr
     lines = [line for line in err.splitlines() if "odometry.mod" in line]
     assert len(lines) == 1 and lines[0].startswith("bevo run: warning: ") and "did you mean odometry.mode?" in lines[0], err
     assert "UserWarning" not in err and "load_config(" not in err and "bevo run: error:" in err, err
@@ -111,16 +114,25 @@ def test_dump_config_from_a_params_file_keeps_its_rig(tmp_path, capsys):
     """``--params FILE``: every setting, FILE's where it sets one (the KITTI rig's mounting, its node
     wiring), the defaults elsewhere; the dump reads back as FILE does. Without it the defaults' mounting
     is 0 (a KITTI bag run with them drifted ~37 %), hence the option; a missing file is a clear error."""
-    kitti = REPO_ROOT / "params" / "kitti.yaml"
-    out = tmp_path / "k.yaml"
-    assert cli.main([cli.DUMP_CONFIG, "--params", str(kitti), "-o", str(out)]) == 0
-    dumped, flat = load_config(out)
-    original, original_flat = load_config(kitti)
-    assert dumped == original and dumped.filter.mounting_pitch != BevoConfig().filter.mounting_pitch
-    assert set(BevoConfig().to_flat()) <= set(flat)  # complete
-    for name in ("camera_info_topic", "imu_topic"):  # the node's settings, as the file sets them or defaulted
-        assert flat[name] == original_flat.get(name, flat[name])
-    assert "learned_params_file: \"params/learned_default.yaml\"" in out.read_text()  # as written, portable
+    rig = tmp_path / "rig"
+    rig.mkdir()
+    kitti = rig / "kitti.yaml"  # the KITTI rig with a node setting of its own and its learned file beside it
+    text = (REPO_ROOT / "params" / "kitti.yaml").read_text()
+    assert "    imu_topic: imu/data " in text and "    learned_params_file: params/learned_default.yaml" in text
+    kitti.write_text(text.replace("    imu_topic: imu/data ", "    imu_topic: x/imu ").replace(
+        "    learned_params_file: params/learned_default.yaml", "    learned_params_file: mine.yaml"))
+    (rig / "mine.yaml").write_text((REPO_ROOT / "params" / "learned_default.yaml").read_text())
+    for out in (rig / "k.yaml", tmp_path / "elsewhere" / "k.yaml"):
+        out.parent.mkdir(exist_ok=True)
+        assert cli.main([cli.DUMP_CONFIG, "--params", str(kitti), "-o", str(out)]) == 0
+        dumped, flat = load_config(out)
+        original, original_flat = load_config(kitti)
+        assert dumped == original and dumped.filter.mounting_pitch != BevoConfig().filter.mounting_pitch
+        assert set(BevoConfig().to_flat()) <= set(flat)  # complete
+        assert flat["imu_topic"] == "x/imu" and original_flat["imu_topic"] == "x/imu"  # the node's settings too
+        # the learned file as written where that still names it (beside the dump), else its absolute path
+        written = "mine.yaml" if out.parent == rig else str(rig / "mine.yaml")
+        assert f'learned_params_file: "{written}"' in out.read_text()
     assert cli.main([cli.DUMP_CONFIG, "--params", str(tmp_path / "none.yaml")]) == 2
     assert "bevo dump-config: error: parameters file not found" in capsys.readouterr().err
 

@@ -54,20 +54,23 @@ def guarded(prog: str, work: Callable[[], int], errors: tuple[type[BaseException
     ``sys.argv[0]`` to it) PROG is that, as in the usage lines; ``prog`` names the executable run alone."""
     prog = prog_name(prog)
 
-    def one_line(message, category, filename, lineno, file=None, line=None) -> None:
+    def one_line(message, category, filename, lineno, line=None) -> str:
         # a warning is for the user, as an error is: one line naming the command, no source line
-        print(f"{prog}: warning: {message}", file=sys.stderr if file is None else file)
+        # (the format only: a caller recording warnings, pytest.warns, still gets them)
+        return f"{prog}: warning: {message}\n"
 
+    previous = warnings.formatwarning  # (catch_warnings does not restore it)
+    warnings.formatwarning = one_line
     try:
-        with warnings.catch_warnings():
-            warnings.showwarning = one_line
-            return work()
+        return work()
     except errors as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return next((code for kind, code in (codes or {}).items() if isinstance(exc, kind)), 2)
     except KeyboardInterrupt:
         print(f"{prog}: {interrupted}", file=sys.stderr)
         return 130
+    finally:
+        warnings.formatwarning = previous
 
 
 def bag_errors(*extra: type[BaseException]) -> tuple[type[BaseException], ...]:

@@ -145,7 +145,7 @@ def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: st
     before, after = validation_rmse(seqs, config, prior, split), validation_rmse(seqs, config, learned, split)
     print(f"O/Q in the fused engine: validation per-frame translation RMSE {before:.4f} m with the params' learned "
           f"file's, {after:.4f} m trained")
-    if after > before:
+    if not after <= before and not math.isnan(before):  # worse, or no number at all with the trained ones
         print("O/Q: the trained values made the fused engine's validation frames worse; keeping the learned file's "
               f"(O = {list(base.process_noise_density)}, Q = {list(base.measurement_noise_variance)})")
         learned.process_noise_density = base.process_noise_density

@@ -498,7 +498,7 @@ def _open_reader(bag_path: PathLike):
     path = Path(bag_path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: bag not found")
-    if path.is_file() and path.suffix in (".db3", ".mcap"):
+    if path.is_file() and path.suffix in (".db3", ".mcap") and (path.parent / "metadata.yaml").is_file():
         path = path.parent  # accept the storage file of a bag directory too
     if path.is_dir() and not (path / "metadata.yaml").is_file():  # rosbags would name the folder as the file
         raise BagError(f"{path}: not a rosbag2 folder (it has no metadata.yaml)")

@@ -180,7 +180,7 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
         rmse_before = validation_rmse(seqs, config, learned, split)
         rmse_after = validation_rmse(seqs, config, replace(learned, vehicle=fitted), split)
         print(f"vehicle filter in the engine: validation per-frame translation RMSE {rmse_before:.4f} -> {rmse_after:.4f} m")
-        if rmse_after > rmse_before:
+        if not rmse_after <= rmse_before and not math.isnan(rmse_before):  # worse, or no number with the fit
             print("vehicle filter: the fit made the engine's validation frames worse; keeping the previous values")
             return
         learned.vehicle = fitted
