@@ -445,3 +445,20 @@ def test_fused_training_keeps_trained_oq_only_if_the_engine_agrees(monkeypatch, 
     same = LearnedParams(process_noise_density=(3e-6, 3e-6), measurement_noise_variance=(0.01, 0.01))
     train_command._keep_trained_oq_if_the_engine_agrees(same, base, [], None, "3/4")
     assert "oq_kept_from" not in same.info and "oq_engine_check" not in same.info
+
+
+def test_validation_rmse_scores_the_engine_run_on_and_started_at_the_validation(synth):
+    """What every fused-mode fit is judged by: the engine's per-frame translation error over the
+    validation pairs run on from the recording's start and started cold at the first validation
+    frame (as a held-out clip: ``Recording.frames``), one RMSE over both."""
+    from bevo_ros.datasets.rosbag import split_frames
+    from bevo_ros.training.suspension import translation_errors, validation_rmse
+
+    _, config, seq = synth
+    learned = load_learned_params(config.learned_params_file)
+    cut = split_frames(len(seq), "3/4")[0][1] - 1
+    run_on = translation_errors(seq, config, learned)[cut:]
+    started = translation_errors(seq.frames(cut, len(seq)), config, learned)
+    assert len(run_on) == len(started) == len(seq) - 1 - cut and not np.allclose(run_on, started)
+    both = np.sqrt(np.mean(np.concatenate([run_on, started]) ** 2))
+    assert validation_rmse([seq], config, learned, "3/4") == pytest.approx(both, rel=1e-12)
