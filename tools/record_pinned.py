@@ -72,7 +72,8 @@ def trajectory(bag_path: Path, params: Path, mode: str) -> list[list[float]]:
 
 def training_result(bag_path: Path, workdir: Path) -> dict[str, list[float]]:
     """O (rad^2/s) and Q (rad^2), [pitch, roll], of a 1-epoch fixed-seed train_from_bag: the learned
-    (best validated) ones and the checkpoint's current ones after the epoch's Adam steps."""
+    (best validated) ones and the checkpoint's current ones after the epoch's Adam steps, both from the
+    checkpoint (the trainer's; the file written holds what the fused engine then accepted)."""
     from bevo_ros.io.learned_params import load_learned_params
 
     out = workdir / "learned.yaml"
@@ -84,10 +85,11 @@ def training_result(bag_path: Path, workdir: Path) -> dict[str, list[float]]:
         raise RuntimeError(f"train_from_bag failed ({rc})")
     from bevo_ros.training.trainer import load_checkpoint
 
-    learned = load_learned_params(out)
-    current = load_checkpoint(out.with_name(out.name + ".ckpt.yaml"))["current"]  # after the epoch's Adam steps
-    return {"O": [float(v) for v in learned.process_noise_density],
-            "Q": [float(v) for v in learned.measurement_noise_variance],
+    load_learned_params(out)  # written and loadable
+    ckpt = load_checkpoint(out.with_name(out.name + ".ckpt.yaml"))
+    best, current = ckpt["best"], ckpt["current"]  # the best validated; after the epoch's Adam steps
+    return {"O": [float(v) for v in best["process_noise_density"]],
+            "Q": [float(v) for v in best["measurement_noise_variance"]],
             "O_after_adam": [float(v) for v in current["process_noise_density"]],
             "Q_after_adam": [float(v) for v in current["measurement_noise_variance"]]}
 
