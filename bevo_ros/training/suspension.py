@@ -68,7 +68,8 @@ def validation_rmse(seqs, config, learned, split: str = "3/4") -> float:
     ``bevo train`` judges every fused-mode fit by: O/Q learned on the paper pipeline's loss and the
     vehicle noise learned on a replay's likelihood are kept only if the engine itself does not get
     worse. The cold start counts: on make demo's drive the trained O/Q (the gyro trusted ~10^6 times
-    more) read the validation frames 2.0 -> 1.6 cm run on, but 3.9 -> 5.4 cm started there."""
+    more) read the validation frames 2.0 -> 1.6 cm run on, but the held-out row started there went
+    3.9 -> 5.4 cm with them (and the suspension fit they let in); both runs together, 2.70 -> 3.35 cm."""
     from bevo_ros.datasets.rosbag import split_frames
 
     errors = []
