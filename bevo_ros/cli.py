@@ -130,15 +130,9 @@ def dump_config_main(argv: list[str]) -> int:
     node = None
     if not args.engine_only:
         try:
-            import dataclasses
+            from bevo_ros.ros.settings import DESCRIPTIONS, settings_from_flat
 
-            from bevo_ros.ros.settings import DESCRIPTIONS, NodeSettings
-            from bevo_ros.config import coerce_setting
-
-            base = NodeSettings()
-            node = (NodeSettings(**{f.name: coerce_setting(flat[f.name], getattr(base, f.name), f.name)
-                                    if f.name in flat else getattr(base, f.name)
-                                    for f in dataclasses.fields(NodeSettings)}), DESCRIPTIONS)
+            node = (settings_from_flat(flat), DESCRIPTIONS)
         except ImportError as exc:  # no ROS in this environment: the engine's part still helps
             print(f"bevo {DUMP_CONFIG}: note: bevo_node's settings left out ({exc})", file=sys.stderr)
     text = dump_params_yaml(config, node_settings=node[0] if node else None, descriptions=node[1] if node else None)

@@ -134,7 +134,7 @@ def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: st
     1.33 -> 1.46 %; on make demo's 30 s drive 3.6 -> 6.6 cm), else keep that file's, and say which."""
     from dataclasses import replace
 
-    from bevo_ros.training.suspension import validation_rmse
+    from bevo_ros.training.suspension import engine_judgement
 
     same = (tuple(learned.process_noise_density) == tuple(base.process_noise_density)
             and tuple(learned.measurement_noise_variance) == tuple(base.measurement_noise_variance))
@@ -142,10 +142,10 @@ def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: st
         return
     prior = replace(learned, process_noise_density=base.process_noise_density,
                     measurement_noise_variance=base.measurement_noise_variance)
-    before, after = validation_rmse(seqs, config, prior, split), validation_rmse(seqs, config, learned, split)
+    before, after, keep = engine_judgement(seqs, config, prior, learned, split)
     print(f"O/Q in the fused engine: validation per-frame translation RMSE {before:.4f} m with the params' learned "
           f"file's, {after:.4f} m trained")
-    if not after <= before and not math.isnan(before):  # worse, or no number at all with the trained ones
+    if not keep:
         print("O/Q: the trained values made the fused engine's validation frames worse; keeping the learned file's "
               f"(O = {list(base.process_noise_density)}, Q = {list(base.measurement_noise_variance)})")
         learned.process_noise_density = base.process_noise_density

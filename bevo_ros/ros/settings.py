@@ -164,6 +164,14 @@ def validate(s: NodeSettings) -> None:
             raise ConfigError(f"parameter '{name}' must not be empty")
 
 
+def settings_from_flat(flat: dict[str, Any]) -> NodeSettings:
+    """The node's own settings from flat parameters (a parameters file's, or those declared), each
+    coerced to its field's type; the default where ``flat`` has none. ConfigError when one is unusable."""
+    base = NodeSettings()
+    return NodeSettings(**{f.name: coerce_setting(flat[f.name], getattr(base, f.name), f.name) if f.name in flat
+                           else getattr(base, f.name) for f in dataclasses.fields(NodeSettings)})
+
+
 def defaults() -> dict[str, Any]:
     """Every parameter of the node with its default: NodeSettings' fields, then BevoConfig's flat keys."""
     flat = {f.name: getattr(NodeSettings(), f.name) for f in dataclasses.fields(NodeSettings)}
@@ -190,8 +198,7 @@ def declare(node, node_name: str) -> tuple[NodeSettings, BevoConfig]:
             description=f"deprecated: renamed {new}", dynamic_typing=True)).value
         if value is not None:
             flat[old] = value
-    settings = NodeSettings(**{f.name: coerce_setting(flat[f.name], getattr(NodeSettings(), f.name), f.name)
-                               for f in dataclasses.fields(NodeSettings)})
+    settings = settings_from_flat(flat)
     validate(settings)
     config = BevoConfig.from_flat(flat, source=f"{node_name} parameters", warn=node.get_logger().warning)
     config_flat = config.to_flat()
@@ -256,5 +263,5 @@ def input_qos(s: NodeSettings) -> Callable[[int], Any]:
     return profile
 
 
-__all__ = ["NodeSettings", "DESCRIPTIONS", "validate", "defaults", "declare", "learned_params_path", "live_value", "check_live",
+__all__ = ["NodeSettings", "DESCRIPTIONS", "validate", "settings_from_flat", "defaults", "declare", "learned_params_path", "live_value", "check_live",
            "input_qos"]

@@ -81,6 +81,14 @@ def validation_rmse(seqs, config, learned, split: str = "3/4") -> float:
     return _rmse(errors)
 
 
+def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tuple[float, float, bool]:
+    """:func:`validation_rmse` with ``current`` and with ``candidate`` learned parameters, and whether
+    the candidate may be kept: no worse, and a number (when ``current`` gives none, nothing can be judged)."""
+    before = validation_rmse(seqs, config, current, split)
+    after = validation_rmse(seqs, config, candidate, split)
+    return before, after, after <= before or math.isnan(before)
+
+
 def _rmse(errors: list[np.ndarray]) -> float:
     e = np.concatenate(errors) if errors else np.zeros(0)
     return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
@@ -165,11 +173,11 @@ def fit_suspension_on_sequences(learned, seqs, config, split: str = "3/4", evals
           f"{fit.validation_before:.4f} -> {fit.validation_after:.4f} m")
     if fit.validation_after <= fit.validation_before and fit.gradients != old:
         # judged as every fused-mode fit is: also started cold at the validation's first frame
-        before, after = (validation_rmse(seqs, config, learned, split),
-                         validation_rmse(seqs, config, replace(learned, suspension_gradients=fit.gradients), split))
+        before, after, keep = engine_judgement(seqs, config, learned,
+                                               replace(learned, suspension_gradients=fit.gradients), split)
         print(f"suspension in the engine (run on and started at the validation frames): per-frame translation "
               f"RMSE {before:.4f} -> {after:.4f} m")
-        if not after <= before and not math.isnan(before):
+        if not keep:
             print("suspension: the fit made the engine's validation frames worse started there; keeping the previous "
                   "values")
             return

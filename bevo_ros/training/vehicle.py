@@ -175,12 +175,11 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
         # the noise also moves its gates and its prediction behind other cars. Judged in the engine too:
         # fitted on one 30 s synthetic drive (make demo) the noise went far tighter than any car's (jerk
         # 0.15 m^2/s^5, slip 0.0002) with a better likelihood, and the held-out frames read worse.
-        from bevo_ros.training.suspension import validation_rmse
+        from bevo_ros.training.suspension import engine_judgement
 
-        rmse_before = validation_rmse(seqs, config, learned, split)
-        rmse_after = validation_rmse(seqs, config, replace(learned, vehicle=fitted), split)
+        rmse_before, rmse_after, keep = engine_judgement(seqs, config, learned, replace(learned, vehicle=fitted), split)
         print(f"vehicle filter in the engine: validation per-frame translation RMSE {rmse_before:.4f} -> {rmse_after:.4f} m")
-        if not rmse_after <= rmse_before and not math.isnan(rmse_before):  # worse, or no number with the fit
+        if not keep:
             print("vehicle filter: the fit made the engine's validation frames worse; keeping the previous values")
             return
         learned.vehicle = fitted
