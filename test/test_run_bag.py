@@ -459,7 +459,7 @@ def test_run_warns_when_the_params_describe_another_rig_than_the_bag(synthetic_b
     """A synthetic bag (level camera 0.31 m left of KITTI's) run with params/kitti.yaml said nothing:
     the KITTI mounting, re-derived through its camera, tilted the BEV (a drive rendered from OXTS:
     21.7 % drift, 3.5 % with params/synthetic.yaml). Warned, naming the parameters, both values and
-    which is used; nothing with the matching params/synthetic.yaml."""
+    which is used; nothing with the matching params/synthetic.yaml. Run as ``bevo run`` the lines say so."""
     _, path = synthetic_bag
     for params, warned in ((KITTI_PARAMS, True), (SYNTH_PARAMS, False)):
         capsys.readouterr()
@@ -474,6 +474,12 @@ def test_run_warns_when_the_params_describe_another_rig_than_the_bag(synthetic_b
                          "to +1.07 / -1.26 deg for the bag's camera, are used", "camera.mount_height 1.65 m",
                          "params/synthetic.yaml describes the bag's camera"):
                 assert said in err
+    # Through the one command its lines name it, as its errors do: `bevo run`, not the function's name.
+    from bevo_ros import cli
+
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "out_cli"), "--params", KITTI_PARAMS, "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "bevo run: warning: camera.base_T_camera puts the camera" in err and "run_bag" not in err, err
 
 
 def test_training_calibration_and_ablation_loader_warns_as_bevo_run(synthetic_bag):

@@ -21,7 +21,8 @@ import time
 from pathlib import Path
 
 from bevo_ros.commands import DEFAULT_PARAMS  # noqa: F401 (re-exported: tests load the default parameters)
-from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
+from bevo_ros.commands import (add_params_option, add_threads_option, bag_errors, guarded, new_parser, prog_name,
+                                set_threads)
 from bevo_ros.config import load_config, shipped_learned_for_mode
 from bevo_ros.datasets.rosbag import RigSettings, extrinsics_for_recording
 from bevo_ros.io import bag
@@ -70,7 +71,7 @@ def _run(args: argparse.Namespace) -> int:
     T_base_cam, _ = extrinsics_for_recording(rec, config, rig)  # the extrinsics the engine used (float64)
     paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
     c = odo.counters
-    print(f"run_bag: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
+    print(f"{prog_name('run_bag')}: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
           f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
           f"dropped (no imu) {c.dropped_no_imu}; rejected: textureless {c.rejected_textureless}, "
           f"translation {c.rejected_translation}, rotation {c.rejected_rotation}; at rest {c.standstill}; "
