@@ -180,7 +180,8 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
         rmse_before, rmse_after, keep = engine_judgement(seqs, config, learned, replace(learned, vehicle=fitted), split)
         print(f"vehicle filter in the engine: validation per-frame translation RMSE {rmse_before:.4f} -> {rmse_after:.4f} m")
         if not keep:
-            print("vehicle filter: the fit made the engine's validation frames worse; keeping the previous values")
+            print("vehicle filter: in the engine the fit did not read the validation frames clearly better (worse, or "
+                  "within their own noise); keeping the previous values")
             return
         learned.vehicle = fitted
         learned.info["vehicle_filter_fit"] = {"train_nll": [fit.nll_before, fit.nll_after],
