@@ -45,7 +45,7 @@ from bevo_ros.io.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_
 
 def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
         image_topic: str = bag.IMAGE_TOPIC, first_frame: int = 0, progress: bool = False,
-        rig: RigSettings = RigSettings(), keep_bevs: bool = True
+        rig: RigSettings = RigSettings(), keep_bevs: bool = True, prog: str = "run_bag"
         ) -> tuple[list[OdometryStep], bag.BagContents, BevoOdometry]:
     """Feed a bag through the engine; returns the per-frame results, the recording (no images) and the engine.
 
@@ -55,8 +55,10 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
     The rig and calibration as bevo_node takes them (``rig``: its parameters of the same names): the
     camera's intrinsics from the bag's CameraInfo (images undistorted where it says so), its
     extrinsics and the IMU's axes from the bag's ``/tf_static`` when there
-    (:func:`~bevo_ros.datasets.rosbag.extrinsics_for_recording` of the recording returned says which)."""
-    say = prog_name("run_bag")  # its lines name the command that runs it: bevo run, bevo map
+    (:func:`~bevo_ros.datasets.rosbag.extrinsics_for_recording` of the recording returned says which).
+    Its stderr lines start with the command that runs it: ``bevo run`` / ``bevo map``, or the
+    executable ``prog`` (``run_bag``, ``map_from_bag``) run alone."""
+    say = prog_name(prog)
     rec = bag.read_recording(bag_path, imu_topic=imu_topic, image_topic=image_topic, load_images=False)
     T_base_cam, source = extrinsics_for_recording(rec, config, rig)
     calib = calibration_for_recording(rec, config, rig)

@@ -984,7 +984,7 @@ def test_vehicle_fit_keeps_the_learned_files_other_numbers(monkeypatch):
     monkeypatch.setattr(vehicle_training, "record_inputs", lambda sequence, config, learned: (inputs, truth))
     # the engine's judgement of the fit (test_vehicle_fit_is_judged_in_the_engine): clearly better
     monkeypatch.setattr(suspension_training, "validation_errors", lambda seqs, config, learned, split: np.full(
-        40, 0.05 if learned.vehicle["slip_std"] == FUSED.vehicle["slip_std"] else 0.04))
+        (2, 40), 0.05 if learned.vehicle["slip_std"] == FUSED.vehicle["slip_std"] else 0.04))
 
     class Recording:  # what the fit reads of a sequence besides its recorded inputs: its length
         def __len__(self) -> int:
@@ -1008,7 +1008,8 @@ def test_vehicle_fit_is_judged_in_the_engine(monkeypatch, capsys):
     inputs, truth = _measurement_drive(120, 1)
     monkeypatch.setattr(vehicle_training, "record_inputs", lambda sequence, config, learned: (inputs, truth))
     monkeypatch.setattr(suspension_training, "validation_errors",
-                        lambda seqs, config, learned, split: np.full(40, 0.05 if learned.vehicle == FUSED.vehicle else 0.07))
+                        lambda seqs, config, learned, split: np.full((2, 40), 0.05 if learned.vehicle == FUSED.vehicle
+                                                                     else 0.07))
 
     class Recording:
         def __len__(self) -> int:
@@ -1018,6 +1019,5 @@ def test_vehicle_fit_is_judged_in_the_engine(monkeypatch, capsys):
     vehicle_training.fit_vehicle_on_sequences(learned, [Recording()], BevoConfig(), steps=20)
     out = capsys.readouterr().out
     assert "validation per-frame translation RMSE 0.0500 -> 0.0700 m" in out, out
-    assert "the fit did not read the validation frames clearly better (worse, or within their own noise); keeping the " \
-           "previous values" in out
+    assert "vehicle filter: not clearly better in the engine (worse by" in out and "keeping the previous values" in out
     assert learned.vehicle == FUSED.vehicle and "vehicle_filter_fit" not in learned.info

@@ -190,7 +190,7 @@ def test_setup_installs_launch_rviz_params_executables_and_license():
 # import name -> rosdep key (ROS packages are their own key); pip-only ones have none
 ROSDEP_KEYS = {"numpy": "python3-numpy", "yaml": "python3-yaml", "cv2": "python3-opencv",
                "torch": "python3-pytorch-pip", "tqdm": "python3-tqdm", "matplotlib": "python3-matplotlib",
-               "tf2_ros": "tf2_ros_py"}
+               "tf2_ros": "tf2_ros_py", "scipy": "python3-scipy"}
 PIP_ONLY = {"rosbags"}
 
 

@@ -25,7 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-from bevo_ros.commands import add_params_option, add_threads_option, bag_errors, guarded, new_parser, set_threads
+from bevo_ros.commands import (add_params_option, add_threads_option, bag_errors, guarded, new_parser, prog_name,
+                               set_threads)
 from bevo_ros.config import package_file
 # make_synthetic_bag and reference_attitude are re-exported: tests reach them through the command module.
 from bevo_ros.training.ablation import (EMPIRICAL_O, EMPIRICAL_Q, GT_MODES, AblationOptions,  # noqa: F401
@@ -110,7 +111,7 @@ def _ablation(args: argparse.Namespace) -> int:
         empirical_q=args.empirical_Q, synthetic=args.synthetic, synthetic_seed=args.synthetic_seed,
         bumps=args.bumps, noise=args.noise, image_scale=args.image_scale, device=args.device, quiet=args.quiet)
     result = run_ablation(args.bags, config, options, out,
-                          warn=lambda msg: print(f"ablation: warning: {msg}", file=sys.stderr),
+                          warn=lambda msg: print(f"{prog_name('ablation')}: warning: {msg}", file=sys.stderr),
                           rig=RigSettings.from_params(flat, str(args.params)))
     print(result.notes)
     print(f"wrote {out / 'ablation.md'}, {out / 'ablation.json'} and the plots in {time.perf_counter() - t_start:.0f} s")

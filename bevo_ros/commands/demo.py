@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     t = step("2/4 train O and Q end to end on the first three quarters (the paper's pipeline), then fused mode's "
              "numbers")
     # The paper's pipeline: its O/Q as trained. Fused mode (the params' mode): O/Q, the suspension and the
-    # vehicle filter's noise, each kept only if the fused engine reads the validation frames no worse.
+    # vehicle filter's noise, each kept only if the fused engine reads the validation frames clearly better.
     paper_params = out / "synthetic_paper.yaml"
     from bevo_ros.io.files import atomic_write_text
 
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     # Training fits the paper pipeline's O and Q (the batched KL path), then, for fused mode, the suspension
     # and the vehicle filter's noise; each fused-mode fit is kept only if the engine reads the validation
-    # frames (these held-out ones) no worse. The fused row with this run's file shows what that gave.
+    # frames (these held-out ones) clearly better. The fused row with this run's file shows what that gave.
     runs = (("fused", "fused", str(package_file("params/learned_default.yaml")), "fused (default params)"),
             ("fused_learned", "fused", str(learned), "fused, this run's learned file"),
             ("learned", "paper", str(learned_paper), "paper, learned O/Q"),

@@ -15,8 +15,9 @@ Fused mode (odometry.mode: fused, the default) then fits what its engine adds, o
 frames: the suspension gradients (--suspension-evals engine runs per axis) and the vehicle motion
 filter's noise (--vehicle-steps). Each of these, and the trained O/Q themselves, is kept only if the
 fused engine reads the validation frames clearly better than with the configuration's learned file's
-values (per-frame translation errors: their squares fall by at least one standard error, over blocks
-of 10 frame pairs); the file written says which were kept (info).
+values (the squared translation errors of the validation frame pairs fall, over blocks of 10 pairs,
+by more than chance would at 95 %, one-sided Student's t; at least 20 pairs); the file written says
+which were kept (info).
 """
 from __future__ import annotations
 
@@ -144,17 +145,15 @@ def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: st
         return
     prior = replace(learned, process_noise_density=base.process_noise_density,
                     measurement_noise_variance=base.measurement_noise_variance)
-    before, after, keep = engine_judgement(seqs, config, prior, learned, split)
+    before, after, keep, why = engine_judgement(seqs, config, prior, learned, split)
     print(f"O/Q in the fused engine: validation per-frame translation RMSE {before:.4f} m with the params' learned "
           f"file's, {after:.4f} m trained")
     if not keep:
-        print("O/Q: in the fused engine the trained values did not read the validation frames clearly better (worse, "
-              "or within their own noise); keeping the learned file's "
-              f"(O = {list(base.process_noise_density)}, Q = {list(base.measurement_noise_variance)})")
+        print(f"O/Q: the trained values are not clearly better in the fused engine ({why}); keeping the learned "
+              f"file's (O = {list(base.process_noise_density)}, Q = {list(base.measurement_noise_variance)})")
         learned.process_noise_density = base.process_noise_density
         learned.measurement_noise_variance = base.measurement_noise_variance
-        learned.info["oq_kept_from"] = {"reason": "trained O/Q did not read the fused engine's validation frames "
-                                                  "clearly better",
+        learned.info["oq_kept_from"] = {"reason": f"trained O/Q not clearly better in the fused engine: {why}",
                                         "validation_rmse": [before, after]}
     else:
         learned.info["oq_engine_check"] = {"validation_rmse": [before, after]}

@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-__all__ = ["SEARCH_BOUNDS", "SuspensionFit", "clearly_better", "engine_judgement", "fit_suspension",
+__all__ = ["SEARCH_BOUNDS", "SuspensionFit", "engine_judgement", "fit_suspension", "improvement",
            "fit_suspension_on_sequences", "translation_errors", "validation_errors", "validation_rmse"]
 
 # rad/(m/s^2), (pitch, roll): 0-0.57 deg and 0-1.15 deg per m/s^2, beyond any passenger car's
@@ -36,10 +36,10 @@ _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 # acceleration an axis needs (no bends for roll) leave its objective flat, and its noise would
 # pick any value (two straight synthetic drives: roll 0.0087 -> 0, validated on bends: worse).
 MIN_IMPROVEMENT = 0.01
-# engine_judgement: a fit is kept only if its validation pairs' squared errors fall by at least this
-# many standard errors, estimated over blocks of this many consecutive pairs (clearly_better).
-JUDGEMENT_Z = 1.0
+# engine_judgement: a fit is kept only if its validation pairs' squared errors fall, over blocks of
+# this many consecutive pairs, by more than chance would at this one-sided level (Student's t).
 JUDGEMENT_BLOCK = 10
+JUDGEMENT_LEVEL = 0.95
 
 
 @dataclass
@@ -67,59 +67,80 @@ def translation_errors(sequence, config, learned) -> np.ndarray:
 
 def validation_errors(seqs, config, learned, split: str = "3/4") -> np.ndarray:
     """The fused engine's translation error (m) of every validation pair of each recording (``split``,
-    as training splits them), run with ``learned`` twice: on from the recording's start, and started at
-    the first validation frame as a held-out clip is (its IMU before warms the attitude filter, the
-    odometry starts cold: ``bevo run --first-frame``). ``(K,)``, in that order per recording; empty
-    without validation pairs. The cold start counts: on make demo's drive the trained O/Q (the gyro
-    trusted ~10^6 times more) read the validation frames 2.0 -> 1.6 cm run on, but the held-out row
-    started there went 3.9 -> 5.4 cm with them (and the suspension fit they let in); both runs
-    together, 2.70 -> 3.35 cm."""
+    as training splits them), run with ``learned`` twice: on from the recording's start (row 0), and
+    started at the first validation frame as a held-out clip is (row 1; its IMU before warms the
+    attitude filter, the odometry starts cold: ``bevo run --first-frame``). ``(2, K)``, the
+    recordings' pairs one after the other; ``K = 0`` without validation pairs. The cold start counts:
+    on make demo's drive the trained O/Q (the gyro trusted ~10^6 times more) read the validation frames
+    2.0 -> 1.6 cm run on, but the held-out row started there went 3.9 -> 5.4 cm with them (and the
+    suspension fit they let in); both runs together, 2.70 -> 3.35 cm."""
     from bevo_ros.datasets.rosbag import split_frames
 
-    errors = [np.zeros(0)]
+    errors = [np.zeros((2, 0))]
     for s in seqs:
         cut = split_frames(len(s), split)[0][1] - 1  # the first validation pair (frames cut, cut + 1)
-        errors.append(translation_errors(s, config, learned)[cut:])
-        if cut + 2 <= len(s):
-            errors.append(translation_errors(s.frames(cut, len(s)), config, learned))
-    return np.concatenate(errors)
+        if cut + 2 <= len(s):  # at least one validation pair
+            errors.append(np.stack([translation_errors(s, config, learned)[cut:],
+                                    translation_errors(s.frames(cut, len(s)), config, learned)]))
+    return np.concatenate(errors, axis=1)
 
 
 def validation_rmse(seqs, config, learned, split: str = "3/4") -> float:
-    """RMSE (m) of :func:`validation_errors`; nan without validation pairs. What ``bevo train``
-    reports for every fused-mode fit: O/Q learned on the paper pipeline's loss, the suspension and the
-    vehicle noise learned on a replay's likelihood are kept only if the engine itself reads the
-    validation frames better (:func:`engine_judgement`)."""
-    return _rmse([validation_errors(seqs, config, learned, split)])
+    """RMSE (m) of :func:`validation_errors`, both runs; nan without validation pairs. What ``bevo
+    train`` reports for every fused-mode fit: O/Q learned on the paper pipeline's loss, the suspension
+    and the vehicle noise learned on a replay's likelihood are kept only if the engine itself reads the
+    validation frames clearly better (:func:`engine_judgement`)."""
+    return _rmse([validation_errors(seqs, config, learned, split).ravel()])
 
 
-def clearly_better(current: np.ndarray, candidate: np.ndarray, block: int = JUDGEMENT_BLOCK,
-                   z: float = JUDGEMENT_Z) -> bool:
-    """Whether ``candidate``'s per-pair errors ``(K,)`` beat ``current``'s (the same pairs) by more
-    than the validation's own noise: the mean of ``current**2 - candidate**2`` over blocks of
-    ``block`` consecutive pairs (a frame's error is correlated with its neighbours') is positive and at
-    least ``z`` standard errors of the block means. Fewer than two blocks cannot tell a fit from
-    noise: False."""
-    d = np.asarray(current, dtype=np.float64) ** 2 - np.asarray(candidate, dtype=np.float64) ** 2
+def improvement(current: np.ndarray, candidate: np.ndarray, block: int = JUDGEMENT_BLOCK) -> tuple[float, int]:
+    """How clearly ``candidate``'s errors beat ``current``'s on the same validation pairs: ``(t, n)``,
+    the mean fall of the squared errors over ``n`` blocks of ~``block`` consecutive pairs (a frame's
+    error is correlated with its neighbours') in standard errors of the block means. Errors
+    ``(..., K)``: the leading rows (the run on and the cold start) are averaged per pair first, as
+    they judge the same frames. ``n < 2`` (too few pairs to estimate the noise): ``(nan, n)``.
+    Raises ValueError for different shapes or errors that are not finite (nothing to judge by)."""
+    current, candidate = np.asarray(current, dtype=np.float64), np.asarray(candidate, dtype=np.float64)
+    if current.shape != candidate.shape:
+        raise ValueError(f"the errors must judge the same pairs, got shapes {current.shape} and {candidate.shape}")
+    if not (np.isfinite(current).all() and np.isfinite(candidate).all()):
+        raise ValueError("validation errors that are not finite: the engine dropped or lost frames")
+    d = (current**2 - candidate**2).reshape(-1, current.shape[-1]).mean(axis=0)  # (K,) per pair
     n = d.size // block
-    if n < 2 or not np.isfinite(d).all():
-        return False
-    means = d[: n * block].reshape(n, block).mean(axis=1)
-    return bool(means.mean() > 0 and means.mean() >= z * means.std(ddof=1) / math.sqrt(n))
+    if n < 2:
+        return float("nan"), n
+    means = np.array([b.mean() for b in np.array_split(d, n)])  # every pair counts, the last blocks longer
+    spread = means.std(ddof=1) / math.sqrt(n)
+    if spread == 0.0:  # the same fall everywhere: no noise to measure it against
+        return (math.inf if means.mean() > 0 else -math.inf if means.mean() < 0 else 0.0), n
+    return float(means.mean() / spread), n
 
 
-def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tuple[float, float, bool]:
-    """:func:`validation_rmse` with ``current`` and with ``candidate`` learned parameters, and whether
-    the candidate may be kept: :func:`clearly_better` on the same validation pairs (when ``current``
-    gives no number, nothing can be judged: kept). The rule before 2026-12-05 was "no worse", which
-    keeps a fit whose gain is noise. Neither rule can tell whether the validation frames are like the
-    drives to come: trained on the 81-frame braking preset (20 validation pairs, 40 with the cold
-    start) the suspension and vehicle fits pass both (0.0357 -> 0.0340 -> 0.0268 m) and the file reads
-    the preset's next seed worse (17.9 -> 20.2 cm per frame)."""
+def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tuple[float, float, bool, str]:
+    """:func:`validation_rmse` with ``current`` and with ``candidate`` learned parameters, whether the
+    candidate may be kept and, if not, why. Kept only if its RMSE is lower and :func:`improvement` says
+    the fall is clear: one-sided at JUDGEMENT_LEVEL (Student's t over the blocks). Without enough
+    validation pairs for that (2 blocks) nothing is kept. The rule before 2026-12-05 was "no worse",
+    which keeps a fit whose gain is noise: on make demo's drive the vehicle noise read the validation
+    frames 2.70 -> 2.46 cm, t 1.5 over 10 blocks, and its held-out row started there 3.9 -> 4.0 cm.
+    No rule on the validation frames can tell whether they are like the drives to come (a fit on the
+    81-frame braking preset that passes reads its next seed worse: docs/FUSED_ODOMETRY.md)."""
+    from scipy.stats import t as student_t
+
     before = validation_errors(seqs, config, current, split)
     after = validation_errors(seqs, config, candidate, split)
-    rmse_before, rmse_after = _rmse([before]), _rmse([after])
-    return rmse_before, rmse_after, math.isnan(rmse_before) or clearly_better(before, after)
+    rmse_before, rmse_after = _rmse([before.ravel()]), _rmse([after.ravel()])
+    if not (np.isfinite(before).all() and np.isfinite(after).all()):
+        return rmse_before, rmse_after, False, "validation errors that are not finite"
+    t, n = improvement(before, after)
+    if n < 2:
+        return rmse_before, rmse_after, False, (f"too few validation pairs to judge it ({before.shape[-1]}; "
+                                                f"{2 * JUDGEMENT_BLOCK} needed)")
+    needed = float(student_t.ppf(JUDGEMENT_LEVEL, n - 1))
+    if rmse_after >= rmse_before or t < needed:
+        said = f"{'better' if t > 0 else 'worse'} by {abs(t):.2f} standard errors over {n} blocks, {needed:.2f} needed"
+        return rmse_before, rmse_after, False, said if t < needed else f"its RMSE is not lower ({said})"
+    return rmse_before, rmse_after, True, ""
 
 
 def _rmse(errors: list[np.ndarray]) -> float:
@@ -207,13 +228,12 @@ def fit_suspension_on_sequences(learned, seqs, config, split: str = "3/4", evals
           f"{fit.validation_before:.4f} -> {fit.validation_after:.4f} m")
     if fit.validation_after <= fit.validation_before and fit.gradients != old:
         # judged as every fused-mode fit is: also started cold at the validation's first frame
-        before, after, keep = engine_judgement(seqs, config, learned,
-                                               replace(learned, suspension_gradients=fit.gradients), split)
+        before, after, keep, why = engine_judgement(seqs, config, learned,
+                                                    replace(learned, suspension_gradients=fit.gradients), split)
         print(f"suspension in the engine (run on and started at the validation frames): per-frame translation "
               f"RMSE {before:.4f} -> {after:.4f} m")
         if not keep:
-            print("suspension: in the engine the fit did not read the validation frames clearly better (worse, or "
-                  "within their own noise); keeping the previous values")
+            print(f"suspension: not clearly better in the engine ({why}); keeping the previous values")
             return
     if fit.validation_after <= fit.validation_before:
         learned.suspension_gradients = fit.gradients

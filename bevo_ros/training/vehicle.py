@@ -141,7 +141,8 @@ def record_inputs(sequence, config, learned) -> tuple[list[dict], np.ndarray]:
 def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: int = 100) -> None:
     """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
     ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
-    validation frames' NLL is not worse."""
+    validation frames' NLL is not worse and the engine reads them clearly better
+    (:func:`~bevo_ros.training.suspension.engine_judgement`)."""
     from bevo_ros.config import vehicle_noise
     from bevo_ros.datasets.rosbag import split_frames
 
@@ -177,11 +178,11 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
         # 0.15 m^2/s^5, slip 0.0002) with a better likelihood, and the held-out frames read worse.
         from bevo_ros.training.suspension import engine_judgement
 
-        rmse_before, rmse_after, keep = engine_judgement(seqs, config, learned, replace(learned, vehicle=fitted), split)
+        rmse_before, rmse_after, keep, why = engine_judgement(seqs, config, learned, replace(learned, vehicle=fitted),
+                                                              split)
         print(f"vehicle filter in the engine: validation per-frame translation RMSE {rmse_before:.4f} -> {rmse_after:.4f} m")
         if not keep:
-            print("vehicle filter: in the engine the fit did not read the validation frames clearly better (worse, or "
-                  "within their own noise); keeping the previous values")
+            print(f"vehicle filter: not clearly better in the engine ({why}); keeping the previous values")
             return
         learned.vehicle = fitted
         learned.info["vehicle_filter_fit"] = {"train_nll": [fit.nll_before, fit.nll_after],
