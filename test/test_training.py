@@ -486,11 +486,16 @@ def test_a_fit_is_kept_only_if_clearly_better_than_the_validation_noise(monkeypa
     # a candidate worse on the pairs past the last full block is judged on them too: refused
     tail = np.full((2, 26), 0.05)
     worse_tail = np.concatenate([np.full((2, 20), 0.04), np.full((2, 6), 1.0)], axis=1)
-    assert not judge(tail, worse_tail)[2]
-    # blocks of neighbouring pairs: a fall that comes in runs is judged by its runs, not by its pairs
-    runs = np.repeat(rng.standard_normal(8), 25) * 1e-3  # 8 runs of 25 pairs each: little evidence
-    t_pairs = runs.mean() / (runs.std(ddof=1) / np.sqrt(runs.size))
-    t_blocks, n = improvement(np.sqrt(np.full(200, 0.01) + runs + 2e-4), np.full(200, 0.1))
+    assert not judge(tail, worse_tail)[2] and improvement(tail, worse_tail)[0] < 0  # the tail counts in t too
+    # a clear fall by t whose RMSE is not lower (an outlier pair): refused, and said
+    monkeypatch.setattr(suspension_training, "improvement", lambda current, candidate: (10.0, 5))
+    kept, why = judge(current, 1.1 * current)[2:]
+    assert not kept and "its RMSE is not lower" in why
+    monkeypatch.undo()
+    # blocks of neighbouring pairs: a fall that comes in runs counts far less than as independent pairs
+    d = np.repeat(rng.standard_normal(8), 25) * 1e-3 + 2e-4  # 8 runs of 25 pairs each
+    t_pairs = d.mean() / (d.std(ddof=1) / np.sqrt(d.size))
+    t_blocks, n = improvement(np.sqrt(np.full(200, 0.01) + d), np.full(200, 0.1))
     assert n == 20 and abs(t_blocks) < abs(t_pairs) / 2
     # the current file's errors not finite: nothing to judge by, nothing kept
     broken = current.copy()

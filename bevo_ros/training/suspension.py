@@ -123,8 +123,9 @@ def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tu
     validation pairs for that (2 blocks) nothing is kept. The rule before 2026-12-05 was "no worse",
     which keeps a fit whose gain is noise: on make demo's drive the vehicle noise read the validation
     frames 2.70 -> 2.46 cm, t 1.5 over 10 blocks, and its held-out row started there 3.9 -> 4.0 cm.
-    No rule on the validation frames can tell whether they are like the drives to come (a fit on the
-    81-frame braking preset that passes reads its next seed worse: docs/FUSED_ODOMETRY.md)."""
+    No rule on the validation frames can tell whether they are like the drives to come (fits on the
+    81-frame braking preset that "no worse" kept read its next seed worse: docs/FUSED_ODOMETRY.md).
+    The blocks follow the pairs in order: with several recordings one block may span two of them."""
     from scipy.stats import t as student_t
 
     before = validation_errors(seqs, config, current, split)
@@ -138,7 +139,12 @@ def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tu
                                                 f"{2 * JUDGEMENT_BLOCK} needed)")
     needed = float(student_t.ppf(JUDGEMENT_LEVEL, n - 1))
     if rmse_after >= rmse_before or t < needed:
-        said = f"{'better' if t > 0 else 'worse'} by {abs(t):.2f} standard errors over {n} blocks, {needed:.2f} needed"
+        if math.isinf(t):  # no scatter to measure it against
+            said = f"{'better' if t > 0 else 'worse'} by the same on every pair"
+        elif t == 0.0:
+            said = f"no better over {n} blocks, {needed:.2f} standard errors needed"
+        else:
+            said = f"{'better' if t > 0 else 'worse'} by {abs(t):.2f} standard errors over {n} blocks, {needed:.2f} needed"
         return rmse_before, rmse_after, False, said if t < needed else f"its RMSE is not lower ({said})"
     return rmse_before, rmse_after, True, ""
 
