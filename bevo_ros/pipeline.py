@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bevo_ros.commands import prog_name
 from bevo_ros.config import BevoConfig, build_odometry
 from bevo_ros.core.aerial_map import AerialMap
 from bevo_ros.core.geometry import BevSpec
@@ -56,18 +55,17 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
     camera's intrinsics from the bag's CameraInfo (images undistorted where it says so), its
     extrinsics and the IMU's axes from the bag's ``/tf_static`` when there
     (:func:`~bevo_ros.datasets.rosbag.extrinsics_for_recording` of the recording returned says which).
-    Its stderr lines start with the command that runs it: ``bevo run`` / ``bevo map``, or the
-    executable ``prog`` (``run_bag``, ``map_from_bag``) run alone."""
-    say = prog_name(prog)
+    Its stderr lines start with ``prog``: the command that runs it (``bevo run``, ``bevo map``:
+    ``bevo_ros.commands.prog_name``)."""
     rec = bag.read_recording(bag_path, imu_topic=imu_topic, image_topic=image_topic, load_images=False)
     T_base_cam, source = extrinsics_for_recording(rec, config, rig)
     calib = calibration_for_recording(rec, config, rig)
     odo = build_odometry(config, load_learned_params(learned_path), camera=camera_for_recording(rec, config, rig, calib))
     if progress or source != PARAMETERS_EXTRINSICS or calib.maps is not None:
-        print(f"{say}: camera calibration from {calib.describe()}; extrinsics from {source}: camera at "
+        print(f"{prog}: camera calibration from {calib.describe()}; extrinsics from {source}: camera at "
               f"{np.round(T_base_cam[:3, 3], 3).tolist()} m in {rig.base_frame}", file=sys.stderr)
     for problem in rig_disagreements(rec, config, rig, calib):  # parameters that do not fit the bag: drift, silently
-        print(f"{say}: warning: {problem}", file=sys.stderr)
+        print(f"{prog}: warning: {problem}", file=sys.stderr)
     rotations: dict[str, np.ndarray | None] = {}  # IMU frame -> R_base_imu (the node's Rig.imu_rotation)
     if not 0 <= first_frame < len(rec.frame_stamps_ns):
         raise ValueError(f"{bag_path}: first frame {first_frame} is not one of its {len(rec.frame_stamps_ns)} frames "
@@ -81,7 +79,7 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=total, unit="frame", desc=say)
+        bar = tqdm(total=total, unit="frame", desc=prog)
     image_topic = rec.image_topic  # the topic read_recording took (old bags: /camera/image_raw)
     for topic, stamp_ns, msg in bag.iter_messages(bag_path, [imu_topic, image_topic]):
         stamp_ns = stamp_to_ns(msg.header.stamp)
@@ -92,7 +90,7 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
                 frame = msg.header.frame_id
                 if frame not in rotations:
                     rotations[frame] = imu_rotation_for_recording(rec, frame, rig)
-                    _log_imu_frame(say, frame, rotations[frame], rig)
+                    _log_imu_frame(prog, frame, rotations[frame], rig)
                 R = rotations[frame]
                 if R is None:
                     out = odo.add_imu(stamp, (g.x, g.y, g.z), (a.x, a.y, a.z))
@@ -111,13 +109,13 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
             reason = getattr(exc, "reason", type(exc).__name__)
             drops[reason] = drops.get(reason, 0) + 1
             if drops[reason] <= 3:  # the first few of each reason, then a summary (no flood)
-                print(f"{say}: dropped {topic} at {stamp:.9f}: {exc}", file=sys.stderr)
+                print(f"{prog}: dropped {topic} at {stamp:.9f}: {exc}", file=sys.stderr)
             continue
         steps.extend(map(kept, out))
     steps.extend(map(kept, odo.flush()))
     for reason, n in drops.items():
         if n > 3:
-            print(f"{say}: dropped {n} message(s) in all for {reason}", file=sys.stderr)
+            print(f"{prog}: dropped {n} message(s) in all for {reason}", file=sys.stderr)
     if bar is not None:
         bar.close()
     return steps, rec, odo
@@ -131,14 +129,14 @@ def _without_bevs(step: OdometryStep) -> OdometryStep:
     return dataclasses.replace(step, bev=None, bev_mask=None, correlation=None)
 
 
-def _log_imu_frame(say: str, frame: str, R: np.ndarray | None, rig: RigSettings) -> None:
-    """One stderr line per IMU frame that is not the base's axes, as the node logs it; ``say`` starts it."""
+def _log_imu_frame(prog: str, frame: str, R: np.ndarray | None, rig: RigSettings) -> None:
+    """One stderr line per IMU frame that is not the base's axes, as the node logs it; ``prog`` starts it."""
     base = rig.base_frame
     if R is not None and not np.allclose(R, np.eye(3), rtol=0, atol=1e-12):
-        print(f"{say}: IMU frame '{frame}': rates and accelerations rotated into '{base}' (/tf_static), "
+        print(f"{prog}: IMU frame '{frame}': rates and accelerations rotated into '{base}' (/tf_static), "
               f"rotation {np.round(R, 4).tolist()}", file=sys.stderr)
     elif R is None and frame.lstrip("/") and frame.lstrip("/") != base.lstrip("/"):
-        print(f"{say}: IMU frame '{frame}' is not base_frame '{base}' and "
+        print(f"{prog}: IMU frame '{frame}' is not base_frame '{base}' and "
               f"{'/tf_static has no ' + base + ' -> ' + frame if rig.extrinsics_from_tf else 'extrinsics_from_tf is off'}"
               ": the IMU axes are taken as the base axes (REP-103 x forward, y left, z up)", file=sys.stderr)
 

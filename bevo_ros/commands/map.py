@@ -81,7 +81,8 @@ def _map(args: argparse.Namespace) -> int:
     if images is not None:
         _check_frames(args, images, f"{args.bag} has")
     steps, rec, _ = run_bag(args.bag, config, args.learned or config.learned_params_file,
-                            rig=RigSettings.from_params(flat, str(args.params)), prog="map_from_bag")
+                            rig=RigSettings.from_params(flat, str(args.params)),
+                            prog=prog_name("map_from_bag"))
     if rec.gt_poses is None:
         raise ValueError(f"{args.bag}: no /ground_truth/odometry messages: a map needs ground-truth poses")
     _check_frames(args, len(steps), f"{args.bag} gave odometry for")  # frames before any IMU give none
@@ -92,6 +93,7 @@ def _map(args: argparse.Namespace) -> int:
     aerial = map_from_steps(sel, rec, bev_spec(config), args.resolution, args.margin)
     path = save_map(aerial, args.out)
     w, h = aerial.extent
-    print(f"{prog_name('map_from_bag')}: {len(sel)} BEVs -> {aerial.width}x{aerial.height} px at {aerial.resolution:.3f} m/px "
+    print(f"{prog_name('map_from_bag')}: {len(sel)} BEVs -> {aerial.width}x{aerial.height} px at "
+          f"{aerial.resolution:.3f} m/px "
           f"({w:.0f} x {h:.0f} m, origin {aerial.origin[0]:.2f}, {aerial.origin[1]:.2f}); wrote {path}")
     return 0

@@ -64,7 +64,8 @@ def _run(args: argparse.Namespace) -> int:
                 learned = str(swapped)
     t0 = time.perf_counter()
     steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
-                              progress=not args.quiet, rig=rig, keep_bevs=False)
+                              progress=not args.quiet, rig=rig, keep_bevs=False,
+                              prog=prog_name("run_bag"))
     elapsed = time.perf_counter() - t0
     if len(steps) < 2:
         raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")

@@ -104,7 +104,7 @@ def improvement(current: np.ndarray, candidate: np.ndarray, block: int = JUDGEME
     if current.shape != candidate.shape:
         raise ValueError(f"the errors must judge the same pairs, got shapes {current.shape} and {candidate.shape}")
     if not (np.isfinite(current).all() and np.isfinite(candidate).all()):
-        raise ValueError("validation errors that are not finite: the engine dropped or lost frames")
+        raise ValueError("validation errors that are not finite")
     d = (current**2 - candidate**2).reshape(-1, current.shape[-1]).mean(axis=0)  # (K,) per pair
     n = d.size // block
     if n < 2:
@@ -131,9 +131,10 @@ def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tu
     before = validation_errors(seqs, config, current, split)
     after = validation_errors(seqs, config, candidate, split)
     rmse_before, rmse_after = _rmse([before.ravel()]), _rmse([after.ravel()])
-    if not (np.isfinite(before).all() and np.isfinite(after).all()):
-        return rmse_before, rmse_after, False, "validation errors that are not finite"
-    t, n = improvement(before, after)
+    try:
+        t, n = improvement(before, after)
+    except ValueError as exc:  # errors that are not finite: nothing to judge by
+        return rmse_before, rmse_after, False, str(exc)
     if n < 2:
         return rmse_before, rmse_after, False, (f"too few validation pairs to judge it ({before.shape[-1]}; "
                                                 f"{2 * JUDGEMENT_BLOCK} needed)")
@@ -144,7 +145,8 @@ def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tu
         elif t == 0.0:
             said = f"no better over {n} blocks, {needed:.2f} standard errors needed"
         else:
-            said = f"{'better' if t > 0 else 'worse'} by {abs(t):.2f} standard errors over {n} blocks, {needed:.2f} needed"
+            said = (f"{'better' if t > 0 else 'worse'} by {abs(t):.2f} standard errors over {n} blocks, "
+                    f"{needed:.2f} needed")
         return rmse_before, rmse_after, False, said if t < needed else f"its RMSE is not lower ({said})"
     return rmse_before, rmse_after, True, ""
 

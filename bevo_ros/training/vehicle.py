@@ -180,7 +180,8 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
 
         rmse_before, rmse_after, keep, why = engine_judgement(seqs, config, learned, replace(learned, vehicle=fitted),
                                                               split)
-        print(f"vehicle filter in the engine: validation per-frame translation RMSE {rmse_before:.4f} -> {rmse_after:.4f} m")
+        print(f"vehicle filter in the engine: validation per-frame translation RMSE {rmse_before:.4f} -> "
+              f"{rmse_after:.4f} m")
         if not keep:
             print(f"vehicle filter: not clearly better in the engine ({why}); keeping the previous values")
             return
