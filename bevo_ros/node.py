@@ -26,6 +26,7 @@ from typing import Callable
 from rclpy.node import Node
 
 from bevo_ros.config import ConfigError, build_odometry
+from bevo_ros.core.odometry import InvalidInputError
 from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
 from bevo_ros.ros import parameters as ros_params
@@ -121,6 +122,11 @@ class BevoNode(Node):
         self.add_on_set_parameters_callback(self._guard("parameters", node_settings.check_live))
         self.add_post_set_parameters_callback(self._guard("parameters", self._on_parameters_applied))
         self.create_service(Trigger, "~/reset", self._guard("reset", self._on_reset))
+        if s.set_pose_topic:  # reliable, as robot_localization's set_pose: a command is not to be lost
+            from geometry_msgs.msg import PoseWithCovarianceStamped
+
+            self.create_subscription(PoseWithCovarianceStamped, s.set_pose_topic,
+                                     self._guard("set_pose", self._on_set_pose), 10)
         # Steady-clock timers: they tick with or without /clock (use_sim_time).
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(0.05, s.image_wait / 2), self._guard("flush_timer", self._on_flush_timer), clock=steady)
@@ -314,6 +320,37 @@ class BevoNode(Node):
         response.success = True
         response.message = "odometry reset: the trajectory restarts at identity"
         return response
+
+    def _on_set_pose(self, msg) -> None:
+        """robot_localization's set_pose: the pose of ``base_frame`` in ``odom_frame`` at the stamp
+        (0: the latest frame). The frames after the stamp compose onto it; the path restarts there."""
+        frame = msg.header.frame_id.lstrip("/")
+        if frame not in ("", self.settings.odom_frame):
+            self.report.drop("set_pose_frame", f"set_pose in frame '{msg.header.frame_id}': only "
+                                               f"'{self.settings.odom_frame}' (the odometry frame) is taken")
+            return
+        p, q, cov = msg.pose.pose.position, msg.pose.pose.orientation, msg.pose.covariance
+        norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
+        if not (math.isfinite(norm) and norm > 1e-9):
+            self.report.drop("set_pose_invalid", f"set_pose orientation is no rotation ({q.x}, {q.y}, {q.z}, {q.w})")
+            return
+        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), q.w * q.w + q.x * q.x - q.y * q.y - q.z * q.z)
+        planar = [[float(cov[6 * r + c]) for c in (0, 1, 5)] for r in (0, 1, 5)]  # (x, y, yaw) of the 6x6
+        stamp = stamp_to_sec(msg.header.stamp)
+        request = {"x": p.x, "y": p.y, "yaw": yaw, "z": p.z, "covariance": planar,
+                   "stamp": stamp if stamp > 0.0 else None}
+        try:
+            how = self.feed.set_pose(request)
+        except InvalidInputError as exc:
+            self.report.drop("set_pose_invalid", f"set_pose: {exc}")
+            return
+        self.outputs.path.clear()
+        self.events["set_pose"] += 1
+        when = {"latest": "at the latest frame", "at stamp": f"at {stamp:.6f}", "oldest": (
+            f"at the oldest frame kept (its stamp {stamp:.6f} is older)"), "waits": (
+            f"at {stamp:.6f}, when a frame reaches it"), "kept": "when the odometry starts"}[how]
+        self.get_logger().info(f"pose set to x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} m, yaw {math.degrees(yaw):.2f} deg "
+                               f"{when}")
 
     def _on_clock_jump(self, info) -> None:
         if self.feed.last_imu_stamp is None and not self.feed.pending_images:

@@ -12,7 +12,7 @@ Arguments:
     bag           a rosbag2 to replay with the project's player (play_bag = `bevo play`, /clock, recorded QoS);
                   the node then also loads params/replay.yaml (reliable inputs: no frame lost)
     rate          replay speed factor (default 1.0)
-    rviz          start RViz with share/bevo_ros/rviz/bevo.rviz (default false)
+    rviz          start RViz with share/bevo_ros/rviz/bevo.rviz (default false), in the namespace
     localizer     also start bevo_localizer (BEVO+, map -> odom) on map_file (default false)
     map_file      the localizer's map YAML (nav2 map_server convention)
 """
@@ -28,6 +28,9 @@ from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import ExecutableInPackage
 
 PACKAGE = "bevo_ros"
+# The topics rviz/bevo.rviz shows (absolute there, as RViz stores them): remapped to relative names so that
+# RViz, pushed into the launch's namespace, shows that namespace's node.
+RVIZ_TOPICS = ("/bevo/odometry", "/bevo/path", "/bevo/bev_image", "/ground_truth/odometry", "/camera/image_rect")
 
 
 def generate_launch_description():
@@ -85,7 +88,9 @@ def generate_launch_description():
             package="rviz2",
             executable="rviz2",
             name="rviz2",
+            namespace=namespace,
             arguments=["-d", os.path.join(share, "rviz", "bevo.rviz")],
+            remappings=[(topic, topic.lstrip("/")) for topic in RVIZ_TOPICS],
             parameters=[{"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
             condition=IfCondition(rviz),
         ),

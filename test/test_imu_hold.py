@@ -215,3 +215,41 @@ def test_a_replay_that_fails_keeps_the_running_engine():
     with pytest.raises(RuntimeError):
         feed.replay(_FrameEngine(fail_at=0.05))
     assert feed.engine is running  # the node then hands the running engine the new camera (camera_changed)
+
+
+class _PoseEngine(_FrameEngine):
+    """An engine stub that records its set_pose calls."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.poses: list[dict] = []
+
+    def set_pose(self, **request) -> str:
+        self.poses.append(request)
+        return "latest"
+
+
+def test_a_pose_set_is_kept_for_the_engine_and_replayed_with_its_inputs():
+    """set_pose before the calibration waits for the engine; one given before the second frame goes
+    into the journal, so an engine rebuilt for a late rig gets it again, in its place among the inputs."""
+    from bevo_ros.core.odometry import InvalidInputError
+
+    feed = _feed()
+    request = {"x": 1.0, "y": 2.0, "yaw": 0.5, "z": 0.0, "covariance": None, "stamp": 0.05}
+    with pytest.raises(InvalidInputError, match="finite"):
+        feed.set_pose(request | {"x": float("nan")})
+    assert feed.set_pose(request) == "kept"
+    first = _PoseEngine()
+    feed.start(first)
+    assert first.poses == [request]
+    _frames(feed, 0.0, 1)
+    rebuilt = _PoseEngine()
+    feed.replay(rebuilt)
+    assert rebuilt.poses == [request]  # the journal's first entry
+    assert feed.set_pose(request | {"x": 3.0}) == "latest" and rebuilt.poses[-1]["x"] == 3.0
+    fresh = _feed()  # a reset forgets a pose kept for the engine
+    fresh.set_pose(request)
+    fresh.reset()
+    later = _PoseEngine()
+    fresh.start(later)
+    assert later.poses == []

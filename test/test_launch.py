@@ -159,9 +159,13 @@ def test_launch_file_names_only_what_exists(description):
     assert set(parsed.wait_topics) == {"/" + defaults.imu_topic, "/" + defaults.image_topic,
                                        "/" + defaults.camera_info_topic}
 
-    # RViz gets the installed config
+    # RViz gets the installed config, in the namespace, each topic it shows remapped to the namespace's
     rviz = [n for n in nodes if n.kwargs["package"] == "rviz2"][0]
     assert Path(rviz.kwargs["arguments"][1]) == RVIZ
+    assert rviz.kwargs["namespace"].args == ("namespace",)
+    shown = {d["Topic"]["Value"] for d in yaml.safe_load(RVIZ.read_text())["Visualization Manager"]["Displays"]
+             if "Topic" in d}
+    assert dict(rviz.kwargs["remappings"]) == {t: t.lstrip("/") for t in shown}
 
 
 def test_rviz_config_shows_the_node_outputs():

@@ -237,6 +237,96 @@ def test_reset_service_restarts_at_identity(harness_factory, drive):
     assert h.node.events["reset"] >= 1
 
 
+def _set_pose_msg(x: float, y: float, z: float, yaw: float, stamp: float, frame: str = "odom", var=(0.04, 0.09, 0.01)):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from bevo_ros.io.ros_conversions import sec_to_stamp
+
+    m = PoseWithCovarianceStamped()
+    m.header.frame_id, m.header.stamp = frame, sec_to_stamp(stamp)
+    m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z = x, y, z
+    m.pose.pose.orientation.z, m.pose.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    cov = np.zeros((6, 6))
+    cov[0, 0], cov[1, 1], cov[5, 5] = var
+    cov[2, 2] = cov[3, 3] = cov[4, 4] = 99.0  # z, roll, pitch: not set
+    m.pose.covariance = cov.reshape(-1).tolist()
+    return m
+
+
+def _planar(pos, yaw) -> tuple[float, float, float]:
+    return float(pos[0]), float(pos[1]), float(yaw)
+
+
+def _relative(a, b) -> np.ndarray:
+    """Planar pose ``b`` in the frame of ``a`` (x, y, yaw)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    d = np.subtract(b[:2], a[:2])
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], math.remainder(b[2] - a[2], 2 * math.pi)])
+
+
+def test_set_pose_moves_the_odometry_from_its_stamp(harness_factory, drive):
+    """robot_localization's set_pose: the pose at the message's stamp, here a frame already published;
+    the frames after it go on from there with the offline run's motion; other frames and bad poses are dropped."""
+    ov = base_overrides(drive)
+    messages = drive_messages(drive)
+    expected = offline_steps(messages, ov)
+    h = harness_factory(ov, subscribe_outputs=False)
+    pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/set_pose", 10)
+    assert spin_until(h.executor, lambda: pub.get_subscription_count() > 0, 10)
+    half = len(messages) // 2
+    h.send_all(messages[:half])
+    h.settle()
+    n, j = len(h.odom), 2  # the pose is set at frame j's stamp, frames j+1 .. n-1 already out
+    assert n > j + 2
+    given = (5.0, -3.0, 1.0)
+    stamp_j = stamp_to_sec(h.odom[j].header.stamp)
+    for bad, reason in ((_set_pose_msg(*given[:2], 0.0, given[2], stamp_j, frame="map"), "set_pose_frame"),
+                        (_set_pose_msg(*given[:2], 0.0, given[2], stamp_j, var=(-1.0, 0.1, 0.1)), "set_pose_invalid")):
+        pub.publish(bad)
+        assert spin_until(h.executor, lambda: h.node.drops[reason] == 1, 5), dict(h.node.drops)
+    pub.publish(_set_pose_msg(*given[:2], 1.5, given[2], stamp_j))
+    assert spin_until(h.executor, lambda: h.node.events["set_pose"] == 1, 5)
+    h.send_all(messages[half:])
+    h.settle()
+    assert len(h.odom) == len(expected)
+    for k in range(n):  # published before it: as they were
+        assert np.allclose(_odom_arrays(h.odom[k])[0], expected[k].position, atol=1e-6, rtol=0)
+    ref = _planar(expected[j].position, expected[j].rpy[2])
+    for msg, step in zip(h.odom[n:], expected[n:]):
+        pos, rpy = _odom_arrays(msg)[:2]
+        want = _relative(ref, _planar(step.position, step.rpy[2]))
+        assert np.allclose(_relative(given, _planar(pos, rpy[2])), want, atol=1e-6), (msg.header.stamp, want)
+        assert pos[2] == pytest.approx(1.5) and np.allclose(rpy[:2], step.rpy[:2], atol=1e-9)  # attitude measured
+    cov = np.asarray(h.odom[-1].pose.covariance).reshape(6, 6)
+    assert cov[0, 0] > 0.04 and cov[5, 5] > 0.01  # the pose's own, grown by the frames after it
+    assert np.linalg.norm(_odom_arrays(h.odom[-1])[0][:2] - given[:2]) > 1.0
+    assert "only 'odom'" in h.logged("set_pose_frame")[0]
+
+
+def test_a_pose_set_before_the_calibration_is_the_first_frames(harness_factory, drive):
+    ov = base_overrides(drive, use_camera_info=True)
+    for k in ("camera.fx", "camera.fy", "camera.cx", "camera.cy"):
+        ov[k] = 0.0
+    ov["camera.width"] = ov["camera.height_px"] = 0
+    h = harness_factory(ov, subscribe_outputs=False)
+    assert h.node.engine is None
+    pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/set_pose", 10)
+    assert spin_until(h.executor, lambda: pub.get_subscription_count() > 0, 10)
+    pub.publish(_set_pose_msg(2.0, 3.0, 0.0, -0.5, 0.0))  # stamp 0: at the latest frame, here the first
+    assert spin_until(h.executor, lambda: h.node.events["set_pose"] == 1, 5)
+    K = drive.camera.K.double().numpy()
+    info = CameraInfo(width=drive.camera.width, height=drive.camera.height_px)
+    info.k = K.reshape(-1).tolist()
+    info.p = np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist()
+    h.send("info", info)
+    h.send_all(drive_messages(drive)[:40])
+    h.settle()
+    assert h.node.engine is not None and len(h.odom) >= 2
+    pos, rpy = _odom_arrays(h.odom[0])[:2]
+    assert np.allclose(pos, [2.0, 3.0, 0.0], atol=1e-9) and rpy[2] == pytest.approx(-0.5, abs=1e-9)
+    assert np.allclose(np.asarray(h.odom[0].pose.covariance).reshape(6, 6)[[0, 1, 5], [0, 1, 5]], [0.04, 0.09, 0.01])
+
+
 def test_time_jump_back_resets_and_small_steps_back_are_dropped(harness_factory, drive):
     h = harness_factory(base_overrides(drive, max_time_jump_back=0.5), subscribe_outputs=False)
     messages = drive_messages(drive)

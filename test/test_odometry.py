@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from bevo_ros.config import BevoConfig, build_odometry
-from bevo_ros.core.odometry import EngineEvent, OutOfOrderError
+from bevo_ros.core.odometry import EngineEvent, InvalidInputError, OutOfOrderError
 from bevo_ros.io.learned_params import LearnedParams
 from bevo_ros.core.phase_correlation import DpcConfig
 from bevo_ros.core.sequence import frame_attitudes, run_sequence
@@ -267,3 +267,41 @@ def test_the_invalid_bev_error_is_what_the_engine_counts(drive):
     with pytest.raises(InvalidBevError):
         prepare(empty, empty, DpcConfig())
     assert issubclass(InvalidBevError, ValueError)
+
+
+def _relative(a, b) -> np.ndarray:
+    """The planar pose of ``b`` (x, y, yaw) in the frame of ``a``."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    d = np.asarray(b[:2]) - np.asarray(a[:2])
+    return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], (b[2] - a[2] + math.pi) % (2 * math.pi) - math.pi])
+
+
+@pytest.mark.parametrize("mode", ["fused", "paper"])
+def test_set_pose_moves_the_trajectory_and_nothing_else(drive, mode):
+    d, images = drive
+    plain = feed(engine(d, mode), d, images)
+    odo = engine(d, mode)
+    j = 8
+    given = (5.0, -3.0, 1.0)
+    assert odo.set_pose(*given, z=2.0, covariance=np.diag([0.01, 0.02, 0.003]), stamp=float(d.frame_stamps[j])) == "waits"
+    steps = feed(odo, d, images)
+    pose = lambda s: (s.position[0], s.position[1], s.rpy[2])  # noqa: E731
+    for k, (a, b) in enumerate(zip(plain, steps)):
+        np.testing.assert_array_equal(a.motion, b.motion)  # the filters are untouched
+        np.testing.assert_array_equal(a.rpy[:2], b.rpy[:2])
+        if k < j:
+            np.testing.assert_array_equal(a.position, b.position)
+        else:  # from frame j on: the plain run's motion since frame j, from the pose set
+            np.testing.assert_allclose(_relative(given, pose(b)), _relative(pose(plain[j]), pose(a)), atol=1e-9)
+            assert b.position[2] == 2.0
+    assert steps[j].pose_covariance[0, 0] == pytest.approx(0.01) and steps[j].pose_covariance[5, 5] == pytest.approx(0.003)
+    assert steps[-1].pose_covariance[0, 0] > 0.01
+    # at a past frame's stamp: the latest pose moves at once; the next frame goes on from there
+    assert odo.set_pose(0.0, 0.0, 0.0, stamp=float(d.frame_stamps[2])) == "at stamp"
+    with pytest.raises(InvalidInputError, match="finite"):
+        odo.set_pose(math.nan, 0.0, 0.0)
+    with pytest.raises(InvalidInputError, match="semi-definite"):
+        odo.set_pose(0.0, 0.0, 0.0, covariance=-np.eye(3))
+    odo.reset()
+    again = feed(odo, d, images)
+    np.testing.assert_array_equal(again[-1].position, plain[-1].position)  # reset forgets the pose set

@@ -102,7 +102,7 @@ def test_run_mode_paper_takes_the_paper_pipelines_shipped_file(synthetic_bag, tm
     out = tmp_path / "paper"
     assert run.main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "--mode", "paper", "-q"]) == 0
     err = capsys.readouterr().err
-    assert "note: --mode paper: the learned parameters from" in err and "learned_paper.yaml" in err, err
+    assert "run_bag: note: --mode paper: the learned parameters from" in err and "learned_paper.yaml" in err, err
     config, _ = load_config(SYNTH_PARAMS)
     config.odometry.mode = "paper"
     paper_file = REPO_ROOT / "params" / "learned_paper.yaml"

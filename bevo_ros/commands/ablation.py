@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from bevo_ros.commands import (add_params_option, add_threads_option, bag_errors, guarded, new_parser, prog_name,
+from bevo_ros.commands import (DEFAULT_PARAMS, add_threads_option, bag_errors, guarded, new_parser, prog_name,
                                set_threads)
 from bevo_ros.config import package_file
 # make_synthetic_bag and reference_attitude are re-exported: tests reach them through the command module.
@@ -57,7 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = new_parser(__doc__, EPILOG)
     p.add_argument("bags", nargs="*", metavar="BAG", help="rosbag2 directories with ground truth")
     p.add_argument("--out", required=True, help="output directory")
-    add_params_option(p)
+    # default None: --synthetic alone takes the synthetic rig's file (KITTI's mounting on it is another rig)
+    p.add_argument("--params", default=None, help="ROS parameters file (default params/kitti.yaml; with --synthetic "
+                                                  "and no BAG params/synthetic.yaml, the synthetic drive's rig)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--learned", help="learned-parameters YAML (default: the one named in --params)")
     src.add_argument("--train", action="store_true", help="train O/Q on the bags first (bevo_ros.training.trainer)")
@@ -102,6 +104,8 @@ def _ablation(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     if not args.bags and args.synthetic is None:
         raise ValueError("give at least one BAG or --synthetic SECONDS")
+    if args.params is None:
+        args.params = str(package_file("params/synthetic.yaml") if not args.bags else DEFAULT_PARAMS)
     out.mkdir(parents=True, exist_ok=True)
     config, flat = load_config(args.params)
     options = AblationOptions(

@@ -59,7 +59,8 @@ def _run(args: argparse.Namespace) -> int:
         if not args.learned:
             swapped = shipped_learned_for_mode(learned, args.mode)
             if swapped != Path(learned):
-                print(f"note: --mode {args.mode}: the learned parameters from {swapped} (the shipped file for that mode; "
+                print(f"{prog_name('run_bag')}: note: --mode {args.mode}: the learned parameters from {swapped} "
+                      "(the shipped file for that mode; "
                       f"--learned FILE to choose another)", file=sys.stderr)
                 learned = str(swapped)
     t0 = time.perf_counter()
@@ -80,7 +81,7 @@ def _run(args: argparse.Namespace) -> int:
           f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}")
     print("wrote " + ", ".join(str(p) for p in paths))
     if len(steps) < c.images:  # the trajectory has a row per frame with odometry, not per image of the bag
-        print(f"warning: {c.images - len(steps)} of {c.images} frames gave no odometry (see the counts above): "
+        print(f"{prog_name('run_bag')}: warning: {c.images - len(steps)} of {c.images} frames gave no odometry (see the counts above): "
               f"trajectory_kitti.txt has {len(steps)} rows; evaluate against gt_kitti.txt (the same frames), "
               f"not a sequence's poses file counted from its first frame", file=sys.stderr)
     return 0

@@ -25,7 +25,7 @@ from .frame_clock import FrameClock
 from .geometry import BevSpec, CameraModel, mounting_for_extrinsics
 from .motion import pitch_change_shift, pitch_scale_sensitivity, registration_from_vehicle_motion, roll_yaw_sensitivity
 from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
-from .pose import compose_se2_floats, propagate_covariance_se2_floats
+from .trajectory import PlanarTrajectory, check_pose
 from .rate_integration import GYRO_SAMPLING, interval_rate
 from .road_tilt import RoadTiltFilter
 from .standstill import CHECK_BELOW as STANDSTILL_CHECK_BELOW, StandstillDetector
@@ -329,6 +329,7 @@ class BevoOdometry:
         self.counters = Counters()
         # what was counted, for a caller that reports it (the node); bounded for callers that never read it
         self._events: deque[EngineEvent] = deque(maxlen=1000)
+        self._trajectory = PlanarTrajectory()  # the pose in odom; set_pose's stamps reach back over its frames
         self.reset()
         self.counters.resets = 0  # count explicit resets only
 
@@ -357,8 +358,7 @@ class BevoOdometry:
         self._envelope_cache = None  # ((prev, curr) weight spectra, their overlap envelope)
         self._prev_stamp: float | None = None
         self._speed = 0.0  # forward speed of the latest VO step, m/s
-        self._pose = (0.0, 0.0, 0.0)  # x, y, yaw in odom (floats: core.pose's float twins)
-        self._pose_cov = np.zeros((3, 3))
+        self._trajectory.reset()  # x, y, yaw in odom and their covariance; z held constant (set_pose moves it)
         self._vstate = initial_vehicle_state()  # fused: [v, a, gyro yaw bias, accel bias], speed unknown
         self._yaw_cum = 0.0  # fused: gyro yaw about the vertical integrated since the start, rad
         self._yaw_rate = None  # its latest rate
@@ -389,6 +389,24 @@ class BevoOdometry:
         self._rest_since: float | None = None  # fused: the start of the current standstill, s
         self._standstill.reset()
         self.counters.resets += 1
+
+    def set_pose(self, x: float, y: float, yaw: float, z: float = 0.0, covariance=None,
+                 stamp: float | None = None) -> str:
+        """Put the vehicle at ``(x, y, z, yaw)`` in the odometry frame (m, rad) at ``stamp`` (s; None:
+        at the latest frame, or the first one to come), as robot_localization's set_pose: the frames
+        after the stamp compose their motions onto it (``core.trajectory``; a stamp after the latest
+        frame waits for the frame that reaches it). ``covariance``: ``(3, 3)`` of ``(x, y, yaw)``
+        (None: zeros, an exact pose). Only the trajectory moves: the attitude (measured, not set), the
+        filters and their biases stay, unlike :meth:`reset`. Returns how it was set
+        (:meth:`PlanarTrajectory.set_pose`); raises InvalidInputError for values that are not finite or
+        a covariance that is none."""
+        try:
+            pose, z, cov = check_pose(x, y, yaw, z, covariance)
+        except ValueError as exc:
+            raise InvalidInputError(str(exc)) from None
+        if stamp is not None and not math.isfinite(stamp):
+            raise InvalidInputError(f"pose stamp must be finite, got {stamp!r}")
+        return self._trajectory.set_pose(pose, z, cov, stamp)
 
     def set_camera(self, camera: CameraModel) -> None:
         """Replace the camera model (e.g. from the first CameraInfo); keeps the trajectory."""
@@ -794,8 +812,7 @@ class BevoOdometry:
             motion = self._vehicle_motion(reg)
             motion_cov = self._motion_covariance(reg, motion, state)
             quality = reg.quality.item()
-        self._pose_cov = propagate_covariance_se2_floats(self._pose[2], self._pose_cov, motion, motion_cov)
-        self._pose = compose_se2_floats(self._pose, motion)
+        self._trajectory.add(stamp, motion, motion_cov)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
         if self.mode == "fused":
             self._standstill.remember(image)
@@ -808,7 +825,7 @@ class BevoOdometry:
         (pitch, roll), (c00, c01, c11) = state
         att_cov = np.array([[c00, c01], [c01, c11]])  # [pitch, roll]
         pose_cov = np.zeros((6, 6))
-        pose_cov[_PLANAR] = self._pose_cov
+        pose_cov[_PLANAR] = self._trajectory.cov
         pose_cov[2, 2] = Z_VARIANCE
         pose_cov[3, 3], pose_cov[4, 4] = att_cov[1, 1], att_cov[0, 0]
         pose_cov[3, 4] = pose_cov[4, 3] = att_cov[0, 1]
@@ -824,12 +841,12 @@ class BevoOdometry:
             lin, ang = np.zeros(3), np.zeros(3)
             twist_cov[0, 0] = twist_cov[1, 1] = twist_cov[5, 5] = Z_VARIANCE  # first frame: velocity unknown
         twist_cov[2, 2] = twist_cov[3, 3] = twist_cov[4, 4] = Z_VARIANCE
-        x, y, yaw = self._pose
+        x, y, yaw = self._trajectory.pose
         return OdometryStep(
             stamp=stamp,
             motion=motion,
             dt=dt,
-            position=np.array([x, y, 0.0]),
+            position=np.array([x, y, self._trajectory.z]),
             rpy=np.array([roll, pitch, yaw]),
             pose_covariance=pose_cov,
             twist_linear=lin,

@@ -19,6 +19,7 @@ import time
 from typing import Any, Callable
 
 from bevo_ros.core.odometry import InvalidInputError, OutOfOrderError
+from bevo_ros.core.trajectory import check_pose
 from bevo_ros.core.validation import ImplausibleImuError, TimeJumpGuard
 from bevo_ros.ros.diagnostics import Report
 from bevo_ros.io.ros_conversions import stamp_to_sec
@@ -307,8 +308,9 @@ class Journal:
     """The engine's inputs since its (re)start, in the order it had them, while it has output at
     most ``frames`` frames: what an engine rebuilt for another rig replays (:meth:`EngineFeed.replay`).
 
-    ``(kind, stamp, raw, tag)`` entries (kind ``imu``, ``image`` or ``flush``; ``raw`` the caller's
-    input before the rig made it the engine's: the IMU in its own axes, the image message). Bounded:
+    ``(kind, stamp, raw, tag)`` entries (kind ``imu``, ``image``, ``flush`` or ``set_pose``; ``raw`` the
+    caller's input before the rig made it the engine's: the IMU in its own axes, the image message,
+    the set_pose arguments). Bounded:
     past ``max_imu`` IMU or ``max_images`` image entries, or past ``frames`` frames out, it stops
     (``active`` false) and forgets them until the next restart.
     """
@@ -317,7 +319,7 @@ class Journal:
         self.max_imu, self.max_images, self.frames = max_imu, max_images, frames
         self.entries: list[tuple[str, float, Any, Any]] = []
         self.active = False
-        self._counts = {"imu": 0, "image": 0, "flush": 0}
+        self._counts = {"imu": 0, "image": 0, "flush": 0, "set_pose": 0}
         self._frames_base = 0  # the engine's frames_out at the restart
 
     def restart(self, frames_out: int, max_images: int | None = None) -> None:
@@ -372,6 +374,7 @@ class EngineFeed:
         self._imu_backlog: collections.deque = collections.deque(maxlen=max(settings.imu_qos_depth, 1000))
         # a start's inputs: the backlog and as much again (100 Hz: 20 s), the held images and two frames
         self.journal = Journal(2 * self._imu_backlog.maxlen, self._journal_images())
+        self._pose_request: dict | None = None  # a set_pose that came before the engine
 
     def start(self, engine, images: list | None = None) -> list:
         """Use ``engine`` from now on: the IMU that arrived before it and the ``images``
@@ -381,6 +384,9 @@ class EngineFeed:
         self._states_seen = self._state_counts()
         engine.max_pending_images = self.settings.max_pending_images
         self.journal.restart(engine.counters.frames_out, self._journal_images())
+        if self._pose_request is not None:  # set before the calibration: the engine takes it by its stamp
+            request, self._pose_request = self._pose_request, None
+            self.set_pose(request)
         backlog = [(t, 0, raw, None) for t, raw in self._imu_backlog]
         self._imu_backlog.clear()
         steps: list = []
@@ -410,6 +416,9 @@ class EngineFeed:
                 if kind == "flush":
                     steps += engine.flush()
                     continue
+                if kind == "set_pose":
+                    engine.set_pose(**raw)
+                    continue
                 args = self.inputs(kind, t, raw)
                 if args is not None:
                     steps += engine.add_imu(t, *args) if kind == "imu" else engine.add_image(t, *args, tag=tag)
@@ -434,7 +443,23 @@ class EngineFeed:
             self.engine.reset()
             self.journal.restart(self.engine.counters.frames_out, self._journal_images())
         self._imu_backlog.clear()
+        self._pose_request = None
         self.last_imu_stamp = None
+
+    def set_pose(self, request: dict) -> str:
+        """The engine's :meth:`~bevo_ros.core.odometry.BevoOdometry.set_pose` with ``request`` (its
+        keyword arguments); before the engine exists it is kept for it. -> how it was set (``"kept"``
+        until the engine starts). InvalidInputError for a pose that is none."""
+        if self.engine is None:
+            try:
+                check_pose(*(request.get(k, 0.0) for k in ("x", "y", "yaw", "z")), request.get("covariance"))
+            except ValueError as exc:
+                raise InvalidInputError(str(exc)) from None
+            self._pose_request = request
+            return "kept"
+        how = self.engine.set_pose(**request)
+        self._journal("set_pose", float("nan"), request)
+        return how
 
     @property
     def pending_images(self) -> int:

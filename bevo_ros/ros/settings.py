@@ -25,6 +25,7 @@ class NodeSettings:
     use_camera_info: bool = True
     camera_info_use_p: bool = True
     odometry_topic: str = "bevo/odometry"
+    set_pose_topic: str = "set_pose"
     path_topic: str = "bevo/path"
     bev_image_topic: str = "bevo/bev_image"
     bev_image_heatmap: bool = True
@@ -77,6 +78,9 @@ DESCRIPTIONS = {
     "sensor_late_factor": "/diagnostics: an input is late (WARN) when silent for this many times its measured period",
     "camera_info_use_p": "use CameraInfo P[:3,:3] (rectified camera matrix) rather than K",
     "odometry_topic": "nav_msgs/Odometry output topic",
+    "set_pose_topic": "geometry_msgs/PoseWithCovarianceStamped input (robot_localization's set_pose): the vehicle's "
+                      "pose in odom_frame at the header stamp (0: at the latest frame); x, y, z and yaw are set, the "
+                      "attitude is measured; empty disables",
     "path_topic": "nav_msgs/Path output topic (published only when subscribed)",
     "bev_image_topic": "sensor_msgs/Image mono8 BEV output (computed only when subscribed)",
     "bev_image_heatmap": "put the correlation heat-map beside the BEV when the engine provides it",
