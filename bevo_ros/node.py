@@ -323,7 +323,8 @@ class BevoNode(Node):
 
     def _on_set_pose(self, msg) -> None:
         """robot_localization's set_pose: the pose of ``base_frame`` in ``odom_frame`` at the stamp
-        (0: the latest frame). The frames after the stamp compose onto it; the path restarts there."""
+        (0: the latest frame processed, or the first to come). The frames after the stamp compose onto
+        it; the path restarts where it takes effect."""
         frame = msg.header.frame_id.lstrip("/")
         if frame not in ("", self.settings.odom_frame):
             self.report.drop("set_pose_frame", f"set_pose in frame '{msg.header.frame_id}': only "
@@ -337,6 +338,13 @@ class BevoNode(Node):
         yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), q.w * q.w + q.x * q.x - q.y * q.y - q.z * q.z)
         planar = [[float(cov[6 * r + c]) for c in (0, 1, 5)] for r in (0, 1, 5)]  # (x, y, yaw) of the 6x6
         stamp = stamp_to_sec(msg.header.stamp)
+        newest = self.feed.last_imu_stamp
+        if stamp > 0.0 and newest is not None and stamp > newest + self.settings.max_time_jump_forward:
+            # no frame would reach it soon, maybe never (a wall-clock stamp into a sim-time replay)
+            self.report.drop("set_pose_future", f"set_pose stamp {stamp:.6f} is more than max_time_jump_forward="
+                                                f"{self.settings.max_time_jump_forward} s after the newest IMU "
+                                                f"sample ({newest:.6f}); stamp 0 means the latest frame")
+            return
         request = {"x": p.x, "y": p.y, "yaw": yaw, "z": p.z, "covariance": planar,
                    "stamp": stamp if stamp > 0.0 else None}
         try:
@@ -344,7 +352,8 @@ class BevoNode(Node):
         except InvalidInputError as exc:
             self.report.drop("set_pose_invalid", f"set_pose: {exc}")
             return
-        self.outputs.path.clear()
+        if how in ("latest", "at stamp", "oldest"):  # in effect now (else when its frame, or the engine, comes)
+            self.outputs.path.clear()
         self.events["set_pose"] += 1
         when = {"latest": "at the latest frame", "at stamp": f"at {stamp:.6f}", "oldest": (
             f"at the oldest frame kept (its stamp {stamp:.6f} is older)"), "waits": (

@@ -983,7 +983,7 @@ def test_vehicle_fit_keeps_the_learned_files_other_numbers(monkeypatch):
     inputs, truth = _measurement_drive(120, 1)
     monkeypatch.setattr(vehicle_training, "record_inputs", lambda sequence, config, learned: (inputs, truth))
     # the engine's judgement of the fit (test_vehicle_fit_is_judged_in_the_engine): clearly better
-    monkeypatch.setattr(suspension_training, "validation_errors", lambda seqs, config, learned, split: np.full(
+    monkeypatch.setattr(suspension_training, "validation_errors", lambda seqs, config, learned, split, memo=None: np.full(
         (2, 40), 0.05 if learned.vehicle["slip_std"] == FUSED.vehicle["slip_std"] else 0.04))
 
     class Recording:  # what the fit reads of a sequence besides its recorded inputs: its length
@@ -1008,7 +1008,7 @@ def test_vehicle_fit_is_judged_in_the_engine(monkeypatch, capsys):
     inputs, truth = _measurement_drive(120, 1)
     monkeypatch.setattr(vehicle_training, "record_inputs", lambda sequence, config, learned: (inputs, truth))
     monkeypatch.setattr(suspension_training, "validation_errors",
-                        lambda seqs, config, learned, split: np.full((2, 40), 0.05 if learned.vehicle == FUSED.vehicle
+                        lambda seqs, config, learned, split, memo=None: np.full((2, 40), 0.05 if learned.vehicle == FUSED.vehicle
                                                                      else 0.07))
 
     class Recording:

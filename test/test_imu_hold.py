@@ -218,14 +218,24 @@ def test_a_replay_that_fails_keeps_the_running_engine():
 
 
 class _PoseEngine(_FrameEngine):
-    """An engine stub that records its set_pose calls."""
+    """An engine stub that records its set_pose calls, and every call in order."""
 
     def __init__(self) -> None:
         super().__init__()
         self.poses: list[dict] = []
+        self.calls: list[tuple] = []
+
+    def add_imu(self, t, *args) -> list:
+        self.calls.append(("imu", t))
+        return []
+
+    def add_image(self, t, img, tag=None) -> list:
+        self.calls.append(("image", t))
+        return super().add_image(t, img, tag)
 
     def set_pose(self, **request) -> str:
         self.poses.append(request)
+        self.calls.append(("set_pose", request["x"]))
         return "latest"
 
 
@@ -242,10 +252,13 @@ def test_a_pose_set_is_kept_for_the_engine_and_replayed_with_its_inputs():
     first = _PoseEngine()
     feed.start(first)
     assert first.poses == [request]
-    _frames(feed, 0.0, 1)
+    feed.imu(0.0, ((0.0,) * 3, (0.0, 0.0, 9.8)))
+    feed.set_pose(request | {"x": 5.0})  # between an IMU sample and the first image
+    feed.image(0.05, "img", None)
     rebuilt = _PoseEngine()
     feed.replay(rebuilt)
-    assert rebuilt.poses == [request]  # the journal's first entry
+    assert rebuilt.poses == [request, request | {"x": 5.0}]
+    assert rebuilt.calls == first.calls == [("set_pose", 1.0), ("imu", 0.0), ("set_pose", 5.0), ("image", 0.05)]
     assert feed.set_pose(request | {"x": 3.0}) == "latest" and rebuilt.poses[-1]["x"] == 3.0
     fresh = _feed()  # a reset forgets a pose kept for the engine
     fresh.set_pose(request)

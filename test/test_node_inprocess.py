@@ -237,7 +237,8 @@ def test_reset_service_restarts_at_identity(harness_factory, drive):
     assert h.node.events["reset"] >= 1
 
 
-def _set_pose_msg(x: float, y: float, z: float, yaw: float, stamp: float, frame: str = "odom", var=(0.04, 0.09, 0.01)):
+def _set_pose_msg(x: float, y: float, z: float, yaw: float, stamp: float, frame: str = "odom", var=(0.04, 0.09, 0.01),
+                  cross: dict | None = None):
     from geometry_msgs.msg import PoseWithCovarianceStamped
 
     from bevo_ros.io.ros_conversions import sec_to_stamp
@@ -249,6 +250,8 @@ def _set_pose_msg(x: float, y: float, z: float, yaw: float, stamp: float, frame:
     cov = np.zeros((6, 6))
     cov[0, 0], cov[1, 1], cov[5, 5] = var
     cov[2, 2] = cov[3, 3] = cov[4, 4] = 99.0  # z, roll, pitch: not set
+    for (r, c), v in (cross or {}).items():
+        cov[r, c] = cov[c, r] = v
     m.pose.covariance = cov.reshape(-1).tolist()
     return m
 
@@ -280,8 +283,10 @@ def test_set_pose_moves_the_odometry_from_its_stamp(harness_factory, drive):
     assert n > j + 2
     given = (5.0, -3.0, 1.0)
     stamp_j = stamp_to_sec(h.odom[j].header.stamp)
+    newest = stamp_to_sec(messages[half - 1][1].header.stamp)
     for bad, reason in ((_set_pose_msg(*given[:2], 0.0, given[2], stamp_j, frame="map"), "set_pose_frame"),
-                        (_set_pose_msg(*given[:2], 0.0, given[2], stamp_j, var=(-1.0, 0.1, 0.1)), "set_pose_invalid")):
+                        (_set_pose_msg(*given[:2], 0.0, given[2], stamp_j, var=(-1.0, 0.1, 0.1)), "set_pose_invalid"),
+                        (_set_pose_msg(*given[:2], 0.0, given[2], newest + 5.0), "set_pose_future")):
         pub.publish(bad)
         assert spin_until(h.executor, lambda: h.node.drops[reason] == 1, 5), dict(h.node.drops)
     pub.publish(_set_pose_msg(*given[:2], 1.5, given[2], stamp_j))
@@ -312,7 +317,8 @@ def test_a_pose_set_before_the_calibration_is_the_first_frames(harness_factory, 
     assert h.node.engine is None
     pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/set_pose", 10)
     assert spin_until(h.executor, lambda: pub.get_subscription_count() > 0, 10)
-    pub.publish(_set_pose_msg(2.0, 3.0, 0.0, -0.5, 0.0))  # stamp 0: at the latest frame, here the first
+    pub.publish(_set_pose_msg(2.0, 3.0, 0.0, -0.5, 0.0, cross={(0, 1): 0.01, (0, 5): 0.005, (1, 5): -0.004,
+                                                                (0, 2): 7.0}))  # stamp 0: here the first frame
     assert spin_until(h.executor, lambda: h.node.events["set_pose"] == 1, 5)
     K = drive.camera.K.double().numpy()
     info = CameraInfo(width=drive.camera.width, height=drive.camera.height_px)
@@ -324,7 +330,10 @@ def test_a_pose_set_before_the_calibration_is_the_first_frames(harness_factory, 
     assert h.node.engine is not None and len(h.odom) >= 2
     pos, rpy = _odom_arrays(h.odom[0])[:2]
     assert np.allclose(pos, [2.0, 3.0, 0.0], atol=1e-9) and rpy[2] == pytest.approx(-0.5, abs=1e-9)
-    assert np.allclose(np.asarray(h.odom[0].pose.covariance).reshape(6, 6)[[0, 1, 5], [0, 1, 5]], [0.04, 0.09, 0.01])
+    cov = np.asarray(h.odom[0].pose.covariance).reshape(6, 6)
+    planar = cov[np.ix_([0, 1, 5], [0, 1, 5])]
+    assert np.allclose(planar, [[0.04, 0.01, 0.005], [0.01, 0.09, -0.004], [0.005, -0.004, 0.01]], atol=1e-12)
+    assert cov[0, 2] == 0.0  # the (x, z) entry given is not the engine's: z is not estimated
 
 
 def test_time_jump_back_resets_and_small_steps_back_are_dropped(harness_factory, drive):

@@ -286,6 +286,7 @@ def test_set_pose_moves_the_trajectory_and_nothing_else(drive, mode):
     assert odo.set_pose(*given, z=2.0, covariance=np.diag([0.01, 0.02, 0.003]), stamp=float(d.frame_stamps[j])) == "waits"
     steps = feed(odo, d, images)
     pose = lambda s: (s.position[0], s.position[1], s.rpy[2])  # noqa: E731
+    assert len(steps) == len(plain) == len(images)
     for k, (a, b) in enumerate(zip(plain, steps)):
         np.testing.assert_array_equal(a.motion, b.motion)  # the filters are untouched
         np.testing.assert_array_equal(a.rpy[:2], b.rpy[:2])
@@ -298,6 +299,8 @@ def test_set_pose_moves_the_trajectory_and_nothing_else(drive, mode):
     assert steps[-1].pose_covariance[0, 0] > 0.01
     # at a past frame's stamp: the latest pose moves at once; the next frame goes on from there
     assert odo.set_pose(0.0, 0.0, 0.0, stamp=float(d.frame_stamps[2])) == "at stamp"
+    # the plain run's motion since frame 2, from the origin
+    np.testing.assert_allclose(odo.pose, _relative(pose(plain[2]), pose(plain[-1])), atol=1e-9)
     with pytest.raises(InvalidInputError, match="finite"):
         odo.set_pose(math.nan, 0.0, 0.0)
     with pytest.raises(InvalidInputError, match="semi-definite"):

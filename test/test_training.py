@@ -435,7 +435,7 @@ def test_fused_training_keeps_trained_oq_only_if_the_engine_agrees(monkeypatch, 
              (noisy, slightly, "better by"), (flat[:, :15], flat[:, :15] * 0.5, "too few validation pairs"))
     for current, trained, refused in cases:
         monkeypatch.setattr(suspension_training, "validation_errors",
-                            lambda seqs, config, learned, split, e=trained, c=current:
+                            lambda seqs, config, learned, split, memo=None, e=trained, c=current:
                             c if learned.process_noise_density == base.process_noise_density else e)
         learned = LearnedParams(process_noise_density=(6e-7, 9e-7), measurement_noise_variance=(0.8, 0.2))
         train_command._keep_trained_oq_if_the_engine_agrees(learned, base, [], None, "3/4")
@@ -467,7 +467,7 @@ def test_a_fit_is_kept_only_if_clearly_better_than_the_validation_noise(monkeypa
 
     def judge(current, candidate):
         monkeypatch.setattr(suspension_training, "validation_errors",
-                            lambda seqs, config, learned, split: current if learned == "current" else candidate)
+                            lambda seqs, config, learned, split, memo=None: current if learned == "current" else candidate)
         return engine_judgement([], None, "current", "candidate")
 
     rng = np.random.default_rng(0)
@@ -519,3 +519,42 @@ def test_validation_rmse_scores_the_engine_run_on_and_started_at_the_validation(
     both = np.sqrt(np.mean(np.concatenate([run_on, started]) ** 2))
     assert validation_rmse([seq], config, learned, "3/4") == pytest.approx(both, rel=1e-12)
     assert np.array_equal(validation_errors([seq], config, learned, "3/4"), np.stack([run_on, started]))
+
+
+def test_validation_errors_run_the_engine_once_per_parameters_with_a_memo(monkeypatch):
+    """bevo train's three judgements share one memo: the parameters already run (a refused fit leaves
+    the next judgement's current ones the same) are not run again; other parameters or splits are."""
+    from dataclasses import replace
+
+    import bevo_ros.training.suspension as suspension_training
+    from bevo_ros.io.learned_params import LearnedParams
+
+    class Clip:
+        def __init__(self, n: int) -> None:
+            self.n = n
+
+        def __len__(self) -> int:
+            return self.n
+
+        def frames(self, start: int, stop: int) -> "Clip":
+            return Clip(stop - start)
+
+    runs = []
+
+    def fake_errors(sequence, config, learned):
+        runs.append(learned)
+        return np.full(len(sequence) - 1, 0.01 * len(runs))
+
+    monkeypatch.setattr(suspension_training, "translation_errors", fake_errors)
+    seqs, memo = [Clip(41)], {}
+    a = LearnedParams(process_noise_density=(3e-6, 3e-6), measurement_noise_variance=(0.01, 0.01))
+    first = suspension_training.validation_errors(seqs, None, a, "3/4", memo)
+    assert len(runs) == 2 and first.shape == (2, 10)  # run on and the cold start
+    again = suspension_training.validation_errors(seqs, None, replace(a, info={"fit": 1}), "3/4", memo)
+    assert len(runs) == 2 and again is first  # provenance is no parameter
+    suspension_training.validation_errors(seqs, None, replace(a, suspension_gradients=(0.004, 0.0)), "3/4", memo)
+    suspension_training.validation_errors(seqs, None, replace(a, vehicle={"jerk_density": 2.0}), "3/4", memo)
+    suspension_training.validation_errors(seqs, None, a, "20%", memo)
+    assert len(runs) == 8
+    suspension_training.validation_errors(seqs, None, a, "3/4")  # no memo: run again
+    assert len(runs) == 10

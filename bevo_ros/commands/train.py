@@ -129,7 +129,7 @@ def _checkpoint(args: argparse.Namespace) -> Path:
     return Path(args.checkpoint) if args.checkpoint else out.with_name(out.name + ".ckpt.yaml")
 
 
-def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: str) -> None:
+def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: str, memo: dict | None = None) -> None:
     """Fused mode: O/Q are learned on the paper pipeline's loss (the batched KL path), which is not
     the fused engine. Keep them only if the engine reads the validation frames clearly better than with
     the configuration's learned file's O/Q (``engine_judgement``; trained on the 51-frame KITTI sample
@@ -145,7 +145,7 @@ def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: st
         return
     prior = replace(learned, process_noise_density=base.process_noise_density,
                     measurement_noise_variance=base.measurement_noise_variance)
-    before, after, keep, why = engine_judgement(seqs, config, prior, learned, split)
+    before, after, keep, why = engine_judgement(seqs, config, prior, learned, split, memo)
     print(f"O/Q in the fused engine: validation per-frame translation RMSE {before:.4f} m with the params' learned "
           f"file's, {after:.4f} m trained")
     if not keep:
@@ -208,16 +208,17 @@ def _train(args: argparse.Namespace) -> int:
                    setup=setup, resume_anyway=args.resume_anyway)
     result.learned.suspension_gradients = base.suspension_gradients
     result.learned.vehicle = dict(base.vehicle)
+    memo: dict = {}  # the engine's validation errors per learned parameters: the three judgements share runs
     if config.odometry.mode == "fused":
-        _keep_trained_oq_if_the_engine_agrees(result.learned, base, seqs, config, args.split)
+        _keep_trained_oq_if_the_engine_agrees(result.learned, base, seqs, config, args.split, memo)
     fits = config.odometry.mode == "fused" and (args.suspension_evals > 0 or args.vehicle_steps > 0)
     if fits:  # the trained O/Q first (the base's other numbers): a Ctrl-C in the fits below keeps them
         save_learned_params(result.learned, out)
         print(f"wrote {out} (O/Q; the suspension and vehicle-filter fits follow)")
     if config.odometry.mode == "fused" and args.suspension_evals > 0:
-        fit_suspension_on_sequences(result.learned, seqs, config, args.split, args.suspension_evals)
+        fit_suspension_on_sequences(result.learned, seqs, config, args.split, args.suspension_evals, memo)
     if config.odometry.mode == "fused" and args.vehicle_steps > 0:
-        fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps)
+        fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps, memo)
     save_learned_params(result.learned, out)
     o, q = result.learned.process_noise_density, result.learned.measurement_noise_variance
     b, a = result.before, result.after

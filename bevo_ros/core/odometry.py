@@ -478,6 +478,11 @@ class BevoOdometry:
         return (*self._xy_bias, float(self._vstate.b) if self.mode == "fused" else 0.0)
 
     @property
+    def pose(self) -> tuple[float, float, float]:
+        """The latest frame's ``(x, y, yaw)`` in the odometry frame (m, rad), a pose set included."""
+        return self._trajectory.pose
+
+    @property
     def direction_of_travel(self) -> str:
         """Fused mode with ``direction_lock``: ``"forward"`` or ``"reverse"`` (the translation's
         peak is taken in that direction) or ``"either"`` (after a confirmed stop, until the speed

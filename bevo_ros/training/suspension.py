@@ -65,7 +65,7 @@ def translation_errors(sequence, config, learned) -> np.ndarray:
     return np.linalg.norm(est[:, :2] - gt[:, :2], axis=1)
 
 
-def validation_errors(seqs, config, learned, split: str = "3/4") -> np.ndarray:
+def validation_errors(seqs, config, learned, split: str = "3/4", memo: dict | None = None) -> np.ndarray:
     """The fused engine's translation error (m) of every validation pair of each recording (``split``,
     as training splits them), run with ``learned`` twice: on from the recording's start (row 0), and
     started at the first validation frame as a held-out clip is (row 1; its IMU before warms the
@@ -73,8 +73,18 @@ def validation_errors(seqs, config, learned, split: str = "3/4") -> np.ndarray:
     recordings' pairs one after the other; ``K = 0`` without validation pairs. The cold start counts:
     on make demo's drive the trained O/Q (the gyro trusted ~10^6 times more) read the validation frames
     2.0 -> 1.6 cm run on, but the held-out row started there went 3.9 -> 5.4 cm with them (and the
-    suspension fit they let in); both runs together, 2.70 -> 3.35 cm."""
+    suspension fit they let in); both runs together, 2.70 -> 3.35 cm.
+
+    ``memo``: a dict kept over one training run (the same ``seqs`` and ``config``) that holds the
+    errors per learned parameters and split: ``bevo train`` judges three fits on the same frames, and
+    a refused fit leaves the next judgement's current parameters the ones already run."""
     from bevo_ros.datasets.rosbag import split_frames
+
+    key = None if memo is None else (
+        split, tuple(map(float, learned.process_noise_density)), tuple(map(float, learned.measurement_noise_variance)),
+        tuple(sorted((k, float(v)) for k, v in learned.vehicle.items())), tuple(map(float, learned.suspension_gradients)))
+    if key is not None and key in memo:
+        return memo[key]
 
     errors = [np.zeros((2, 0))]
     for s in seqs:
@@ -82,7 +92,10 @@ def validation_errors(seqs, config, learned, split: str = "3/4") -> np.ndarray:
         if cut + 2 <= len(s):  # at least one validation pair
             errors.append(np.stack([translation_errors(s, config, learned)[cut:],
                                     translation_errors(s.frames(cut, len(s)), config, learned)]))
-    return np.concatenate(errors, axis=1)
+    out = np.concatenate(errors, axis=1)
+    if key is not None:
+        memo[key] = out
+    return out
 
 
 def validation_rmse(seqs, config, learned, split: str = "3/4") -> float:
@@ -116,7 +129,8 @@ def improvement(current: np.ndarray, candidate: np.ndarray, block: int = JUDGEME
     return float(means.mean() / spread), n
 
 
-def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tuple[float, float, bool, str]:
+def engine_judgement(seqs, config, current, candidate, split: str = "3/4",
+                     memo: dict | None = None) -> tuple[float, float, bool, str]:
     """:func:`validation_rmse` with ``current`` and with ``candidate`` learned parameters, whether the
     candidate may be kept and, if not, why. Kept only if its RMSE is lower and :func:`improvement` says
     the fall is clear: one-sided at JUDGEMENT_LEVEL (Student's t over the blocks). Without enough
@@ -128,8 +142,8 @@ def engine_judgement(seqs, config, current, candidate, split: str = "3/4") -> tu
     The blocks follow the pairs in order: with several recordings one block may span two of them."""
     from scipy.stats import t as student_t
 
-    before = validation_errors(seqs, config, current, split)
-    after = validation_errors(seqs, config, candidate, split)
+    before = validation_errors(seqs, config, current, split, memo)
+    after = validation_errors(seqs, config, candidate, split, memo)
     rmse_before, rmse_after = _rmse([before.ravel()]), _rmse([after.ravel()])
     try:
         t, n = improvement(before, after)
@@ -219,7 +233,8 @@ def fit_suspension(parts, config, learned, evals_per_axis: int = 8, log=print) -
                          validation_after=after[1], evaluations=len(cache))
 
 
-def fit_suspension_on_sequences(learned, seqs, config, split: str = "3/4", evals_per_axis: int = 8) -> None:
+def fit_suspension_on_sequences(learned, seqs, config, split: str = "3/4", evals_per_axis: int = 8,
+                                memo: dict | None = None) -> None:
     """``bevo train``'s step (fused mode): fit the suspension gradients on each recording's
     training frames; keep them in ``learned`` only if the validation frames' per-frame translation
     RMSE does not get worse and the engine reads them clearly better (:func:`engine_judgement`; the
@@ -237,7 +252,7 @@ def fit_suspension_on_sequences(learned, seqs, config, split: str = "3/4", evals
     if fit.validation_after <= fit.validation_before and fit.gradients != old:
         # judged as every fused-mode fit is: also started cold at the validation's first frame
         before, after, keep, why = engine_judgement(seqs, config, learned,
-                                                    replace(learned, suspension_gradients=fit.gradients), split)
+                                                    replace(learned, suspension_gradients=fit.gradients), split, memo)
         print(f"suspension in the engine (run on and started at the validation frames): per-frame translation "
               f"RMSE {before:.4f} -> {after:.4f} m")
         if not keep:

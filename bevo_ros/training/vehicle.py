@@ -138,7 +138,8 @@ def record_inputs(sequence, config, learned) -> tuple[list[dict], np.ndarray]:
     return [s.filter_inputs for s in steps[1:]], sequence.gt_motion().double().numpy()
 
 
-def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: int = 100) -> None:
+def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: int = 100,
+                             memo: dict | None = None) -> None:
     """Fused mode: learn the vehicle motion filter's noise on the training frames (NLL of the
     ground-truth motion, filter inputs recorded by the engine with the learned O/Q), keep it if the
     validation frames' NLL is not worse and the engine reads them clearly better
@@ -179,7 +180,7 @@ def fit_vehicle_on_sequences(learned, seqs, config, split: str = "3/4", steps: i
         from bevo_ros.training.suspension import engine_judgement
 
         rmse_before, rmse_after, keep, why = engine_judgement(seqs, config, learned, replace(learned, vehicle=fitted),
-                                                              split)
+                                                              split, memo)
         print(f"vehicle filter in the engine: validation per-frame translation RMSE {rmse_before:.4f} -> "
               f"{rmse_after:.4f} m")
         if not keep:
