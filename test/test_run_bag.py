@@ -399,6 +399,56 @@ def test_calibrate_mounting_recovers_a_known_camera_tilt(tmp_path, capsys):
     assert abs(math.degrees(printed["filter.mounting_pitch"]) - math.degrees(rig_pitch) - 1.0) < 0.01
 
 
+def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(tmp_path, capsys):
+    """A car with no ground truth: ``--speed-topic`` (its wheel odometry) gives the distance, the gyro
+    the yaw. On a bag without ground truth the camera's 1 deg tilt comes back as with it; a wheel
+    speed 2 % long moves it by what the BEV's scale says (~0.08 deg at this geometry); a wrong topic,
+    a speed that does not cover the frames, or a car at rest are refused with the reason."""
+    from bevo_ros.io.bag import read_speed
+    from bevo_ros.training.mounting import reference_from_ground_truth, reference_from_speed
+
+    tilt = math.radians(1.0)
+    drive = make_drive(seed=4, duration=2.5, bumps=0.0, road_tilt=False, noise=False, render="lazy",
+                       camera=kitti_like_camera(mount_pitch=tilt), curvature=0.3)
+    config, _ = load_config(SYNTH_PARAMS)  # level camera on the base
+    rig = RigSettings(extrinsics_from_tf=False)
+    with_gt = write_drive_bag(drive, tmp_path / "gt", wheel_odometry_topic="/wheel/odometry")
+    seq = load_sequence(with_gt, config, rig=rig)
+    by_gt = reference_from_ground_truth(seq)
+    by_speed = reference_from_speed(seq, *read_speed(with_gt, "/wheel/odometry"))
+    assert by_speed[0] == pytest.approx(by_gt[0], rel=2e-3) and abs(by_speed[1] - by_gt[1]) < math.radians(0.05)
+    pitch, roll = calibrate(seq, BevSpec(), reference=by_speed)
+    assert abs(math.degrees(pitch) - 1.0) < 0.15 and abs(math.degrees(roll)) < 0.5
+    long_wheel = write_drive_bag(drive, tmp_path / "long", wheel_odometry_topic="/wheel/odometry",
+                                 wheel_speed_scale=1.02)
+    long_pitch, _ = calibrate(seq, BevSpec(), reference=reference_from_speed(seq, *read_speed(long_wheel,
+                                                                                              "/wheel/odometry")))
+    with capsys.disabled():
+        print(f"\nby the wheel speed and the gyro: {by_speed[0]:.3f} m (truth {by_gt[0]:.3f}), yaw "
+              f"{math.degrees(by_speed[1]):+.3f} deg (truth {math.degrees(by_gt[1]):+.3f}); pitch {math.degrees(pitch):+.3f} "
+              f"deg (true +1.000), roll {math.degrees(roll):+.3f}; wheel 2 % long: {math.degrees(long_pitch):+.3f} deg")
+    # a longer distance needs a BEV that reads longer: the camera taken as pitched less nose-down
+    assert -0.12 < math.degrees(long_pitch - pitch) < -0.04, math.degrees(long_pitch - pitch)
+    # the command on a bag without ground truth, through the params' level camera
+    no_gt = write_drive_bag(drive, tmp_path / "nogt", wheel_odometry_topic="/wheel/odometry", ground_truth=False)
+    capsys.readouterr()
+    assert calibrate_cmd.main([str(no_gt), "--params", str(SYNTH_PARAMS), "--frames", f"0:{len(seq)}",
+                               "--speed-topic", "/wheel/odometry"]) == 0
+    out = capsys.readouterr().out
+    assert "by /wheel/odometry's speed and the gyro's yaw" in out, out
+    printed = yaml.safe_load("\n".join(out.splitlines()[1:]))
+    assert abs(math.degrees(printed["filter.mounting_pitch"]) - 1.0) < 0.15
+    for argv, says in ((["--speed-topic", "/imu/data"], "not a speed"), ([], "no /ground_truth/odometry"),
+                       (["--speed-topic", "/nothing"], "no topic /nothing")):
+        assert calibrate_cmd.main([str(no_gt), "--params", str(SYNTH_PARAMS)] + argv) == 2
+        assert says in capsys.readouterr().err
+    with pytest.raises(ValueError, match="not the calibration frames"):
+        reference_from_speed(seq, np.array([0.0, 1.0]), np.array([5.0, 5.0]))
+    t = seq.frame_stamps.double().numpy()
+    with pytest.raises(ValueError, match="drive forward"):
+        reference_from_speed(seq, np.array([t[0] - 1, t[-1] + 1]), np.array([0.0, 0.0]))
+
+
 def test_calibrate_on_a_stretch_no_attitude_matches_says_which_and_what_to_do(tmp_path):
     """Images that match the ground truth at no constant attitude (here a frozen camera: every BEV
     reads no motion, as heavy bumps leave it no consistent one): a ValueError naming the angle and

@@ -3,11 +3,12 @@
 The BEV's metric scale hangs on the camera's pitch relative to the road (~25 % per degree at
 KITTI's geometry) and a roll error biases every yaw estimate. The road-tilt low-pass removes
 every constant from the filtered attitude, so the static tilt of the IMU/camera rig on the road
-is a calibration, like the camera height. This command measures it on a short stretch of a bag with
-ground truth (a "calibration drive"):
+is a calibration, like the camera height. This command measures it on a short stretch of a bag (a
+"calibration drive") against a reference: the bag's ground truth, or, for a car that has none, its
+own forward speed (``--speed-topic``: wheel odometry, a CAN or GNSS speed) with the yaw from the gyro:
 
-  pitch: bisection until the distance travelled in the BEV matches the ground truth;
-  roll:  bisection until the summed BEV yaw matches the ground truth's (a roll error shears the BEV).
+  pitch: bisection until the distance travelled in the BEV matches the reference's;
+  roll:  bisection until the summed BEV yaw matches the reference's (a roll error shears the BEV).
 
 Both use a constant attitude (no filter), so the result is the rig's, not the road's.
 Prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera`. The
@@ -27,14 +28,19 @@ from bevo_ros.commands import add_params_option, new_parser, prog_name
 from bevo_ros.config import ConfigError, bev_spec, load_config
 from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
-from bevo_ros.training.mounting import calibrate
+from bevo_ros.io.bag import read_speed
+from bevo_ros.training.mounting import calibrate, reference_from_ground_truth, reference_from_speed
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser(__doc__)
-    p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry")
+    p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry (or --speed-topic)")
     add_params_option(p)
     p.add_argument("--frames", default="0:11", help="frame range START:STOP of the calibration drive (default 0:11)")
+    p.add_argument("--speed-topic", metavar="TOPIC",
+                   help="the reference without ground truth: the car's forward speed on TOPIC (nav_msgs/Odometry, "
+                        "e.g. wheel odometry, or geometry_msgs/TwistStamped / TwistWithCovarianceStamped: the "
+                        "twist's linear x, m/s), the yaw from the bag's gyro; the result is as good as its scale")
     return p
 
 
@@ -42,7 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         config, flat = load_config(args.params)
-        seq = load_sequence(args.bag, config, rig=RigSettings.from_params(flat, str(args.params)))
+        seq = load_sequence(args.bag, config, require_gt=args.speed_topic is None,
+                            rig=RigSettings.from_params(flat, str(args.params)))
         try:
             start, stop = (int(v) for v in args.frames.split(":"))
         except ValueError:
@@ -51,12 +58,17 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)} (STOP excluded), "
                              f"the bag has {len(seq)}")
         seq = seq.frames(start, stop)
+        if args.speed_topic:
+            reference = reference_from_speed(seq, *read_speed(args.bag, args.speed_topic))
+            source = f"{args.speed_topic}'s speed and the gyro's yaw"
+        else:
+            reference, source = reference_from_ground_truth(seq), "the ground truth"
     except (ConfigError, ValueError, FileNotFoundError) as exc:
         print(f"{prog_name('calibrate_mounting')}: error: {exc}", file=sys.stderr)
         return 2
     spec = bev_spec(config)
     try:
-        pitch, roll = calibrate(seq, spec, dpc=config.dpc)
+        pitch, roll = calibrate(seq, spec, dpc=config.dpc, reference=reference)
     except ValueError as exc:
         print(f"{prog_name('calibrate_mounting')}: error: {exc}", file=sys.stderr)
         return 1
@@ -64,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
     # road. Written for camera.base_T_camera, with which the params lines below go.
     params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
     pitch, roll = mounting_for_extrinsics((pitch, roll), seq.camera.T_base_cam, params_chain)
-    print(f"calibrated on frames {args.frames} ({float(seq.gt_motion()[:, 0].sum()):.1f} m):")
+    print(f"calibrated on frames {args.frames} ({reference[0]:.1f} m, {math.degrees(reference[1]):+.1f} deg of yaw "
+          f"by {source}):")
     print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, "
           f"{'nose down' if pitch >= 0 else 'nose up'}")
     print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, "

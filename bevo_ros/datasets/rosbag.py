@@ -26,7 +26,9 @@ PathLike = str | os.PathLike
 
 # --------------------------------------------------------------------------- synthetic -> bag
 def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: bool = False,
-                    frame_range: tuple[int, int] | None = None, imu_axes: np.ndarray | None = None) -> Path:
+                    frame_range: tuple[int, int] | None = None, imu_axes: np.ndarray | None = None,
+                    wheel_odometry_topic: str | None = None, wheel_speed_scale: float = 1.0,
+                    ground_truth: bool = True) -> Path:
     """Write a :class:`bevo_ros.datasets.synthetic.drive.SyntheticDrive` as a rosbag2 with KITTI-like topics.
 
     Sensor topics carry only what sensors give (raw IMU, images, CameraInfo) plus the rig on
@@ -35,7 +37,10 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
     ``/ground_truth/imu`` (gravity-referenced attitude). ``frame_range`` = (first, stop) frames;
     the IMU is cut to the same time span. ``imu_axes``: ``R_base_imu (3, 3)`` of an IMU mounted in
     other axes (e.g. z down): its rates and accelerations are written in them, the rotation on
-    ``/tf_static`` (default: the base's axes).
+    ``/tf_static`` (default: the base's axes). ``wheel_odometry_topic``: also a wheel odometry's
+    nav_msgs/Odometry there at every IMU sample, its twist the true speed times ``wheel_speed_scale``
+    (a wheel's scale error), its pose unset (``bevo calibrate --speed-topic``). ``ground_truth``
+    False: no ground-truth topics (a bag as a car records it).
     """
     from bevo_ros.datasets.synthetic.drive import base_poses_4x4
 
@@ -65,12 +70,18 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
                 if imu_axes is not None:
                     gyro, accel = R_imu_base @ np.asarray(gyro, np.float64), R_imu_base @ np.asarray(accel, np.float64)
                 w.write_imu(float(drive.imu_stamps[j]), gyro, accel, frame_id="imu_link")
+                if wheel_odometry_topic:
+                    speed = wheel_speed_scale * float(np.linalg.norm(drive.imu_velocity_gravity[j]))
+                    w.write(wheel_odometry_topic, bag.ODOMETRY_MSG, bag.odometry_message(
+                        float(drive.imu_stamps[j]), np.eye(4), "odom", "base_link", twist=(speed, 0, 0, 0, 0, 0)),
+                        float(drive.imu_stamps[j]))
                 k += 1
             w.write_camera_info(float(s), K, cam.width, cam.height_px, frame_id="camera_optical_frame")
             w.write_image(float(s), np.asarray(drive.images[i]), frame_id="camera_optical_frame")
-            w.write_odometry(float(s), poses[i], frame_id="odom", child_frame_id="base_link")
-            pitch, roll = drive.pitch_roll_gravity[i]
-            w.write_imu_attitude(float(s), float(roll), float(pitch), float(drive.poses_xy_yaw[i, 2]))
+            if ground_truth:
+                w.write_odometry(float(s), poses[i], frame_id="odom", child_frame_id="base_link")
+                pitch, roll = drive.pitch_roll_gravity[i]
+                w.write_imu_attitude(float(s), float(roll), float(pitch), float(drive.poses_xy_yaw[i, 2]))
     return Path(path)
 
 

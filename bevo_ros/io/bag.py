@@ -583,6 +583,35 @@ def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start
         yield conn.topic, t_ns, reader.deserialize(raw, conn.msgtype)
 
 
+# A vehicle's forward speed: wheel odometry (nav_msgs/Odometry, its twist), a CAN or GNSS speed as a twist.
+SPEED_MSGS = (ODOMETRY_MSG, "geometry_msgs/msg/TwistStamped", "geometry_msgs/msg/TwistWithCovarianceStamped")
+
+
+def read_speed(bag_path: PathLike, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    """The forward speed on ``topic`` (one of :data:`SPEED_MSGS`: the twist's linear x, m/s, in the
+    vehicle frame) -> ``(stamps (N,) s, speeds (N,))`` by header stamp. BagError when the topic is
+    missing, of another type, empty or not finite."""
+    path = Path(bag_path)
+    topics = bag_topics(path)
+    if topic not in topics:
+        raise BagError(f"{path}: no topic {topic} (the bag has: {', '.join(sorted(topics)) or 'none'})")
+    if topics[topic][0] not in SPEED_MSGS:
+        raise BagError(f"{path}: topic {topic} carries {topics[topic][0] or 'an unknown type'}, not a speed "
+                       f"({' or '.join(SPEED_MSGS)})")
+    stamps, speeds = [], []
+    for _, _, msg in iter_messages(path, [topic]):
+        twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry / *WithCovariance*
+        stamps.append(stamp_to_ns(msg.header.stamp))
+        speeds.append(float(twist.linear.x))
+    if not stamps:
+        raise BagError(f"{path}: topic {topic} has no messages")
+    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+    t, v = ns_to_seconds(np.asarray(stamps, dtype=np.int64)[order]), np.asarray(speeds, dtype=np.float64)[order]
+    if not np.isfinite(v).all():
+        raise BagError(f"{path}: topic {topic} holds speeds that are not finite")
+    return t, v
+
+
 def decode_image(msg: Any) -> np.ndarray:
     """sensor_msgs/Image or CompressedImage (as read from a bag) -> uint8 grey ``(H, W)``: the node's conversion
     (:func:`bevo_ros.ros_conversions.image_to_gray`), so a bag gives the engine the very grey levels
