@@ -51,6 +51,7 @@ class LocalizerSettings:
     odometry_topic: str = "bevo/odometry"
     bev_image_topic: str = "bevo/bev_image"
     initialpose_topic: str = "initialpose"
+    set_pose_topic: str = "bevo/set_pose"
     pose_topic: str = "bevo/map_pose"
     debug_image_topic: str = "bevo/localizer/debug_image"
     map_frame: str = "map"
@@ -79,6 +80,8 @@ DESCRIPTIONS = {
     "odometry_topic": "nav_msgs/Odometry from bevo_node (odom -> base_link)",
     "bev_image_topic": "mono8 BEV from bevo_node (a heat-map beside it is cut off)",
     "initialpose_topic": "geometry_msgs/PoseWithCovarianceStamped in the map frame (RViz 2D Pose Estimate)",
+    "set_pose_topic": "bevo_node's set_pose input, listened to: the odometry's jump at its stamp is no motion "
+                      "(the map pose stays, the mosaic restarts); '' = off",
     "pose_topic": "geometry_msgs/PoseWithCovarianceStamped output: base_link in map",
     "debug_image_topic": "mono8 debug image: map crop | mosaic | correlation (only while subscribed)",
     "map_frame": "the map's frame id (REP-105)",
@@ -179,6 +182,10 @@ class BevoLocalizerNode(Node):
         self.create_subscription(Image, s.bev_image_topic, self._guard("bev", self._on_bev), q)
         self.create_subscription(PoseWithCovarianceStamped, s.initialpose_topic,
                                  self._guard("initialpose", self._on_initialpose), 10)
+        self._rebase: list[float | None] = []  # set_pose stamps (None: the next odometry) bevo_node's jump follows
+        if s.set_pose_topic:
+            self.create_subscription(PoseWithCovarianceStamped, s.set_pose_topic,
+                                     self._guard("set_pose", self._on_set_pose), 10)
         self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, s.pose_topic, 10)
         self.debug_pub = self.create_publisher(Image, s.debug_image_topic, 2)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -211,6 +218,14 @@ class BevoLocalizerNode(Node):
                 self.get_logger().error(f"{name} callback failed: {type(exc).__name__}: {exc}\n"
                                         + traceback.format_exc(limit=3))
         return wrapped
+
+    def _on_set_pose(self, msg) -> None:
+        """bevo_node's set_pose (the same topic): its odometry jumps at the first frame at or after the
+        stamp (stamp 0: the next one). That jump is no motion; a set_pose that reaches this node after
+        the jumped odometry is read as motion unless longer than max_odometry_jump."""
+        stamp = stamp_to_sec(msg.header.stamp)
+        self._rebase = self._rebase[-9:] + [stamp if stamp > 0.0 else None]  # bounded: a stamp no frame reaches
+        self.counts["set_pose_in"] += 1
 
     def _on_initialpose(self, msg) -> None:
         if msg.header.frame_id and msg.header.frame_id != self.settings.map_frame:
@@ -270,14 +285,19 @@ class BevoLocalizerNode(Node):
         if not np.isfinite(pose).all():
             self.drops["odometry_not_finite"] += 1
             return
+        rebased = any(t is None or t <= stamp for t in self._rebase)  # bevo_node's set_pose jumps here
+        if rebased:
+            self._rebase = [t for t in self._rebase if t is not None and t > stamp]
         if self._last_odom is None:
             motion, cov = np.zeros(3), None
         else:
             t_prev, prev = self._last_odom
             motion = se2_between(prev, pose)
             cov = _twist_motion_covariance(msg, stamp - t_prev)
-            if stamp <= t_prev or math.hypot(motion[0], motion[1]) > self.settings.max_odometry_jump:
-                # bevo_node reset (or a bag restarted): keep the map pose, restart the mosaic.
+            if rebased:
+                self.counts["odometry_set_pose"] += 1
+            if rebased or stamp <= t_prev or math.hypot(motion[0], motion[1]) > self.settings.max_odometry_jump:
+                # bevo_node reset or set_pose (or a bag restarted): keep the map pose, restart the mosaic.
                 self.counts["odometry_resets"] += 1
                 pose_map = None if self.localizer.filter.x is None else self.localizer.filter.x.copy()
                 self.localizer.mosaic.reset()

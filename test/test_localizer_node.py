@@ -168,6 +168,20 @@ def test_localizer_node_end_to_end(context, world):
         after = np.array([q.position.x, q.position.y])
         assert np.linalg.norm(after - est[:2]) < 0.3, (after, est)  # ~0.1 s of motion, no jump
         assert len(node.localizer.mosaic.frames) == 0
+        # bevo_node's set_pose (the localizer listens to the same topic): its odometry jumps 3 m and
+        # 20 deg at the next frame, under max_odometry_jump; that jump is no motion either.
+        set_pub = tester.create_publisher(PoseWithCovarianceStamped, "/bevo/set_pose", 10)
+        assert spin_until(ex, lambda: set_pub.get_subscription_count() > 0, 5)
+        set_pub.publish(PoseWithCovarianceStamped(header=Header(frame_id="odom")))  # stamp 0: the next frame
+        assert spin_until(ex, lambda: node.counts["set_pose_in"] == 1, 5)
+        m = len(poses)
+        before = np.array([poses[-1].pose.pose.position.x, poses[-1].pose.pose.position.y])
+        odom_pub.publish(odometry_msg(t_reset + 0.2, np.array([4.0, 0.0, math.radians(20.0)]), 0.1))
+        odom_pub.publish(odometry_msg(t_reset + 0.3, np.array([4.0 + 0.94, 0.34, math.radians(20.0)]), 0.1))
+        assert spin_until(ex, lambda: node.counts["odometry_set_pose"] == 1 and len(poses) >= m + 2, 5)
+        q = poses[m].pose.pose
+        assert np.linalg.norm(np.array([q.position.x, q.position.y]) - before) < 0.3  # the map pose stays
+        assert node.counts["odometry_resets"] == 2
     finally:
         ex.remove_node(node)
         ex.remove_node(tester)

@@ -274,7 +274,7 @@ def test_set_pose_moves_the_odometry_from_its_stamp(harness_factory, drive):
     messages = drive_messages(drive)
     expected = offline_steps(messages, ov)
     h = harness_factory(ov, subscribe_outputs=False)
-    pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/set_pose", 10)
+    pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/bevo/set_pose", 10)
     assert spin_until(h.executor, lambda: pub.get_subscription_count() > 0, 10)
     half = len(messages) // 2
     h.send_all(messages[:half])
@@ -315,7 +315,7 @@ def test_a_pose_set_before_the_calibration_is_the_first_frames(harness_factory, 
     ov["camera.width"] = ov["camera.height_px"] = 0
     h = harness_factory(ov, subscribe_outputs=False)
     assert h.node.engine is None
-    pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/set_pose", 10)
+    pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/bevo/set_pose", 10)
     assert spin_until(h.executor, lambda: pub.get_subscription_count() > 0, 10)
     pub.publish(_set_pose_msg(2.0, 3.0, 0.0, -0.5, 0.0, cross={(0, 1): 0.01, (0, 5): 0.005, (1, 5): -0.004,
                                                                 (0, 2): 7.0}))  # stamp 0: here the first frame

@@ -25,7 +25,7 @@ class NodeSettings:
     use_camera_info: bool = True
     camera_info_use_p: bool = True
     odometry_topic: str = "bevo/odometry"
-    set_pose_topic: str = "set_pose"
+    set_pose_topic: str = "bevo/set_pose"
     path_topic: str = "bevo/path"
     bev_image_topic: str = "bevo/bev_image"
     bev_image_heatmap: bool = True
