@@ -106,6 +106,35 @@ DESCRIPTIONS = {
 }
 
 
+SET_POSE_EXPIRY = 5  # odometry messages at or after a set_pose's stamp that may come before its jump
+
+
+def _twist_motion(msg, dt: float) -> np.ndarray | None:
+    """The frame's motion ``(dx, dy, dyaw)`` in the previous base frame from an Odometry's twist (in
+    the child frame at its stamp, as bevo_node publishes it) over ``dt``; None when not finite."""
+    tw = msg.twist.twist
+    dyaw = tw.angular.z * dt
+    c, s = math.cos(dyaw), math.sin(dyaw)
+    vx, vy = tw.linear.x * dt, tw.linear.y * dt
+    out = np.array([c * vx - s * vy, s * vx + c * vy, dyaw])
+    return out if np.isfinite(out).all() and dt > 0 else None
+
+
+def _due(entry: list, stamp: float) -> bool:
+    """A set_pose's jump may be in the odometry of ``stamp``: received after the set_pose (bevo_node
+    outputs it after taking the set_pose), at or after its stamp (a stamp ahead waits for its frame)."""
+    return stamp > entry[1] and (entry[0] is None or entry[0] <= stamp)
+
+
+def _is_jump(motion: np.ndarray, twist_motion: np.ndarray) -> bool:
+    """The pose difference disagrees with the twist by more than a frame's jitter can (the twist's
+    interval is bevo_node's regularised one: up to ~25 % off the stamps')."""
+    dist = math.hypot(motion[0] - twist_motion[0], motion[1] - twist_motion[1])
+    dyaw = abs(math.remainder(motion[2] - twist_motion[2], 2 * math.pi))
+    return dist > max(0.3, 0.3 * math.hypot(twist_motion[0], twist_motion[1])) or \
+        dyaw > max(math.radians(2.0), 0.3 * abs(twist_motion[2]))
+
+
 def _twist_motion_covariance(msg, dt: float) -> np.ndarray | None:
     cov = np.asarray(msg.twist.covariance, dtype=np.float64).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])] * dt * dt
     return cov if np.isfinite(cov).all() and dt > 0 else None
@@ -182,7 +211,9 @@ class BevoLocalizerNode(Node):
         self.create_subscription(Image, s.bev_image_topic, self._guard("bev", self._on_bev), q)
         self.create_subscription(PoseWithCovarianceStamped, s.initialpose_topic,
                                  self._guard("initialpose", self._on_initialpose), 10)
-        self._rebase: list[float | None] = []  # set_pose stamps (None: the next odometry) bevo_node's jump follows
+        # set_poses whose jump has not come: [stamp (None: 0), newest odometry received before it, messages left]
+        self._rebase: list[list] = []
+        self._last_received = -math.inf
         if s.set_pose_topic:
             self.create_subscription(PoseWithCovarianceStamped, s.set_pose_topic,
                                      self._guard("set_pose", self._on_set_pose), 10)
@@ -221,10 +252,24 @@ class BevoLocalizerNode(Node):
 
     def _on_set_pose(self, msg) -> None:
         """bevo_node's set_pose (the same topic): its odometry jumps at the first frame at or after the
-        stamp (stamp 0: the next one). That jump is no motion; a set_pose that reaches this node after
-        the jumped odometry is read as motion unless longer than max_odometry_jump."""
+        stamp (stamp 0: the next one). Kept as bevo_node keeps it (the same checks; a new one replaces
+        one still waiting for its frame) until an odometry at or after its stamp jumps, i.e. disagrees
+        with the previous pose moved by its own twist (a frame bevo_node published before it took the
+        set_pose does not); that jump is no motion. One that reaches this node after the jumped
+        odometry, or waits more than SET_POSE_EXPIRY odometry messages, is let go."""
+        frame = msg.header.frame_id.lstrip("/")
+        if frame not in ("", self._odom_frame):
+            self.drops["set_pose_frame"] += 1
+            return
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
+        if not (math.isfinite(norm) and norm > 1e-9 and math.isfinite(p.x) and math.isfinite(p.y)):
+            self.drops["set_pose_invalid"] += 1
+            return
         stamp = stamp_to_sec(msg.header.stamp)
-        self._rebase = self._rebase[-9:] + [stamp if stamp > 0.0 else None]  # bounded: a stamp no frame reaches
+        last = self._last_received
+        kept = [e for e in self._rebase if e[0] is None or e[0] <= last]  # bevo_node drops one still waiting
+        self._rebase = kept[-9:] + [[stamp if stamp > 0.0 else None, last, SET_POSE_EXPIRY]]
         self.counts["set_pose_in"] += 1
 
     def _on_initialpose(self, msg) -> None:
@@ -269,6 +314,7 @@ class BevoLocalizerNode(Node):
 
     def _on_odometry(self, msg) -> None:
         self.counts["odometry_in"] += 1
+        self._last_received = max(self._last_received, stamp_to_sec(msg.header.stamp))
         while self._pending:  # the previous one's BEV did not come: go on without it
             self._process(self._pending.popleft())
         if stamp_to_ns(msg.header.stamp) in self._bevs:
@@ -285,24 +331,31 @@ class BevoLocalizerNode(Node):
         if not np.isfinite(pose).all():
             self.drops["odometry_not_finite"] += 1
             return
-        rebased = any(t is None or t <= stamp for t in self._rebase)  # bevo_node's set_pose jumps here
-        if rebased:
-            self._rebase = [t for t in self._rebase if t is not None and t > stamp]
         if self._last_odom is None:
             motion, cov = np.zeros(3), None
+            self._rebase = [e for e in self._rebase if not _due(e, stamp)]  # no motion to lose
         else:
             t_prev, prev = self._last_odom
             motion = se2_between(prev, pose)
             cov = _twist_motion_covariance(msg, stamp - t_prev)
+            twist_motion = _twist_motion(msg, stamp - t_prev)
+            due = [e for e in self._rebase if _due(e, stamp)]
+            rebased = bool(due) and twist_motion is not None and _is_jump(motion, twist_motion)
+            for e in due:
+                e[2] -= 1
+            self._rebase = [e for e in self._rebase if not _due(e, stamp) or not rebased and e[2] > 0]
             if rebased:
                 self.counts["odometry_set_pose"] += 1
             if rebased or stamp <= t_prev or math.hypot(motion[0], motion[1]) > self.settings.max_odometry_jump:
-                # bevo_node reset or set_pose (or a bag restarted): keep the map pose, restart the mosaic.
+                # bevo_node reset or set_pose (or a bag restarted): keep the map pose, restart the mosaic;
+                # after a set_pose the frame's own motion is its twist's (bevo_node's twist stays valid).
                 self.counts["odometry_resets"] += 1
+                if not rebased:  # a reset: bevo_node forgot the set_poses waiting for their frames
+                    self._rebase = []
                 pose_map = None if self.localizer.filter.x is None else self.localizer.filter.x.copy()
                 self.localizer.mosaic.reset()
                 self.localizer.pose_odom = pose
-                motion, cov = np.zeros(3), None
+                motion, cov = (twist_motion, cov) if rebased else (np.zeros(3), None)
                 if pose_map is not None:
                     self.localizer.filter.state[:3] = pose_map
         self._last_odom = (stamp, pose)

@@ -48,7 +48,7 @@ def world(tmp_path_factory):
     return ld, path
 
 
-def odometry_msg(stamp: float, pose: np.ndarray, dt: float) -> Odometry:
+def odometry_msg(stamp: float, pose: np.ndarray, dt: float, twist: tuple[float, float, float] | None = None) -> Odometry:
     m = Odometry()
     m.header = Header(stamp=sec_to_stamp(stamp), frame_id="odom")
     m.child_frame_id = "base_link"
@@ -58,6 +58,8 @@ def odometry_msg(stamp: float, pose: np.ndarray, dt: float) -> Odometry:
     tw = np.zeros((6, 6))
     tw[0, 0], tw[1, 1], tw[5, 5] = (0.03 / dt) ** 2, (0.02 / dt) ** 2, (math.radians(0.05) / dt) ** 2
     m.twist.covariance = [float(v) for v in tw.reshape(-1)]
+    if twist is not None:  # (vx, vy, wz) in base_link, as bevo_node publishes it
+        m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.angular.z = (float(v) for v in twist)
     return m
 
 
@@ -172,15 +174,29 @@ def test_localizer_node_end_to_end(context, world):
         # 20 deg at the next frame, under max_odometry_jump; that jump is no motion either.
         set_pub = tester.create_publisher(PoseWithCovarianceStamped, "/bevo/set_pose", 10)
         assert spin_until(ex, lambda: set_pub.get_subscription_count() > 0, 5)
-        set_pub.publish(PoseWithCovarianceStamped(header=Header(frame_id="odom")))  # stamp 0: the next frame
+        bad = PoseWithCovarianceStamped(header=Header(frame_id="map"))
+        bad.pose.pose.orientation.w = 1.0
+        set_pub.publish(bad)  # bevo_node drops it: so does the localizer
+        assert spin_until(ex, lambda: node.drops["set_pose_frame"] == 1, 5)
+        ok = PoseWithCovarianceStamped(header=Header(frame_id="odom"))
+        ok.pose.pose.orientation.w = 1.0
+        set_pub.publish(ok)  # stamp 0: the next frame bevo_node outputs
         assert spin_until(ex, lambda: node.counts["set_pose_in"] == 1, 5)
-        m = len(poses)
-        before = np.array([poses[-1].pose.pose.position.x, poses[-1].pose.pose.position.y])
-        odom_pub.publish(odometry_msg(t_reset + 0.2, np.array([4.0, 0.0, math.radians(20.0)]), 0.1))
-        odom_pub.publish(odometry_msg(t_reset + 0.3, np.array([4.0 + 0.94, 0.34, math.radians(20.0)]), 0.1))
-        assert spin_until(ex, lambda: node.counts["odometry_set_pose"] == 1 and len(poses) >= m + 2, 5)
-        q = poses[m].pose.pose
-        assert np.linalg.norm(np.array([q.position.x, q.position.y]) - before) < 0.3  # the map pose stays
+        # a frame bevo_node published before it took the set_pose (it crossed the set_pose): no jump;
+        # then the jump, 3 m and 20 deg (under max_odometry_jump), each frame 1 m of its own motion
+        for k, pose in enumerate(([2.0, 0.0, 0.0], [5.0, 0.0, math.radians(20.0)],
+                                  [5.0 + math.cos(math.radians(20.0)), math.sin(math.radians(20.0)), math.radians(20.0)])):
+            odom_pub.publish(odometry_msg(t_reset + 0.2 + 0.1 * k, np.array(pose), 0.1, twist=(10.0, 0.0, 0.0)))
+
+        def at(t):
+            m = [p for p in poses if abs(stamp_to_sec(p.header.stamp) - t) < 1e-6]
+            return np.array([m[-1].pose.pose.position.x, m[-1].pose.pose.position.y]) if m else None
+
+        assert spin_until(ex, lambda: node.counts["odometry_set_pose"] == 1 and at(t_reset + 0.3) is not None, 5)
+        steps = [float(np.linalg.norm(at(t_reset + 0.1 * (k + 1)) - at(t_reset + 0.1 * k))) for k in (1, 2)]
+        print(f"set_pose: the map pose moved {steps[0]:.2f} m over the frame before the jump and {steps[1]:.2f} m "
+              "over the jumped frame (1 m of motion each)")
+        assert 0.7 < steps[0] < 1.3 and 0.7 < steps[1] < 1.3  # the jumped frame: its twist's 1 m, not 3 m
         assert node.counts["odometry_resets"] == 2
     finally:
         ex.remove_node(node)

@@ -438,15 +438,49 @@ def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(t
     assert "by /wheel/odometry's speed and the gyro's yaw" in out, out
     printed = yaml.safe_load("\n".join(out.splitlines()[1:]))
     assert abs(math.degrees(printed["filter.mounting_pitch"]) - 1.0) < 0.15
-    for argv, says in ((["--speed-topic", "/imu/data"], "not a speed"), ([], "no /ground_truth/odometry"),
+    for argv, says in ((["--speed-topic", "/imu/data"], "not a speed"), ([], "give the car's speed (--speed-topic)"),
                        (["--speed-topic", "/nothing"], "no topic /nothing")):
         assert calibrate_cmd.main([str(no_gt), "--params", str(SYNTH_PARAMS)] + argv) == 2
         assert says in capsys.readouterr().err
-    with pytest.raises(ValueError, match="not the calibration frames"):
-        reference_from_speed(seq, np.array([0.0, 1.0]), np.array([5.0, 5.0]))
+    with pytest.raises(ValueError, match=r"header stamps unset\?\), not the calibration frames"):
+        reference_from_speed(seq, np.array([0.0, 0.5]), np.array([5.0, 5.0]))
     t = seq.frame_stamps.double().numpy()
+    still = np.arange(t[0] - 1, t[-1] + 1, 0.1)
     with pytest.raises(ValueError, match="drive forward"):
-        reference_from_speed(seq, np.array([t[0] - 1, t[-1] + 1]), np.array([0.0, 0.0]))
+        reference_from_speed(seq, still, np.zeros_like(still))
+    with pytest.raises(ValueError, match=r"speed has a gap of 2\.\d+ s"):
+        reference_from_speed(seq, np.array([t[0] - 1, t[0] + 0.1, t[0] + 2.2, t[-1] + 1]), np.full(4, 9.0))
+    # a speed at 1 Hz (a GNSS receiver's) on this steady stretch: the same distance to 1 %
+    ts, vs = read_speed(with_gt, "/wheel/odometry")
+    sparse = np.concatenate([np.arange(ts[0], ts[-1], 1.0), [ts[-1]]])
+    assert reference_from_speed(seq, sparse, np.interp(sparse, ts, vs)).distance == pytest.approx(by_gt[0], rel=0.01)
+
+
+def test_the_speed_reference_takes_the_gyros_bias_off_where_the_car_stood():
+    """The yaw reference is the gyro's: its bias b would read as a roll error of ~b / (0.3 v). Where the
+    speed says the car stood (at least 1 s before the last frame) the gyro reads the bias, about gravity
+    whatever the IMU's axes (here z down)."""
+    from types import SimpleNamespace
+
+    from bevo_ros.training.mounting import reference_from_speed
+
+    ti = np.arange(0.0, 8.0, 0.01)  # at rest 0-2 s, then 10 m/s turning at 0.1 rad/s
+    moving = ti >= 2.0
+    bias = np.radians(0.5)
+    R = np.diag([1.0, -1.0, -1.0])  # a z-down IMU: base vectors in its axes
+    gyro = (np.column_stack([np.zeros_like(ti), np.zeros_like(ti), np.where(moving, 0.1, 0.0)]) @ R.T
+            + bias * np.array([0.0, 0.0, -1.0]))
+    accel = np.tile(R @ np.array([0.0, 0.0, 9.81]), (len(ti), 1))
+    frames = np.arange(3.0, 7.01, 0.1)
+    seq = SimpleNamespace(frame_stamps=torch.tensor(frames), imu_stamps=torch.tensor(ti), gyro=torch.tensor(gyro),
+                          accel=torch.tensor(accel))
+    ref = reference_from_speed(seq, ti, np.where(moving, 10.0, 0.0))
+    assert ref.distance == pytest.approx(40.0, rel=1e-9) and ref.rest_seconds == pytest.approx(2.0, abs=0.02)
+    assert math.degrees(ref.gyro_bias) == pytest.approx(0.5, abs=1e-9) and ref.yaw == pytest.approx(0.4, abs=1e-9)
+    no_rest = reference_from_speed(seq, ti, np.full(len(ti), 10.0))  # never at rest: the bias stays in
+    assert no_rest.rest_seconds == 0.0 and no_rest.yaw == pytest.approx(0.4 + bias * 4.0, abs=1e-9)
+    with pytest.raises(ValueError, match="not gravity"):
+        reference_from_speed(SimpleNamespace(**{**vars(seq), "accel": seq.accel * 0.0 + 0.1}), ti, np.full(len(ti), 10.0))
 
 
 def test_calibrate_on_a_stretch_no_attitude_matches_says_which_and_what_to_do(tmp_path):

@@ -38,9 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_params_option(p)
     p.add_argument("--frames", default="0:11", help="frame range START:STOP of the calibration drive (default 0:11)")
     p.add_argument("--speed-topic", metavar="TOPIC",
-                   help="the reference without ground truth: the car's forward speed on TOPIC (nav_msgs/Odometry, "
-                        "e.g. wheel odometry, or geometry_msgs/TwistStamped / TwistWithCovarianceStamped: the "
-                        "twist's linear x, m/s), the yaw from the bag's gyro; the result is as good as its scale")
+                   help="the reference without ground truth: the car's speed on TOPIC (nav_msgs/Odometry, e.g. wheel "
+                        "odometry, or geometry_msgs/TwistStamped / TwistWithCovarianceStamped from CAN or GNSS: the "
+                        "twist's horizontal speed), driving forward; the yaw from the bag's gyro, its bias read "
+                        "where the speed says the car stood (start the bag at rest); as good as the speed's scale")
     return p
 
 
@@ -48,8 +49,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         config, flat = load_config(args.params)
-        seq = load_sequence(args.bag, config, require_gt=args.speed_topic is None,
-                            rig=RigSettings.from_params(flat, str(args.params)))
+        seq = load_sequence(args.bag, config, require_gt=False, rig=RigSettings.from_params(flat, str(args.params)))
+        if args.speed_topic is None and seq.gt_poses is None:
+            raise ValueError(f"{args.bag}: no /ground_truth/odometry to calibrate against; without one, give the "
+                             "car's speed (--speed-topic)")
         try:
             start, stop = (int(v) for v in args.frames.split(":"))
         except ValueError:
@@ -60,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         seq = seq.frames(start, stop)
         if args.speed_topic:
             reference = reference_from_speed(seq, *read_speed(args.bag, args.speed_topic))
-            source = f"{args.speed_topic}'s speed and the gyro's yaw"
+            source = f"{args.speed_topic}'s speed and the gyro's yaw" + (
+                f", its bias {math.degrees(reference.gyro_bias):+.3f} deg/s taken off over {reference.rest_seconds:.1f} s "
+                "at rest" if reference.rest_seconds else ", no rest to read its bias from")
         else:
             reference, source = reference_from_ground_truth(seq), "the ground truth"
     except (ConfigError, ValueError, FileNotFoundError) as exc:

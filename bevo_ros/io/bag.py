@@ -588,9 +588,10 @@ SPEED_MSGS = (ODOMETRY_MSG, "geometry_msgs/msg/TwistStamped", "geometry_msgs/msg
 
 
 def read_speed(bag_path: PathLike, topic: str) -> tuple[np.ndarray, np.ndarray]:
-    """The forward speed on ``topic`` (one of :data:`SPEED_MSGS`: the twist's linear x, m/s, in the
-    vehicle frame) -> ``(stamps (N,) s, speeds (N,))`` by header stamp. BagError when the topic is
-    missing, of another type, empty or not finite."""
+    """The speed on ``topic`` (one of :data:`SPEED_MSGS`): the twist's horizontal speed, ``hypot(linear.x,
+    linear.y)`` m/s, so a vehicle-frame twist (wheel odometry, CAN) and an east/north one (GNSS drivers'
+    velocity) read alike; unsigned -> ``(stamps (N,) s, speeds (N,))`` by header stamp. BagError when the
+    topic is missing, of another type, empty or not finite."""
     path = Path(bag_path)
     topics = bag_topics(path)
     if topic not in topics:
@@ -602,7 +603,7 @@ def read_speed(bag_path: PathLike, topic: str) -> tuple[np.ndarray, np.ndarray]:
     for _, _, msg in iter_messages(path, [topic]):
         twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry / *WithCovariance*
         stamps.append(stamp_to_ns(msg.header.stamp))
-        speeds.append(float(twist.linear.x))
+        speeds.append(math.hypot(float(twist.linear.x), float(twist.linear.y)))
     if not stamps:
         raise BagError(f"{path}: topic {topic} has no messages")
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")

@@ -78,7 +78,7 @@ DESCRIPTIONS = {
     "sensor_late_factor": "/diagnostics: an input is late (WARN) when silent for this many times its measured period",
     "camera_info_use_p": "use CameraInfo P[:3,:3] (rectified camera matrix) rather than K",
     "odometry_topic": "nav_msgs/Odometry output topic",
-    "set_pose_topic": "geometry_msgs/PoseWithCovarianceStamped input (robot_localization's set_pose): the vehicle's "
+    "set_pose_topic": "geometry_msgs/PoseWithCovarianceStamped input (as robot_localization's set_pose): the vehicle's "
                       "pose in odom_frame at the header stamp (0: at the latest frame); x, y, z and yaw are set, the "
                       "attitude is measured; empty disables",
     "path_topic": "nav_msgs/Path output topic (published only when subscribed)",

@@ -10,6 +10,7 @@ own speed (wheel odometry, CAN, GNSS) with the yaw from the gyro (:func:`referen
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -72,30 +73,68 @@ def _integral(t: np.ndarray, v: np.ndarray, t0: float, t1: float) -> float:
     return float(np.sum(0.5 * (vs[1:] + vs[:-1]) * np.diff(ts)))
 
 
-def reference_from_speed(seq: Recording, speed_stamps: np.ndarray, speeds: np.ndarray) -> tuple[float, float]:
-    """``(distance m, yaw rad)`` over the recording's frames without ground truth: the forward speed
-    ``speeds (N,)`` (m/s at ``speed_stamps (N,)`` s: wheel odometry, CAN, GNSS) integrated between the
-    first and the last frame, and the gyro's rate about gravity (the stretch's mean accelerometer
-    direction) integrated over the same time. The pitch found is as good as the speed's scale: a
-    wheel speed 1 % long reads the camera ~0.04 deg more nose-up (KITTI's geometry: ~25 % per deg).
-    ValueError when the speed does not cover the frames or the car hardly moves."""
+def _check_sampling(t: np.ndarray, t0: float, t1: float, what: str, max_gap: float) -> None:
+    """ValueError unless the samples ``t`` cover ``[t0, t1]`` with no gap longer than ``max_gap`` s."""
+    if len(t) < 2 or t[0] > t0 + 1e-9 or t[-1] < t1 - 1e-9:
+        span = f"{t[0]:.3f}..{t[-1]:.3f} s" if len(t) else "nothing"
+        unset = " (header stamps unset?)" if len(t) and t[-1] < 1.0 else ""
+        raise ValueError(f"{what} covers {span}{unset}, not the calibration frames' {t0:.3f}..{t1:.3f} s")
+    lo, hi = np.searchsorted(t, t0, side="right") - 1, np.searchsorted(t, t1, side="left")
+    gaps = np.diff(t[lo:hi + 1])
+    if gaps.size and gaps.max() > max_gap:
+        k = int(np.argmax(gaps))
+        raise ValueError(f"{what} has a gap of {gaps[k]:.2f} s at {t[lo + k]:.3f} s within the calibration frames "
+                         f"(at most {max_gap:g} s)")
+
+
+class SpeedReference(NamedTuple):
+    """:func:`reference_from_speed`'s result: the reference and how the yaw was taken."""
+
+    distance: float  # m
+    yaw: float  # rad
+    gyro_bias: float  # rad/s about gravity, taken off (0 without a rest)
+    rest_seconds: float  # the rest the bias was read over
+
+
+SPEED_MAX_GAP = 1.5  # s between speed samples (a 1 Hz GNSS speed passes; a steady stretch is linear enough)
+IMU_MAX_GAP = 0.5  # s between IMU samples
+REST_SPEED = 0.05  # m/s: the car is at rest, the gyro reads its bias
+REST_MIN = 1.0  # s of rest before the bias is taken
+
+
+def reference_from_speed(seq: Recording, speed_stamps: np.ndarray, speeds: np.ndarray) -> SpeedReference:
+    """``(distance m, yaw rad, ...)`` over the recording's frames without ground truth: the speed
+    ``speeds (N,)`` (m/s at ``speed_stamps (N,)`` s: wheel odometry, CAN, GNSS; drive forward) integrated
+    between the first and the last frame, and the gyro's rate about gravity (the stretch's mean
+    accelerometer direction) integrated over the same time, less its bias read where the speed says the
+    car stood (at least REST_MIN s anywhere in the recording before the last frame: start the recording at
+    rest; a bias b left in reads as a roll error of ~b / (0.3 v)). The pitch found is as good as the
+    speed's scale: a wheel speed 1 % long reads the camera ~0.04 deg less nose-down (KITTI's geometry).
+    ValueError when the speed or the IMU does not cover the frames, the car hardly moves, or the
+    accelerometer does not read gravity."""
     t0, t1 = (float(v) for v in seq.frame_stamps[[0, -1]])
     t, v = np.asarray(speed_stamps, dtype=np.float64), np.asarray(speeds, dtype=np.float64)
-    if len(t) < 2 or t[0] > t0 or t[-1] < t1:
-        span = f"{t[0]:.3f}..{t[-1]:.3f} s" if len(t) else "nothing"
-        raise ValueError(f"the speed covers {span}, not the calibration frames' {t0:.3f}..{t1:.3f} s")
+    _check_sampling(t, t0, t1, "the speed", SPEED_MAX_GAP)
     distance = _integral(t, v, t0, t1)
     if distance < 1.0:
         raise ValueError(f"the speed gives {distance:.2f} m over the calibration frames: drive forward a few "
                          "metres or more")
     ti = seq.imu_stamps.double().numpy()
-    keep = (ti >= t0 - 0.5) & (ti <= t1 + 0.5)
-    if keep.sum() < 2:
-        raise ValueError("no IMU samples over the calibration frames (the yaw reference)")
-    accel = seq.accel.double().numpy()[keep]
-    up = accel.mean(axis=0) / np.linalg.norm(accel.mean(axis=0))
-    rate = seq.gyro.double().numpy()[keep] @ up
-    return distance, _integral(ti[keep], rate, t0, t1)
+    gyro, accel = seq.gyro.double().numpy(), seq.accel.double().numpy()
+    _check_sampling(ti, t0, t1, "the IMU", IMU_MAX_GAP)
+    stretch = (ti >= t0) & (ti <= t1)
+    g = np.linalg.norm(accel[stretch].mean(axis=0))
+    if not 7.0 < g < 12.5:
+        raise ValueError(f"the accelerometer's mean over the calibration frames is {g:.2f} m/s^2, not gravity "
+                         "(the IMU topic must carry the specific force, gravity included)")
+    up = accel[stretch].mean(axis=0) / g
+    rate = gyro @ up
+    covered = (ti >= t[0]) & (ti <= t[-1])
+    rest = covered & (np.abs(np.interp(ti, t, v)) < REST_SPEED) & (ti <= t1)
+    dt = np.diff(ti, prepend=ti[0])
+    rest_seconds = float(dt[rest].sum())
+    bias = float(rate[rest].mean()) if rest_seconds >= REST_MIN else 0.0
+    return SpeedReference(distance, _integral(ti, rate - bias, t0, t1), bias, rest_seconds if bias else 0.0)
 
 
 def calibrate(seq: Recording, spec: BevSpec, roll0: float = 0.0, dpc: DpcConfig | None = None,
@@ -104,7 +143,7 @@ def calibrate(seq: Recording, spec: BevSpec, roll0: float = 0.0, dpc: DpcConfig 
     attitudes match the reference ``(distance m, yaw rad)`` over the frames (default: the ground
     truth's, :func:`reference_from_ground_truth`), the one whose BEVs correlate best (the sharpest
     peaks) wins."""
-    dist, yaw = reference if reference is not None else reference_from_ground_truth(seq)
+    dist, yaw = (reference if reference is not None else reference_from_ground_truth(seq))[:2]
     span = math.radians(3)
     def solve(f, name: str, context: str) -> list[float]:
         try:
