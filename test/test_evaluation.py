@@ -176,7 +176,7 @@ def test_cli_writes_report_and_rejects_bad_input(tmp_path, capsys):
                                                "pitch_roll.png"}
     assert "endpoint drift: 0.590 m (1.00 % of the path)" in text
     rmse = math.degrees(0.001 * math.sqrt(np.mean(np.sin(t) ** 2)))
-    assert f"pitch RMSE vs OXTS: {rmse:.3f} deg" in text
+    assert f"pitch RMSE vs reference: {rmse:.3f} deg" in text
     assert (out / "trajectory.png").read_bytes()[:4] == b"\x89PNG"
 
     bad = tmp_path / "bad.txt"
@@ -257,3 +257,19 @@ def test_rpe_and_ate_equal_evo_on_a_hand_computed_case():
     assert ours.ate_rmse == pytest.approx(0.1 * math.sqrt(0.5), abs=1e-12)
     assert evo_ate == pytest.approx(ours.ate_rmse, abs=1e-12)
     np.testing.assert_allclose(ours.aligned_est[:, :3, 3], np.asarray(moved.positions_xyz), atol=1e-12)
+
+
+def test_demo_rows_read_the_pitch_roll_errors_evaluate_writes(tmp_path):
+    """make demo's table takes the attitude errors from metrics.json under the names evaluate gives them."""
+    import json
+
+    from bevo_ros.commands.demo import metrics_row
+    from bevo_ros.evaluation.metrics import pitch_roll_errors
+
+    t = np.linspace(0.0, 1.0, 11)
+    pr = {"stamp": t, "pitch": 0.01 + 0 * t, "roll": -0.02 + 0 * t, "oxts_pitch": 0 * t, "oxts_roll": 0 * t}
+    metrics = {"frames": 11, "path_length": 10.0, "rpe_trans_rmse": 0.04, "rpe_yaw_rmse": 0.05, "drift_percent": 1.0,
+               "ate_rmse": 0.1, "t_rel": None, "r_rel": None, "pitch_roll": pitch_roll_errors(pr)}
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    row = metrics_row("x", tmp_path)
+    assert row.endswith(f"| {math.degrees(0.01):.2f} / {math.degrees(0.02):.2f} |"), row

@@ -40,8 +40,8 @@ def metrics_row(label: str, eval_dir: Path) -> str:
     t_rel = "n/a" if m.get("t_rel") is None else f"{m['t_rel']:.2f}"
     r_rel = "n/a" if m.get("r_rel") is None else f"{m['r_rel']:.2f}"
     pr = m.get("pitch_roll") or {}
-    pitch = pr.get("pitch RMSE vs OXTS", float("nan"))
-    roll = pr.get("roll RMSE vs OXTS", float("nan"))
+    pitch = pr.get("pitch RMSE vs reference", float("nan"))
+    roll = pr.get("roll RMSE vs reference", float("nan"))
     return (f"| {label} | {m['frames']} | {m['path_length']:.1f} | {m['rpe_trans_rmse'] * 100:.1f} | "
             f"{m['rpe_yaw_rmse']:.3f} | {m['drift_percent']:.2f} | {m['ate_rmse']:.2f} | {t_rel} | {r_rel} | "
             f"{pitch:.2f} / {roll:.2f} |")

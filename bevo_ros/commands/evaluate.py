@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt", required=True, help="ground-truth poses (KITTI format)")
     p.add_argument("--est", required=True, help="estimated poses (KITTI format)")
     p.add_argument("--out", required=True, help="output directory (created if needed)")
-    p.add_argument("--pitch-roll", metavar="CSV", help="filtered vs OXTS pitch/roll CSV to plot and score")
+    p.add_argument("--pitch-roll", metavar="CSV", help="filtered vs reference (OXTS) pitch/roll CSV to plot and score")
     p.add_argument("--first", type=int, default=0, help="ground-truth frame of the first estimated pose (default 0)")
     p.add_argument("--convention", choices=CONVENTIONS, default="camera",
                    help="pose frame: camera (KITTI camera-0, default) or base (z up)")

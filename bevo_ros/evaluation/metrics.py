@@ -291,7 +291,8 @@ PITCH_ROLL_COLUMNS = ("stamp", "pitch", "roll", "oxts_pitch", "oxts_roll")
 
 def read_pitch_roll_csv(path: PathLike) -> dict[str, np.ndarray]:
     """CSV with a header naming ``stamp, pitch, roll, oxts_pitch, oxts_roll`` (radians; any
-    column order, extra columns ignored) -> {column: (N,) float64}."""
+    column order, extra columns ignored) -> {column: (N,) float64}. ``oxts_*`` hold the bag's
+    reference attitude (``/ground_truth/imu``: the OXTS unit's on KITTI, the truth on a synthetic drive)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: pitch/roll CSV not found")
@@ -320,13 +321,13 @@ def read_pitch_roll_csv(path: PathLike) -> dict[str, np.ndarray]:
 
 
 def pitch_roll_errors(pr: dict[str, np.ndarray]) -> dict[str, float]:
-    """RMSE (deg) of the filtered pitch/roll against the OXTS attitude, ignoring NaN rows."""
+    """RMSE (deg) of the filtered pitch/roll against the reference attitude (the CSV's ``oxts_*``), ignoring NaN rows."""
     out = {}
     for name in ("pitch", "roll"):
         d = np.degrees(pr[name] - pr[f"oxts_{name}"])
         d = d[np.isfinite(d)]
         if d.size:
-            out[f"{name} RMSE vs OXTS"] = float(np.sqrt(np.mean(d ** 2)))
+            out[f"{name} RMSE vs reference"] = float(np.sqrt(np.mean(d ** 2)))
     return out
 
 

@@ -79,13 +79,13 @@ def plot_pitch_roll(path: PathLike, pr: dict[str, np.ndarray]) -> None:
     t = pr["stamp"] - pr["stamp"][0]
     fig, axes = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     for ax, name in zip(axes, ("pitch", "roll")):
-        ax.plot(t, np.degrees(pr[f"oxts_{name}"]), "k-", lw=1.2, label=f"OXTS {name}")
+        ax.plot(t, np.degrees(pr[f"oxts_{name}"]), "k-", lw=1.2, label=f"reference {name}")
         ax.plot(t, np.degrees(pr[name]), "r-", lw=1.0, label=f"filtered {name}")
         ax.set_ylabel(f"{name} (deg)")
         ax.grid(True, alpha=0.3)
         ax.legend(loc="best")
     axes[-1].set_xlabel("time (s)")
-    axes[0].set_title("Filtered attitude vs OXTS")
+    axes[0].set_title("Filtered attitude vs the reference (OXTS, or a synthetic drive's truth)")
     _save_figure(fig, Path(path))
     plt.close(fig)
 
