@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera-info-topic", default=bag.CAMERA_INFO_TOPIC)
     p.add_argument("--gt-odometry-topic", default=bag.GT_ODOMETRY_TOPIC)
     p.add_argument("--gt-imu-topic", default=bag.GT_IMU_TOPIC)
+    p.add_argument("--speed-topic", default="", metavar="TOPIC",
+                   help="also write the OXTS unit's velocity (vf, vl, vu) there as geometry_msgs/TwistStamped in the "
+                        "base frame: a GNSS/INS speed for `bevo calibrate --speed-topic` (default: not written)")
     p.add_argument("--imu-frame", default="imu_link", help="frame id of the IMU messages (default imu_link)")
     p.add_argument("--camera-frame", default="camera_optical_frame", help="frame id of the images")
     p.add_argument("--odom-frame", default="odom", help="frame id of the ground-truth odometry")
@@ -116,7 +119,8 @@ def _render_oxts(args) -> int:
         stop = n if args.count is None else args.first + args.count
         if not (0 <= args.first and args.first + 2 <= stop <= n):
             raise ValueError(f"--first {args.first} --count {args.count}: the drive has {n} frames (need >= 2 in range)")
-        write_drive_bag(drive, out, storage=args.storage, overwrite=args.overwrite, frame_range=(args.first, stop))
+        write_drive_bag(drive, out, storage=args.storage, overwrite=args.overwrite, frame_range=(args.first, stop),
+                        wheel_odometry_topic=args.speed_topic or None)
     except KeyboardInterrupt:
         print(f"{prog_name('kitti_to_bag')}: interrupted; no bag written", file=sys.stderr)
         return 130

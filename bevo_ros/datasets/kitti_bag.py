@@ -44,6 +44,7 @@ class ConversionOptions:
     camera_info_topic: str = bag.CAMERA_INFO_TOPIC
     gt_odometry_topic: str = bag.GT_ODOMETRY_TOPIC
     gt_imu_topic: str = bag.GT_IMU_TOPIC
+    speed_topic: str = ""  # also the OXTS unit's velocity as a TwistStamped there (a GNSS/INS speed)
     imu_frame: str = "imu_link"
     camera_frame: str = "camera_optical_frame"
     odom_frame: str = "odom"
@@ -353,6 +354,10 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
                                           accel=accel, frame_id=opts.imu_frame, topic=opts.gt_imu_topic,
                                           orientation_covariance=np.radians(0.03) ** 2,
                                           gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
+                if opts.speed_topic:  # the unit's forward / left / up velocity, in the base frame
+                    v = [float(src.oxts.field(k)[i]) for k in ("vf", "vl", "vu")]
+                    writer.write(opts.speed_topic, bag.TWIST_STAMPED_MSG,
+                                 bag.twist_stamped_message(stamp, v, opts.base_frame), stamp)
                 continue
             img = _load_image(src.images[i], colour)
             if size is None:

@@ -44,6 +44,7 @@ IMAGE_MSG = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE_MSG = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_MSG = "sensor_msgs/msg/CameraInfo"
 ODOMETRY_MSG = "nav_msgs/msg/Odometry"
+TWIST_STAMPED_MSG = "geometry_msgs/msg/TwistStamped"
 TF_MSG = "tf2_msgs/msg/TFMessage"
 TF_STATIC_TOPIC = "/tf_static"
 
@@ -236,6 +237,14 @@ def odometry_message(stamp: float | int, T: np.ndarray, frame_id: str, child_fra
         pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=_covariance(pose_covariance, 6, 0.0)),
         twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist_msg,
                                                             covariance=_covariance(twist_covariance, 6, 0.0)))
+
+
+def twist_stamped_message(stamp: float | int, linear: Sequence[float], frame_id: str,
+                          angular: Sequence[float] = (0.0, 0.0, 0.0)):
+    """geometry_msgs/TwistStamped (m/s, rad/s in ``frame_id``)."""
+    types = typestore().types
+    return types[TWIST_STAMPED_MSG](header=_header(stamp, frame_id),
+                                    twist=types["geometry_msgs/msg/Twist"](linear=_vector3(linear), angular=_vector3(angular)))
 
 
 def tf_message(stamp: float | int, transforms: Sequence[tuple[str, str, np.ndarray]]):
@@ -584,7 +593,7 @@ def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start
 
 
 # A vehicle's forward speed: wheel odometry (nav_msgs/Odometry, its twist), a CAN or GNSS speed as a twist.
-SPEED_MSGS = (ODOMETRY_MSG, "geometry_msgs/msg/TwistStamped", "geometry_msgs/msg/TwistWithCovarianceStamped")
+SPEED_MSGS = (ODOMETRY_MSG, TWIST_STAMPED_MSG, "geometry_msgs/msg/TwistWithCovarianceStamped")
 
 
 def read_speed(bag_path: PathLike, topic: str) -> tuple[np.ndarray, np.ndarray]:
