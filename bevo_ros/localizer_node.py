@@ -38,7 +38,8 @@ from bevo_ros.core.map_localization import (APPEARANCES, LocalizerConfig, MapLoc
                                             se2_between)
 from bevo_ros.io.maps import load_map
 from bevo_ros.io.ros_conversions import (ImageConversionError, gray_to_image_msg, heatmap_to_mono8, image_to_gray,
-                                         quaternion_from_rpy, rpy_from_quaternion, stamp_to_ns, stamp_to_sec)
+                                         planar_pose_from_msg, quaternion_from_rpy, rpy_from_quaternion, stamp_to_ns,
+                                         stamp_to_sec)
 from bevo_ros.ros.diagnostics import counter_values
 
 NODE_NAME = "bevo_localizer"
@@ -261,9 +262,9 @@ class BevoLocalizerNode(Node):
         if frame not in ("", self._odom_frame):
             self.drops["set_pose_frame"] += 1
             return
-        p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
-        if not (math.isfinite(norm) and norm > 1e-9 and math.isfinite(p.x) and math.isfinite(p.y)):
+        try:
+            planar_pose_from_msg(msg)  # what bevo_node refuses, it does not apply
+        except ValueError:
             self.drops["set_pose_invalid"] += 1
             return
         stamp = stamp_to_sec(msg.header.stamp)

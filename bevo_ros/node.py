@@ -36,7 +36,7 @@ from bevo_ros.ros.intake import EngineFeed, Intake, watch_clock_jumps
 from bevo_ros.ros.publishers import Outputs
 from bevo_ros.ros.rig import Rig
 from bevo_ros.ros.tf import StaticTransforms
-from bevo_ros.io.ros_conversions import imu_to_arrays, stamp_to_sec
+from bevo_ros.io.ros_conversions import imu_to_arrays, planar_pose_from_msg, stamp_to_sec
 
 NODE_NAME = "bevo_node"
 
@@ -330,13 +330,11 @@ class BevoNode(Node):
             self.report.drop("set_pose_frame", f"set_pose in frame '{msg.header.frame_id}': only "
                                                f"'{self.settings.odom_frame}' (the odometry frame) is taken")
             return
-        p, q, cov = msg.pose.pose.position, msg.pose.pose.orientation, msg.pose.covariance
-        norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
-        if not (math.isfinite(norm) and norm > 1e-9):
-            self.report.drop("set_pose_invalid", f"set_pose orientation is no rotation ({q.x}, {q.y}, {q.z}, {q.w})")
+        try:
+            x, y, z, yaw, planar = planar_pose_from_msg(msg)
+        except ValueError as exc:
+            self.report.drop("set_pose_invalid", f"set_pose: {exc}")
             return
-        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), q.w * q.w + q.x * q.x - q.y * q.y - q.z * q.z)
-        planar = [[float(cov[6 * r + c]) for c in (0, 1, 5)] for r in (0, 1, 5)]  # (x, y, yaw) of the 6x6
         stamp = stamp_to_sec(msg.header.stamp)
         newest = self.feed.last_imu_stamp
         if stamp > 0.0 and newest is not None and stamp > newest + self.settings.max_time_jump_forward:
@@ -345,7 +343,7 @@ class BevoNode(Node):
                                                 f"{self.settings.max_time_jump_forward} s after the newest IMU "
                                                 f"sample ({newest:.6f}); stamp 0 means the latest frame")
             return
-        request = {"x": p.x, "y": p.y, "yaw": yaw, "z": p.z, "covariance": planar,
+        request = {"x": x, "y": y, "yaw": yaw, "z": z, "covariance": planar,
                    "stamp": stamp if stamp > 0.0 else None}
         try:
             how = self.feed.set_pose(request)
@@ -358,7 +356,7 @@ class BevoNode(Node):
         when = {"latest": "at the latest frame", "at stamp": f"at {stamp:.6f}", "oldest": (
             f"at the oldest frame kept (its stamp {stamp:.6f} is older)"), "waits": (
             f"at {stamp:.6f}, when a frame reaches it"), "kept": "when the odometry starts"}[how]
-        self.get_logger().info(f"pose set to x {p.x:.3f} y {p.y:.3f} z {p.z:.3f} m, yaw {math.degrees(yaw):.2f} deg "
+        self.get_logger().info(f"pose set to x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {math.degrees(yaw):.2f} deg "
                                f"{when}")
 
     def _on_clock_jump(self, info) -> None:

@@ -68,8 +68,7 @@ class PlanarTrajectory:
     def add(self, stamp: float, motion, motion_cov: np.ndarray) -> None:
         """Compose one frame's body-frame motion ``(dx, dy, dyaw)`` (m, rad; zeros for the first
         frame) with its ``(3, 3)`` covariance; then a set pose whose stamp it reaches takes effect."""
-        self.cov = propagate_covariance_se2_floats(self.pose[2], self.cov, motion, motion_cov)
-        self.pose = compose_se2_floats(self.pose, motion)
+        self._compose(motion, motion_cov)
         self._frames.append((float(stamp), tuple(float(v) for v in motion), np.asarray(motion_cov, dtype=np.float64)))
         if self._waiting is not None and self._waiting[0] <= stamp:
             waiting, self._waiting = self._waiting, None
@@ -89,24 +88,23 @@ class PlanarTrajectory:
             return "waits"
         return self._set_at(float(stamp), pose, z, cov)
 
+    def _compose(self, motion, motion_cov: np.ndarray) -> None:
+        self.cov = propagate_covariance_se2_floats(self.pose[2], self.cov, motion, motion_cov)
+        self.pose = compose_se2_floats(self.pose, motion)
+
     def _set_at(self, stamp: float, pose: tuple[float, float, float], z: float, cov: np.ndarray) -> str:
-        stamps = [f[0] for f in self._frames]
-        k = bisect.bisect_right(stamps, stamp)  # frames k.. are after the stamp
-        how = "at stamp"
-        if k == 0:
-            how, k = "oldest", 1  # its motion into the oldest kept frame is unknown: set at that frame
+        frames = list(self._frames)
+        k = bisect.bisect_right([f[0] for f in frames], stamp)  # frames k.. are after the stamp
         self.pose, self.z, self.cov = pose, z, cov
-        if how == "at stamp" and k < len(stamps):
+        if k == 0:  # its motion into the oldest kept frame is unknown: set at that frame
+            for _, motion, motion_cov in frames[1:]:
+                self._compose(motion, motion_cov)
+            return "oldest"
+        if k < len(frames):
             # the part of frame k's interval after the stamp (its motion as if at a constant rate)
-            t0, (t1, motion, motion_cov) = stamps[k - 1], self._frames[k]
+            t0, (t1, motion, motion_cov) = frames[k - 1][0], frames[k]
             share = (t1 - stamp) / (t1 - t0) if t1 > t0 else 1.0
-            self.cov = propagate_covariance_se2_floats(self.pose[2], self.cov, [share * m for m in motion],
-                                                       share * motion_cov)
-            self.pose = compose_se2_floats(self.pose, [share * m for m in motion])
-            k += 1
-        elif how == "at stamp":
-            return how  # the stamp is the latest frame's
-        for _, motion, motion_cov in list(self._frames)[k:]:
-            self.cov = propagate_covariance_se2_floats(self.pose[2], self.cov, motion, motion_cov)
-            self.pose = compose_se2_floats(self.pose, motion)
-        return how
+            self._compose([share * m for m in motion], share * motion_cov)
+            for _, motion, motion_cov in frames[k + 1:]:
+                self._compose(motion, motion_cov)
+        return "at stamp"

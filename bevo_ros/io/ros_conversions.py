@@ -206,11 +206,26 @@ def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, f
 
 
 def rpy_from_quaternion(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:
-    """Inverse of :func:`quaternion_from_rpy` (for tests)."""
+    """Inverse of :func:`quaternion_from_rpy` (a unit quaternion)."""
     roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
     yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
     return roll, pitch, yaw
+
+
+def planar_pose_from_msg(msg: Any) -> tuple[float, float, float, float, list[list[float]]]:
+    """geometry_msgs/PoseWithCovarianceStamped -> ``(x, y, z, yaw, (3, 3) covariance of (x, y, yaw))``,
+    the quaternion taken at its direction (any norm). ValueError for a position that is not finite or a
+    quaternion that is no rotation (zero, not finite)."""
+    p, q, cov = msg.pose.pose.position, msg.pose.pose.orientation, msg.pose.covariance
+    norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
+    if not (math.isfinite(norm) and norm > 1e-9):
+        raise ValueError(f"orientation is no rotation ({q.x}, {q.y}, {q.z}, {q.w})")
+    if not all(math.isfinite(v) for v in (p.x, p.y, p.z)):
+        raise ValueError(f"position is not finite ({p.x}, {p.y}, {p.z})")
+    yaw = rpy_from_quaternion(q.x / norm, q.y / norm, q.z / norm, q.w / norm)[2]
+    planar = [[float(cov[6 * r + c]) for c in (0, 1, 5)] for r in (0, 1, 5)]  # the 6x6's x, y, yaw rows
+    return float(p.x), float(p.y), float(p.z), yaw, planar
 
 
 def odometry_msg(step: Any, stamp: Any, frame_id: str, child_frame_id: str):
