@@ -108,6 +108,10 @@ DESCRIPTIONS = {
 
 
 SET_POSE_EXPIRY = 5  # odometry messages at or after a set_pose's stamp that may come before its jump
+# Consecutive steps whose pose difference agreed with their twist before a disagreeing one is read as a
+# jump of the odometry frame without its set_pose (it crossed the odometry on DDS), not as motion: an
+# odometry source whose twist is unset or stale never earns it.
+TWIST_TRUST = 3
 
 
 def _twist_motion(msg, dt: float) -> np.ndarray | None:
@@ -215,6 +219,7 @@ class BevoLocalizerNode(Node):
         # set_poses whose jump has not come: [stamp (None: 0), newest odometry received before it, messages left]
         self._rebase: list[list] = []
         self._last_received = -math.inf
+        self._twist_agreed = 0  # consecutive steps whose pose difference agreed with their twist
         if s.set_pose_topic:
             self.create_subscription(PoseWithCovarianceStamped, s.set_pose_topic,
                                      self._guard("set_pose", self._on_set_pose), 10)
@@ -256,8 +261,9 @@ class BevoLocalizerNode(Node):
         stamp (stamp 0: the next one). Kept as bevo_node keeps it (the same checks; a new one replaces
         one still waiting for its frame) until an odometry at or after its stamp jumps, i.e. disagrees
         with the previous pose moved by its own twist (a frame bevo_node published before it took the
-        set_pose does not); that jump is no motion. One that reaches this node after the jumped
-        odometry, or waits more than SET_POSE_EXPIRY odometry messages, is let go."""
+        set_pose does not); that jump is no motion. One that waits more than SET_POSE_EXPIRY odometry
+        messages is let go: it reached this node after its jump, which a twist that agreed with the
+        poses before it (TWIST_TRUST) had already told from motion."""
         frame = msg.header.frame_id.lstrip("/")
         if frame not in ("", self._odom_frame):
             self.drops["set_pose_frame"] += 1
@@ -341,17 +347,24 @@ class BevoLocalizerNode(Node):
             cov = _twist_motion_covariance(msg, stamp - t_prev)
             twist_motion = _twist_motion(msg, stamp - t_prev)
             due = [e for e in self._rebase if _due(e, stamp)]
-            rebased = bool(due) and twist_motion is not None and _is_jump(motion, twist_motion)
+            jump = twist_motion is not None and _is_jump(motion, twist_motion)
+            announced = bool(due) and jump
+            # A jump whose set_pose has not come (DDS does not order topics): the twist, trusted, says so.
+            rebased = announced or jump and self._twist_agreed >= TWIST_TRUST
+            if not rebased:  # a jump read as one does not say the twist is wrong
+                self._twist_agreed = self._twist_agreed + 1 if twist_motion is not None and not jump else 0
             for e in due:
                 e[2] -= 1
-            self._rebase = [e for e in self._rebase if not _due(e, stamp) or not rebased and e[2] > 0]
-            if rebased:
+            self._rebase = [e for e in self._rebase if not _due(e, stamp) or not announced and e[2] > 0]
+            if announced:
                 self.counts["odometry_set_pose"] += 1
+            elif rebased:  # a bevo_node reset, or a set_pose this node has not received yet
+                self.counts["odometry_jump"] += 1
             if rebased or stamp <= t_prev or math.hypot(motion[0], motion[1]) > self.settings.max_odometry_jump:
                 # bevo_node reset or set_pose (or a bag restarted): keep the map pose, restart the mosaic;
-                # after a set_pose the frame's own motion is its twist's (bevo_node's twist stays valid).
+                # after a jump the frame's own motion is its twist's (bevo_node's twist stays valid).
                 self.counts["odometry_resets"] += 1
-                if not rebased:  # a reset: bevo_node forgot the set_poses waiting for their frames
+                if not announced:  # a reset: bevo_node forgot the set_poses waiting for their frames
                     self._rebase = []
                 pose_map = None if self.localizer.filter.x is None else self.localizer.filter.x.copy()
                 self.localizer.mosaic.reset()

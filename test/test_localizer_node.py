@@ -198,6 +198,36 @@ def test_localizer_node_end_to_end(context, world):
               "over the jumped frame (1 m of motion each)")
         assert 0.7 < steps[0] < 1.3 and 0.7 < steps[1] < 1.3  # the jumped frame: its twist's 1 m, not 3 m
         assert node.counts["odometry_resets"] == 2
+        # A set_pose that crosses the jumped odometry on DDS (published before, received after it): the
+        # twist, which agreed with the poses for TWIST_TRUST steps, tells the jump from motion without it.
+        from bevo_ros.localizer_node import TWIST_TRUST
+
+        yaw = math.radians(20.0)
+        pose = np.array([5.0 + math.cos(yaw), math.sin(yaw), yaw])
+        t = t_reset + 0.4
+        received = node.counts["odometry_in"] + TWIST_TRUST + 1
+        for _ in range(TWIST_TRUST):  # 1 m per frame along the heading, as the twist says
+            t += 0.1
+            pose = pose + np.array([math.cos(yaw), math.sin(yaw), 0.0])
+            odom_pub.publish(odometry_msg(t, pose, 0.1, twist=(10.0, 0.0, 0.0)))
+        t_jump = t + 0.1
+        jumped = pose + np.array([0.0, 4.0, math.radians(-50.0)])  # under max_odometry_jump; no set_pose yet
+        odom_pub.publish(odometry_msg(t_jump, jumped, 0.1, twist=(10.0, 0.0, 0.0)))
+        assert spin_until(ex, lambda: node.counts["odometry_in"] == received, 5)  # it waits for its BEV
+        late = PoseWithCovarianceStamped(header=Header(frame_id="odom", stamp=sec_to_stamp(t_jump)))
+        late.pose.pose.orientation.w = 1.0
+        set_pub.publish(late)
+        assert spin_until(ex, lambda: node.counts["set_pose_in"] == 2, 5)
+        for k in (1, 2):  # the frames after it move 1 m each: no second jump from the late set_pose
+            step = np.array([k * math.cos(jumped[2]), k * math.sin(jumped[2]), 0.0])
+            odom_pub.publish(odometry_msg(t_jump + 0.1 * k, jumped + step, 0.1, twist=(10.0, 0.0, 0.0)))
+        assert spin_until(ex, lambda: at(t_jump + 0.1) is not None, 5)  # the last one flushes it
+        moved = [float(np.linalg.norm(at(t_jump + 0.1 * k) - at(t_jump + 0.1 * (k - 1)))) for k in (0, 1)]
+        print(f"set_pose after its jump: the map pose moved {moved[0]:.2f} m over the jumped frame, then "
+              f"{moved[1]:.2f} m (1 m of motion each)")
+        assert all(0.7 < m < 1.3 for m in moved), moved  # without TWIST_TRUST: 3.9 m over the jumped frame
+        assert node.counts["odometry_jump"] == 1
+        assert node.counts["odometry_set_pose"] == 1 and node.counts["odometry_resets"] == 3
     finally:
         ex.remove_node(node)
         ex.remove_node(tester)
