@@ -36,7 +36,7 @@ from bevo_ros.ros.intake import EngineFeed, Intake, watch_clock_jumps
 from bevo_ros.ros.publishers import Outputs
 from bevo_ros.ros.rig import Rig
 from bevo_ros.ros.tf import StaticTransforms
-from bevo_ros.io.ros_conversions import imu_to_arrays, planar_pose_from_msg, stamp_to_sec
+from bevo_ros.io.ros_conversions import forward_speed_from_msg, imu_to_arrays, planar_pose_from_msg, stamp_to_sec
 
 NODE_NAME = "bevo_node"
 
@@ -127,6 +127,15 @@ class BevoNode(Node):
 
             self.create_subscription(PoseWithCovarianceStamped, s.set_pose_topic,
                                      self._guard("set_pose", self._on_set_pose), 10)
+        if s.speed_topic:  # a sensor: its input QoS, as the IMU's
+            import importlib
+
+            module, name = node_settings.SPEED_TYPES[s.speed_type]
+            self._handlers["speed"] = self._guard("speed", self._on_speed)
+            take_speed = self._guard("speed", self.intake.speed)
+            # two-argument callback: rclpy then passes the message info (DDS reception time)
+            self.create_subscription(getattr(importlib.import_module(module), name), s.speed_topic,
+                                     lambda msg, info: take_speed(msg, info), in_qos(s.imu_qos_depth))
         # Steady-clock timers: they tick with or without /clock (use_sim_time).
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(0.05, s.image_wait / 2), self._guard("flush_timer", self._on_flush_timer), clock=steady)
@@ -358,6 +367,17 @@ class BevoNode(Node):
             f"at {stamp:.6f}, when a frame reaches it"), "kept": "when the odometry starts"}[how]
         self.get_logger().info(f"pose set to x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {math.degrees(yaw):.2f} deg "
                                f"{when}")
+
+    def _on_speed(self, msg, arrival: float = 0.0) -> None:  # counted by the intake
+        """A vehicle speed (``speed_topic``): the motion filter measures each frame's speed with its
+        mean over the frame interval, the DUKF removes the car's acceleration with it."""
+        stamp = stamp_to_sec(msg.header.stamp)
+        try:
+            speed, variance = forward_speed_from_msg(msg, self.settings.base_frame, self.settings.speed_variance)
+        except ValueError as exc:
+            self.report.drop("speed_invalid", f"speed at {stamp:.6f}: {exc}")
+            return
+        self._publish(self.feed.speed(stamp, speed, variance))
 
     def _on_clock_jump(self, info) -> None:
         if self.feed.last_imu_stamp is None and not self.feed.pending_images:

@@ -39,7 +39,7 @@ from bevo_ros.evaluation.report import write_report
 from bevo_ros.io import bag
 from bevo_ros.io.files import atomic_write_text
 from bevo_ros.io.learned_params import load_learned_params
-from bevo_ros.io.ros_conversions import quaternion_from_rpy, stamp_to_ns, stamp_to_sec
+from bevo_ros.io.ros_conversions import forward_speed_from_msg, quaternion_from_rpy, stamp_to_ns, stamp_to_sec
 
 
 def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
@@ -81,7 +81,13 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
 
         bar = tqdm(total=total, unit="frame", desc=prog)
     image_topic = rec.image_topic  # the topic read_recording took (old bags: /camera/image_raw)
-    for topic, stamp_ns, msg in bag.iter_messages(bag_path, [imu_topic, image_topic]):
+    speed_topic = rig.speed_topic
+    if speed_topic:
+        topics = bag.bag_topics(bag_path)
+        if topics.get(speed_topic, ("",))[0] not in bag.SPEED_MSGS:
+            raise ValueError(f"{bag_path}: speed_topic {speed_topic} is not in the bag as one of "
+                             f"{', '.join(bag.SPEED_MSGS)} (it has: {', '.join(sorted(topics))})")
+    for topic, stamp_ns, msg in bag.iter_messages(bag_path, [imu_topic, image_topic] + ([speed_topic] if speed_topic else [])):
         stamp_ns = stamp_to_ns(msg.header.stamp)
         stamp = stamp_to_sec(msg.header.stamp)  # the node's conversion: bit-identical floats
         try:
@@ -96,6 +102,9 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
                     out = odo.add_imu(stamp, (g.x, g.y, g.z), (a.x, a.y, a.z))
                 else:  # an IMU mounted in other axes (e.g. z down): into base_frame's, as the node does
                     out = odo.add_imu(stamp, R @ (g.x, g.y, g.z), R @ (a.x, a.y, a.z))
+            elif topic == speed_topic:  # as the node's speed input
+                odo.add_speed(stamp, *forward_speed_from_msg(msg, rig.base_frame, rig.speed_variance))
+                continue
             else:
                 if bar is not None:
                     bar.update(1)

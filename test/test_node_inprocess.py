@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from helpers.node_support import (camera_overrides, delivered_late, drive_messages, image_msg, imu_msg,  # noqa: E402
-                                  offline_steps, pitched, small_drive, spin_until, tf_static_msg)
+                                  offline_steps, pitched, small_drive, spin_until, tf_static_msg, with_wheel_speed)
 
 rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
@@ -92,7 +92,9 @@ class Harness:
                 pass
             t.create_subscription(PathMsg, ov["path_topic"], self.paths.append, 10)
             t.create_subscription(Image, ov["bev_image_topic"], self.bevs.append, 10)
-        wanted = [self.imu_pub, self.image_pub] + ([self.info_pub] if ov.get("use_camera_info") else [])
+        self.speed_pub = t.create_publisher(Odometry, ov["speed_topic"], RELIABLE) if ov.get("speed_topic") else None
+        wanted = [self.imu_pub, self.image_pub] + ([self.info_pub] if ov.get("use_camera_info") else []) + \
+            ([self.speed_pub] if self.speed_pub else [])
         assert spin_until(self.executor, lambda: all(p.get_subscription_count() > 0 for p in wanted), 10), \
             "the node's subscriptions were not discovered"
         assert spin_until(self.executor, lambda: self.node.outputs.odom_pub.get_subscription_count() > 0, 10)
@@ -101,9 +103,9 @@ class Harness:
 
     def send(self, kind: str, msg, timeout: float = 10.0) -> None:
         """Publish one message and spin until the node has taken it (lock-step, deterministic)."""
-        key = {"imu": "imu_in", "image": "images_in", "info": "camera_info_in"}[kind]
+        key = {"imu": "imu_in", "image": "images_in", "info": "camera_info_in", "speed": "speed_in"}[kind]
         before = self.node.counts[key]
-        {"imu": self.imu_pub, "image": self.image_pub, "info": self.info_pub}[kind].publish(msg)
+        {"imu": self.imu_pub, "image": self.image_pub, "info": self.info_pub, "speed": self.speed_pub}[kind].publish(msg)
         assert spin_until(self.executor, lambda: self.node.counts[key] > before, timeout), f"{kind} not received"
 
     def send_all(self, messages) -> None:
@@ -200,6 +202,32 @@ def test_odometry_equals_offline_core(harness_factory, drive):
         [math.degrees(b) for b in h.node.engine.gyro_bias], abs=1e-4)
     p50, p99, _ = h.node.report.latency_percentiles()
     assert 0 < p50 <= p99 < 60.0  # figures: tools/bench_node.py
+
+
+def test_a_speed_topic_is_fused_as_offline(harness_factory, drive):
+    """speed_topic (wheel odometry here): the node's odometry equals the offline core fed the same
+    speeds; the speed sets the scale (a wheel 3 % long: the odometry 3 % long); a speed that is not
+    finite is dropped and counted."""
+    ov = base_overrides(drive, speed_topic="/wheel/odometry")
+    plain = drive_messages(drive)
+    truth = offline_steps(with_wheel_speed(drive, plain), ov)
+    long = with_wheel_speed(drive, plain, scale=1.03)
+    expected = offline_steps(long, ov)
+    h = harness_factory(ov)
+    h.send_all(long)
+    h.settle()
+    assert len(h.odom) == len(expected) == drive.num_frames, (len(h.odom), dict(h.node.drops))
+    for msg, step in zip(h.odom, expected):
+        assert np.allclose(_odom_arrays(msg)[0], step.position, atol=1e-6, rtol=0)
+    path = lambda steps: sum(float(np.hypot(*s.motion[:2])) for s in steps[1:])  # noqa: E731
+    ratio = path(expected) / path(truth)
+    print(f"\nspeed_topic: {h.node.counts['speed_in']} speeds; a wheel 3 % long -> a path {100 * (ratio - 1):+.2f} % long")
+    assert 1.02 < ratio < 1.04
+    assert h.node.counts["speed_in"] == sum(k == "speed" for k, _ in long) and sum(h.node.drops.values()) == 0
+    bad = [m for k, m in long if k == "speed"][-1]
+    bad.twist.twist.linear.x = float("nan")
+    h.send("speed", bad)
+    assert h.node.drops["speed_invalid"] == 1 and h.logged("speed_invalid")
 
 
 @pytest.mark.parametrize("imu_rate", [10.0, 400.0])

@@ -16,6 +16,7 @@ node's. Writes into --out:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_params_option(p, learned=True)
     p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
     p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
+    p.add_argument("--speed-topic", help="a vehicle speed the motion filter fuses (wheel odometry nav_msgs/Odometry, or "
+                   "a TwistStamped / TwistWithCovarianceStamped: in base_frame its linear.x, else its horizontal speed); "
+                   "overrides the params' speed_topic, '' = none. Its scale must be right: the odometry's scale is then its")
     p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
     p.add_argument("--mode", choices=("fused", "paper"), help="override odometry.mode of --params (fused: the default "
                    "acceleration-aware, gyro-yaw, motion-filtered odometry; paper: the paper's pipeline)")
@@ -53,6 +57,8 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     config, flat = load_config(args.params)
     rig = RigSettings.from_params(flat, str(args.params))
+    if args.speed_topic is not None:
+        rig = dataclasses.replace(rig, speed_topic=args.speed_topic)
     learned = args.learned or config.learned_params_file
     if args.mode:
         config.odometry.mode = args.mode
@@ -76,7 +82,8 @@ def _run(args: argparse.Namespace) -> int:
     print(f"{prog_name('run_bag')}: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
           f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
           f"dropped (no imu) {c.dropped_no_imu}; rejected: textureless {c.rejected_textureless}, "
-          f"translation {c.rejected_translation}, rotation {c.rejected_rotation}; at rest {c.standstill}; "
+          f"translation {c.rejected_translation}, rotation {c.rejected_rotation}"
+          + (f", speed {c.rejected_speed} (of {rig.speed_topic})" if rig.speed_topic else "") + f"; at rest {c.standstill}; "
           f"peak off the highest (second motion in view, direction of travel) {c.gated_peak}; "
           f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}")
     print("wrote " + ", ".join(str(p) for p in paths))

@@ -194,6 +194,7 @@ class Counters:
     rejected_textureless: int = 0  # fused: a frame whose correlation carries no information
     rejected_translation: int = 0  # fused: the translation failed the Mahalanobis gate
     rejected_rotation: int = 0  # fused: the image rotation disagreed with the gyro beyond the gate
+    rejected_speed: int = 0  # fused: the outside speed (add_speed) over a frame failed the Mahalanobis gate
     standstill: int = 0  # fused: frames at rest (zero motion, the gyro's biases observed)
     rest_bias_skipped: int = 0  # fused: rest intervals whose pitch/roll rates were too large for a gyro bias
     gated_peak: int = 0  # fused: the highest peak was off the prediction or the direction of travel, the road's taken
@@ -371,6 +372,7 @@ class BevoOdometry:
         self._pitch_kept_out_recent = 0.0  # fused: the same over the last KEPT_OUT_MEMORY (since a restart), rad
         self._frame_clock.reset()
         self._ext_speed = None  # (stamp, VehicleState) from add_speed
+        self._speed_log: deque[tuple[float, float, float]] = deque(maxlen=4000)  # add_speed's (stamp, m/s, var)
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
         self._gyro_prev = None  # fused: the previous IMU sample's rates
         self._gyro_prev2 = None  # fused: the sample before that, (rates, yaw rate about the vertical); its interval is the previous _imu_dt
@@ -570,8 +572,11 @@ class BevoOdometry:
 
     def add_speed(self, stamp: float, speed: float, variance: float = 0.01) -> None:
         """Fused mode: a forward speed that does not come from the images (wheel odometry, CAN),
-        m/s with its variance. While fresh (``max_speed_age``) the DUKF removes the whole vehicle
-        acceleration with it, forward dv/dt included (see :meth:`_fuse_imu`)."""
+        m/s (signed: negative reversing) with its variance. While fresh (``max_speed_age``) the DUKF
+        removes the whole vehicle acceleration with it, forward dv/dt included (see :meth:`_fuse_imu`),
+        and the motion filter measures each frame's speed with its mean over the frame interval
+        (:meth:`_external_speed`) before the images do: the scale then comes from it, no longer from
+        the BEV's pitch. Feed it in stamp order with the IMU and images."""
         if not (math.isfinite(stamp) and math.isfinite(speed) and math.isfinite(variance) and variance > 0):
             raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
         if self._ext_speed is None:
@@ -583,6 +588,24 @@ class BevoOdometry:
                 raise OutOfOrderError("speed", stamp, last)
             state = self.vehicle.step(state, dt, 0.0, forward=speed * dt, forward_var=variance * dt * dt).state
         self._ext_speed = (stamp, state)
+        self._speed_log.append((stamp, float(speed), float(variance)))
+
+    def _external_speed(self, t0: float, t1: float) -> tuple[float, float] | None:
+        """add_speed's mean speed over the frame interval ``[t0, t1]`` (linear between its samples,
+        held for ``max_speed_age`` past the ends) and the mean of their variances (a wheel's error,
+        its scale, is the same for the interval's samples); None where no sample lies within
+        ``max_speed_age`` of some part of the interval."""
+        age = self.max_speed_age
+        near = [e for e in self._speed_log if t0 - age <= e[0] <= t1 + age]
+        if not near or near[0][0] > t0 + age or near[-1][0] < t1 - age or t1 <= t0:
+            return None
+        ts = np.array([e[0] for e in near])
+        if len(ts) > 1 and float(np.diff(np.clip(ts, t0, t1)).max()) > 2 * age:
+            return None
+        knots = np.concatenate([[t0], ts[(ts > t0) & (ts < t1)], [t1]])
+        values = np.interp(knots, ts, np.array([e[1] for e in near]))
+        mean = float(np.sum(0.5 * (values[1:] + values[:-1]) * np.diff(knots)) / (t1 - t0))
+        return mean, float(np.mean([e[2] for e in near]))
 
     def _fuse_imu(self, stamp: float, g: list[float], a: list[float]) -> None:
         """Fused mode, one IMU sample: compensated DUKF, suspension-aware road tilt, gyro yaw."""
@@ -925,6 +948,9 @@ class BevoOdometry:
         imu_accel = self._inertial_accel(self._prev_stamp, stamp) if n.imu_accel_density > 0 else None
         imu_var = None if imu_accel is None else 0.0  # vibration: imu_accel_density; gravity's error: beta
         predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_var), dt)
+        outside = self._external_speed(self._prev_stamp, stamp) if self._speed_log else None
+        if outside is not None:  # the correlation's prior, and the filter below, start from it
+            predicted = self.vehicle.speed_update(predicted, *outside)
         # The BEV shift (px) of no motion of the base over this frame: the pitch-change shift and the
         # turn about the BEV's centre. A base motion (dx, dy) adds (dx, dy) / mpp to it (core/motion).
         _, origin = registration_from_vehicle_motion(
@@ -987,8 +1013,12 @@ class BevoOdometry:
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
                       quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, rest_var=rest_var)
+        if outside is not None:
+            inputs.update(speed=outside[0], speed_var=outside[1])
         frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
+        if frame.speed_accepted is False:
+            self.counters.rejected_speed += 1
         # what training's replay must do to the state before this step, as the engine did
         self._last_filter_inputs = {**inputs, "forget_speed": speed_forgotten,
                                     "forget_accel_bias": self._beta_forgotten}

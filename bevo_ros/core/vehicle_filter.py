@@ -173,6 +173,7 @@ class VehicleFrame:
     accepted: tuple
     mahalanobis: tuple
     state: VehicleState = field(repr=False, default=None)
+    speed_accepted: object = None  # the outside speed (``step``'s ``speed``) used; None without one
 
 
 def _where(cond, a, b):
@@ -244,9 +245,24 @@ class VehicleFilter:
                                     math.inf, True)
         return VehicleState(x, P)
 
+    def speed_update(self, s: VehicleState, speed, speed_var) -> VehicleState:
+        """``s`` updated with an outside forward speed (see :meth:`step`'s ``speed``)."""
+        x, P, _ = self._speed_update(s.x, s.P, speed, speed_var)
+        return VehicleState(x, P)
+
+    def _speed_update(self, x: list, P: list, speed, speed_var):
+        x, P, accepted, _ = _scalar_update(x, P, 0, speed, speed_var, self.noise.gate, True)
+        # rejected: the belief, not the sensor, may be wrong (widened as for the images' forward motion)
+        if isinstance(accepted, Tensor):
+            k = torch.where(accepted, 1.0, 4.0).to(x[0].dtype)
+        else:
+            k = 1.0 if accepted else 4.0
+        P = [[P[i][j] * (k if i < 2 and j < 2 else 1.0) for j in range(N_STATE)] for i in range(N_STATE)]
+        return x, P, accepted
+
     def step(self, s: VehicleState, dt, gyro_yaw, forward=None, forward_var=None, lateral=None,
              lateral_var=None, rotation=None, rotation_var=None, quality=None, imu_accel=None,
-             imu_accel_var=None, rest_var=None) -> VehicleFrame:
+             imu_accel_var=None, rest_var=None, speed=None, speed_var=None) -> VehicleFrame:
         """One frame: predict by ``dt`` (s) and update with what the correlation gave.
 
         Args:
@@ -268,6 +284,10 @@ class VehicleFilter:
                 (the images' rotation is exactly zero), the correlation is not used, and the motion
                 is exactly zero: a car at rest neither creeps on the correlation's noise nor turns on
                 the gyro's bias.
+            speed, speed_var: a forward speed that does not come from the images (wheel odometry,
+                CAN, GNSS), its mean over the interval (m/s, signed) and that mean's variance: it
+                measures ``v`` behind the gate before the correlation does (the correlation's gate
+                then judges the images against it). None = none.
         """
         n = self.noise
         p = self.predict(self.inertial_update(s, dt, imu_accel, imu_accel_var), dt)
@@ -287,6 +307,9 @@ class VehicleFilter:
             x, P, _, _ = _scalar_update(x, P, 1, 0.0, STANDSTILL_ACCEL_STD**2, math.inf, still)
             x, P, _, _ = _scalar_update(x, P, 2, gyro_yaw / dt, n.gyro_yaw_density / dt, n.gate, still)
             informative = informative & ~still if isinstance(still, Tensor) else False
+        acc_s = None
+        if speed is not None:
+            x, P, acc_s = self._speed_update(x, P, speed, speed_var)
         acc_t = acc_r = False
         d_t = d_r = float("nan")
         if have:
@@ -339,5 +362,5 @@ class VehicleFilter:
             var_dx = _where(still, zero + rest_var, var_dx)
             var_dy = _where(still, zero + rest_var, var_dy)
             var_dyaw = _where(still, zero + STANDSTILL_YAW_VAR, var_dyaw)
-        return VehicleFrame((dx, dy, dyaw), (var_dx, var_dy, var_dyaw), (acc_t, acc_r), (d_t, d_r), state)
+        return VehicleFrame((dx, dy, dyaw), (var_dx, var_dy, var_dyaw), (acc_t, acc_r), (d_t, d_r), state, acc_s)
 

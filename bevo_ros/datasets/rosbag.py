@@ -134,13 +134,16 @@ class RigSettings:
     ``camera.base_T_camera`` and the IMU's axes as the base's). ``use_camera_info``,
     ``camera_info_use_p``, ``undistort``: the intrinsics from the bag's first CameraInfo (``P`` or
     ``K``; distorted images undistorted with OpenCV maps, ``bevo_ros.ros.camera``), else the
-    ``camera.*`` parameters."""
+    ``camera.*`` parameters. ``speed_topic`` (``''`` = none): a vehicle speed the motion filter fuses
+    (``io.ros_conversions.forward_speed_from_msg``; ``speed_variance`` where the message has none)."""
 
     base_frame: str = "base_link"
     extrinsics_from_tf: bool = True
     use_camera_info: bool = True
     camera_info_use_p: bool = True
     undistort: str = "auto"
+    speed_topic: str = ""
+    speed_variance: float = 0.01
 
     @classmethod
     def from_params(cls, flat: dict, source: str | None = None) -> "RigSettings":
@@ -155,6 +158,8 @@ class RigSettings:
             raise ConfigError(f"base_frame must not be empty{where}")
         if values["undistort"] not in UNDISTORT_MODES:
             raise ConfigError(f"undistort must be one of {', '.join(UNDISTORT_MODES)}, got {values['undistort']!r}{where}")
+        if not values["speed_variance"] > 0:
+            raise ConfigError(f"speed_variance must be > 0, got {values['speed_variance']!r}{where}")
         return cls(**values)
 
 

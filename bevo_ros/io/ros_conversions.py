@@ -228,6 +228,28 @@ def planar_pose_from_msg(msg: Any) -> tuple[float, float, float, float, list[lis
     return float(p.x), float(p.y), float(p.z), yaw, planar
 
 
+def forward_speed_from_msg(msg: Any, base_frame: str, default_variance: float) -> tuple[float, float]:
+    """A vehicle's speed message -> ``(speed m/s, variance (m/s)^2)`` for
+    :meth:`~bevo_ros.core.odometry.BevoOdometry.add_speed`: nav_msgs/Odometry (wheel odometry),
+    geometry_msgs/TwistStamped (CAN, GNSS) or TwistWithCovarianceStamped, as rclpy or rosbags gives it.
+
+    A twist in ``base_frame`` (an Odometry's ``child_frame_id``, a twist's ``header.frame_id``) gives
+    its ``linear.x``, signed (reversing reads negative); one in another frame (a GNSS driver's
+    east/north velocity) its horizontal speed ``hypot(linear.x, linear.y)``, unsigned. The variance
+    is the twist covariance's ``linear.x`` entry when it has one above 0, else ``default_variance``.
+    ValueError when the speed or the variance is not finite."""
+    odometry = hasattr(msg, "child_frame_id")
+    twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry / *WithCovariance*
+    frame = (msg.child_frame_id if odometry else msg.header.frame_id).lstrip("/")
+    vx, vy = float(twist.linear.x), float(twist.linear.y)
+    speed = vx if frame == base_frame.lstrip("/") else math.hypot(vx, vy)
+    cov = float(msg.twist.covariance[0]) if hasattr(msg.twist, "covariance") else 0.0
+    variance = cov if cov > 0 else float(default_variance)
+    if not (math.isfinite(speed) and math.isfinite(variance) and variance > 0):
+        raise ValueError(f"speed {speed!r} with variance {variance!r}: not a finite speed with a variance > 0")
+    return speed, variance
+
+
 def odometry_msg(step: Any, stamp: Any, frame_id: str, child_frame_id: str):
     """engine ``OdometryStep`` -> nav_msgs/Odometry with the given header stamp (a Time)."""
     from nav_msgs.msg import Odometry

@@ -83,6 +83,11 @@ class Intake:
             self.report.log("ordered_intake", f"ordered_intake disabled (rclpy cannot take messages directly: {exc})")
         return out
 
+    def speed(self, msg, info) -> None:
+        """Executor callback of the speed input: in its place among the IMU samples (``ImuHold``)."""
+        self.report.counts["speed_in"] += 1
+        self._dispatch("speed", (msg, arrival(info)))
+
     def received(self, kind: str, msg, info) -> None:
         """Executor callback (message + message info)."""
         item = (msg, arrival(info))
@@ -193,6 +198,7 @@ ENGINE_REJECTIONS = (
     ("rejected_translation", "a forward motion beyond the odometry.gate Mahalanobis gate"),
     ("rejected_rotation",
      "an image rotation disagreeing with the gyro beyond the odometry.gate or odometry.rotation_gate"),
+    ("rejected_speed", "a speed_topic speed (its mean over the frame) beyond the odometry.gate Mahalanobis gate"),
 )
 # fused mode: engine counters of frame states, not faults, reported as events: frames at rest (zero
 # motion, the gyro's biases observed) and frames whose translation took a correlation peak other
@@ -231,7 +237,7 @@ class ImuHold:
 
     def __init__(self, sink: Callable[[str, tuple], None], limit: int = 1000) -> None:
         self.sink, self.limit = sink, limit
-        self._held: collections.deque = collections.deque()  # (stamp, item, held since: monotonic s)
+        self._held: collections.deque = collections.deque()  # (stamp, item, held since: monotonic s, kind)
         self._last_image: float | None = None  # newest image stamp handed on
         self._last_sent: float | None = None  # newest IMU stamp handed on
         self._image_wall: float | None = None  # when the last image was handed on (monotonic s)
@@ -257,14 +263,23 @@ class ImuHold:
         for _ in range(n):
             if not self._held:  # the sink reset the node (clear()) meanwhile
                 return
-            stamp, item, _ = self._held.popleft()
-            self._send_imu(stamp, item)
+            stamp, item, _, kind = self._held.popleft()
+            if kind == "imu":
+                self._send_imu(stamp, item)
+            else:
+                self.sink(kind, item)
 
     def dispatch(self, kind: str, item: tuple) -> None:
         t = stamp_to_sec(item[0].header.stamp)
+        if kind == "speed":  # keeps its place among the IMU samples: the DUKF's compensation reads it
+            if self._held:
+                self._held.append((t, item, time.monotonic(), kind))
+            else:
+                self.sink(kind, item)
+            return
         if kind == "imu":
             if self._last_image is None or (t > self._last_image and not self._waiting()):
-                self._held.append((t, item, time.monotonic()))
+                self._held.append((t, item, time.monotonic(), kind))
                 if len(self._held) > self.limit:
                     self._send_held(1)
             else:  # at or before the last image (the engine judges its order), or the sample it waits for
@@ -308,9 +323,9 @@ class Journal:
     """The engine's inputs since its (re)start, in the order it had them, while it has output at
     most ``frames`` frames: what an engine rebuilt for another rig replays (:meth:`EngineFeed.replay`).
 
-    ``(kind, stamp, raw, tag)`` entries (kind ``imu``, ``image``, ``flush`` or ``set_pose``; ``raw`` the
-    caller's input before the rig made it the engine's: the IMU in its own axes, the image message,
-    the set_pose arguments). Bounded:
+    ``(kind, stamp, raw, tag)`` entries (kind ``imu``, ``image``, ``flush``, ``set_pose`` or ``speed``;
+    ``raw`` the caller's input before the rig made it the engine's: the IMU in its own axes, the image
+    message, the set_pose arguments, the speed and its variance). Bounded:
     past ``max_imu`` IMU or ``max_images`` image entries, or past ``frames`` frames out, it stops
     (``active`` false) and forgets them until the next restart.
     """
@@ -319,7 +334,7 @@ class Journal:
         self.max_imu, self.max_images, self.frames = max_imu, max_images, frames
         self.entries: list[tuple[str, float, Any, Any]] = []
         self.active = False
-        self._counts = {"imu": 0, "image": 0, "flush": 0, "set_pose": 0}
+        self._counts = {"imu": 0, "image": 0, "flush": 0, "set_pose": 0, "speed": 0}
         self._frames_base = 0  # the engine's frames_out at the restart
 
     def restart(self, frames_out: int, max_images: int | None = None) -> None:
@@ -375,6 +390,7 @@ class EngineFeed:
         # a start's inputs: the backlog and as much again (100 Hz: 20 s), the held images and two frames
         self.journal = Journal(2 * self._imu_backlog.maxlen, self._journal_images())
         self._pose_request: dict | None = None  # a set_pose that came before the engine
+        self._speed_backlog: collections.deque = collections.deque(maxlen=self._imu_backlog.maxlen)  # likewise
 
     def start(self, engine, images: list | None = None) -> list:
         """Use ``engine`` from now on: the IMU that arrived before it and the ``images``
@@ -387,12 +403,14 @@ class EngineFeed:
         if self._pose_request is not None:  # set before the calibration: the engine takes it by its stamp
             request, self._pose_request = self._pose_request, None
             self.set_pose(request)
-        backlog = [(t, 0, raw, None) for t, raw in self._imu_backlog]
+        backlog = [(t, 0, raw, None) for t, raw in self._imu_backlog] + [(t, 0, raw, "speed")
+                                                                          for t, raw in self._speed_backlog]
         self._imu_backlog.clear()
+        self._speed_backlog.clear()
         steps: list = []
         for t, rank, raw, tag in sorted(backlog + [(t, 1, raw, tag) for t, raw, tag in images or ()],
                                         key=lambda e: (e[0], e[1])):
-            out = self.imu(t, raw) if rank == 0 else self.image(t, raw, tag)
+            out = self.speed(t, *raw) if tag == "speed" else self.imu(t, raw) if rank == 0 else self.image(t, raw, tag)
             steps += out or []
         return steps
 
@@ -419,6 +437,9 @@ class EngineFeed:
                 if kind == "set_pose":
                     engine.set_pose(**raw)
                     continue
+                if kind == "speed":
+                    engine.add_speed(t, *raw)
+                    continue
                 args = self.inputs(kind, t, raw)
                 if args is not None:
                     steps += engine.add_imu(t, *args) if kind == "imu" else engine.add_image(t, *args, tag=tag)
@@ -443,6 +464,7 @@ class EngineFeed:
             self.engine.reset()
             self.journal.restart(self.engine.counters.frames_out, self._journal_images())
         self._imu_backlog.clear()
+        self._speed_backlog.clear()
         self._pose_request = None
         self.last_imu_stamp = None
 
@@ -481,6 +503,16 @@ class EngineFeed:
         if steps is not None:
             self.last_imu_stamp = t
         self._journal("imu", t, raw)
+        return steps
+
+    def speed(self, t: float, speed: float, variance: float) -> list | None:
+        """One vehicle speed (m/s, its variance), finite (the node checked it). Before the engine it
+        is kept (bounded, as the IMU) and fed with the IMU once the camera is known."""
+        if self.engine is None:
+            self._speed_backlog.append((t, (speed, variance)))
+            return None
+        steps = self._call("speed", t, lambda: self.engine.add_speed(t, speed, variance) or [])
+        self._journal("speed", t, (speed, variance))
         return steps
 
     def image(self, t: float, raw, tag) -> list | None:

@@ -26,6 +26,9 @@ class NodeSettings:
     camera_info_use_p: bool = True
     odometry_topic: str = "bevo/odometry"
     set_pose_topic: str = "bevo/set_pose"
+    speed_topic: str = ""
+    speed_type: str = "odometry"
+    speed_variance: float = 0.01
     path_topic: str = "bevo/path"
     bev_image_topic: str = "bevo/bev_image"
     bev_image_heatmap: bool = True
@@ -57,6 +60,10 @@ class NodeSettings:
     sensor_late_factor: float = 5.0
 
 
+# speed_type -> the message (module, class) of speed_topic
+SPEED_TYPES = {"odometry": ("nav_msgs.msg", "Odometry"), "twist": ("geometry_msgs.msg", "TwistStamped"),
+               "twist_with_covariance": ("geometry_msgs.msg", "TwistWithCovarianceStamped")}
+
 DESCRIPTIONS = {
     # node wiring
     "imu_topic": "sensor_msgs/Imu input topic",
@@ -81,6 +88,12 @@ DESCRIPTIONS = {
     "set_pose_topic": "geometry_msgs/PoseWithCovarianceStamped input (as robot_localization's set_pose): the vehicle's "
                       "pose in odom_frame at the header stamp (0: at the latest frame); x, y, z and yaw are set, the "
                       "attitude is measured; empty disables",
+    "speed_topic": "a vehicle speed input the motion filter fuses each frame (wheel odometry, CAN, GNSS; empty "
+                   "disables): in base_frame its linear.x (signed), in another frame its horizontal speed; the "
+                   "odometry's scale is then that speed's, so calibrate it",
+    "speed_type": "speed_topic's message type: 'odometry' (nav_msgs/Odometry), 'twist' (geometry_msgs/TwistStamped) "
+                  "or 'twist_with_covariance' (geometry_msgs/TwistWithCovarianceStamped)",
+    "speed_variance": "variance of speed_topic's speed, (m/s)^2, where the message's twist covariance has none",
     "path_topic": "nav_msgs/Path output topic (published only when subscribed)",
     "bev_image_topic": "sensor_msgs/Image mono8 BEV output (computed only when subscribed)",
     "bev_image_heatmap": "put the correlation heat-map beside the BEV when the engine provides it",
@@ -157,7 +170,9 @@ def validate(s: NodeSettings) -> None:
                  "time_jump_confirmations"):
         if getattr(s, name) < 1:
             raise ConfigError(f"parameter '{name}' must be >= 1, got {getattr(s, name)}")
-    for name in ("image_wait", "max_time_jump_back", "max_time_jump_forward", "diagnostics_period"):
+    if s.speed_type not in SPEED_TYPES:
+        raise ConfigError(f"parameter 'speed_type' must be one of {', '.join(SPEED_TYPES)}, got {s.speed_type!r}")
+    for name in ("image_wait", "max_time_jump_back", "max_time_jump_forward", "diagnostics_period", "speed_variance"):
         if getattr(s, name) <= 0:
             raise ConfigError(f"parameter '{name}' must be > 0, got {getattr(s, name)}")
     for name in ("path_max_length", "torch_threads"):

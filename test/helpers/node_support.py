@@ -94,6 +94,23 @@ def drive_messages(drive, start: int = 0, stop: int | None = None, offset: float
     return out
 
 
+def with_wheel_speed(drive, messages: list[tuple[str, Any]], scale: float = 1.0) -> list[tuple[str, Any]]:
+    """``messages`` with a wheel odometry (nav_msgs/Odometry, ``base_link``, the drive's true speed
+    times ``scale``) after each IMU sample, at its stamp."""
+    from nav_msgs.msg import Odometry
+
+    speeds = iter(np.linalg.norm(drive.imu_velocity_gravity, axis=1))
+    out = []
+    for kind, msg in messages:
+        out.append((kind, msg))
+        if kind == "imu":
+            odom = Odometry()
+            odom.header.stamp, odom.header.frame_id, odom.child_frame_id = msg.header.stamp, "odom", "base_link"
+            odom.twist.twist.linear.x = float(next(speeds)) * scale
+            out.append(("speed", odom))
+    return out
+
+
 def delivered_late(messages: list[tuple[str, Any]], delay: int) -> list[tuple[str, Any]]:
     """``[(kind, item)]`` in stamp order with every ``"image"`` delivered after the next ``delay``
     ``"imu"`` messages (images keep their own order): a large image behind the small IMU messages
@@ -144,7 +161,7 @@ def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) ->
     """The offline core (``build_odometry``) fed the same messages in order, plus a final flush."""
     from bevo_ros.config import BevoConfig, build_odometry, camera_model, resolve_path
     from bevo_ros.io.learned_params import load_learned_params
-    from bevo_ros.io.ros_conversions import image_to_gray, imu_to_arrays, stamp_to_sec
+    from bevo_ros.io.ros_conversions import forward_speed_from_msg, image_to_gray, imu_to_arrays, stamp_to_sec
 
     config = BevoConfig.from_flat(overrides)
     learned = load_learned_params(resolve_path(config.learned_params_file))
@@ -154,6 +171,9 @@ def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) ->
         t = stamp_to_sec(msg.header.stamp)
         if kind == "imu":
             steps += odo.add_imu(t, *imu_to_arrays(msg))
+        elif kind == "speed":  # as bevo_node's speed_topic (its defaults: base_link, 0.01 (m/s)^2)
+            odo.add_speed(t, *forward_speed_from_msg(msg, overrides.get("base_frame", "base_link"),
+                                                     overrides.get("speed_variance", 0.01)))
         else:
             steps += odo.add_image(t, image_to_gray(msg))
     return steps
