@@ -136,8 +136,9 @@ def _is_jump(motion: np.ndarray, twist_motion: np.ndarray) -> bool:
     interval is bevo_node's regularised one: up to ~25 % off the stamps')."""
     dist = math.hypot(motion[0] - twist_motion[0], motion[1] - twist_motion[1])
     dyaw = abs(math.remainder(motion[2] - twist_motion[2], 2 * math.pi))
-    return dist > max(0.3, 0.3 * math.hypot(twist_motion[0], twist_motion[1])) or \
-        dyaw > max(math.radians(2.0), 0.3 * abs(twist_motion[2]))
+    # relative to the larger of the two: an interval 25 % off either way is no jump at any speed
+    size = max(math.hypot(motion[0], motion[1]), math.hypot(twist_motion[0], twist_motion[1]))
+    return dist > max(0.3, 0.3 * size) or dyaw > max(math.radians(2.0), 0.3 * max(abs(motion[2]), abs(twist_motion[2])))
 
 
 def _twist_motion_covariance(msg, dt: float) -> np.ndarray | None:
@@ -351,7 +352,11 @@ class BevoLocalizerNode(Node):
             announced = bool(due) and jump
             # A jump whose set_pose has not come (DDS does not order topics): the twist, trusted, says so.
             rebased = announced or jump and self._twist_agreed >= TWIST_TRUST
-            if not rebased:  # a jump read as one does not say the twist is wrong
+            if announced:  # a set_pose's jump does not say the twist is wrong
+                pass
+            elif rebased:  # a jump without its set_pose happens once: trust is earned again (3 frames)
+                self._twist_agreed = 0
+            else:
                 self._twist_agreed = self._twist_agreed + 1 if twist_motion is not None and not jump else 0
             for e in due:
                 e[2] -= 1

@@ -17,6 +17,7 @@ and ``diagnostics``; this module only connects them.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -31,7 +32,7 @@ from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
 from bevo_ros.ros import parameters as ros_params
 from bevo_ros.ros import settings as node_settings
-from bevo_ros.ros.diagnostics import Report, SensorMonitor, odometry_state, status_message
+from bevo_ros.ros.diagnostics import WARN, Report, SensorMonitor, odometry_state, status_message
 from bevo_ros.ros.intake import EngineFeed, Intake, watch_clock_jumps
 from bevo_ros.ros.publishers import Outputs
 from bevo_ros.ros.rig import Rig
@@ -80,7 +81,9 @@ class BevoNode(Node):
                                              clock=time.monotonic)
                          for kind, label, topic, timeout in (("imu", "IMU", s.imu_topic, s.imu_timeout),
                                                              ("image", "images", self.image_input_topic,
-                                                              s.image_timeout))}
+                                                              s.image_timeout))
+                                                             + ((("speed", "speed", s.speed_topic, s.speed_timeout),)
+                                                                if s.speed_topic else ())}
         self._engine_factory = engine_factory
         self._published_stamp: float | None = None  # the newest frame published since the start (or reset)
         self.feed = EngineFeed(s, self.config.filter.max_imu_gap, report, self._reset,
@@ -133,6 +136,7 @@ class BevoNode(Node):
             module, name = node_settings.SPEED_TYPES[s.speed_type]
             self._handlers["speed"] = self._guard("speed", self._on_speed)
             take_speed = self._guard("speed", self.intake.speed)
+            self._speed_frames_said: set[str] = set()  # frames other than base_frame, warned about once
             # two-argument callback: rclpy then passes the message info (DDS reception time)
             self.create_subscription(getattr(importlib.import_module(module), name), s.speed_topic,
                                      lambda msg, info: take_speed(msg, info), in_qos(s.imu_qos_depth))
@@ -286,8 +290,9 @@ class BevoNode(Node):
             elif p.name == "max_time_jump_back":
                 for g in self.intake.guards.values():
                     g.max_back = value
-            elif p.name in ("imu_timeout", "image_timeout"):
-                self.monitors[p.name.split("_")[0]].timeout = value
+            elif p.name in ("imu_timeout", "image_timeout", "speed_timeout"):
+                if p.name.split("_")[0] in self.monitors:
+                    self.monitors[p.name.split("_")[0]].timeout = value
             elif p.name == "sensor_late_factor":
                 for m in self.monitors.values():
                     m.late_factor = value
@@ -377,6 +382,12 @@ class BevoNode(Node):
         except ValueError as exc:
             self.report.drop("speed_invalid", f"speed at {stamp:.6f}: {exc}")
             return
+        frame = (msg.child_frame_id if hasattr(msg, "child_frame_id") else msg.header.frame_id).lstrip("/")
+        if frame != self.settings.base_frame.lstrip("/") and frame not in self._speed_frames_said:
+            self._speed_frames_said.add(frame)
+            self.get_logger().warning(f"{self.settings.speed_topic}: the twist is in '{frame}', not base_frame "
+                                      f"'{self.settings.base_frame}': its horizontal speed is taken, unsigned "
+                                      "(reversing reads as forward)")
         self._publish(self.feed.speed(stamp, speed, variance))
 
     def _on_clock_jump(self, info) -> None:
@@ -415,7 +426,10 @@ class BevoNode(Node):
         if self.engine is not None:  # what the engine takes off the gyro (x, y from standstills, z the motion filter's)
             values["gyro_bias_deg_s"] = ", ".join(f"{math.degrees(b):+.4f}" for b in self.engine.gyro_bias)
         name = self.get_name()
-        statuses = [status_message(name, "odometry", odometry_state(values, inputs, self.engine is not None,
+        # a silent speed input is its own ERROR; the odometry goes on on the images: a WARN of it
+        for_odometry = {k: dataclasses.replace(st, level=min(st.level, WARN)) if k == "speed" else st
+                        for k, st in inputs.items()}
+        statuses = [status_message(name, "odometry", odometry_state(values, for_odometry, self.engine is not None,
                                                                     drops - prev_drops))]
         statuses += [status_message(name, f"{key} input", st) for key, st in inputs.items()]
         statuses.append(status_message(name, "calibration", self.rig.state()))

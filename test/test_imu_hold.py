@@ -34,7 +34,9 @@ class EngineOrder:
     def __call__(self, kind: str, item) -> None:
         h = item[0].header.stamp
         t = round(h.sec + h.nanosec * 1e-9, 6)
-        if kind == "imu":
+        if kind == "speed":  # the motion filter's speed input: taken as it comes
+            self.ops.append(("speed", t))
+        elif kind == "imu":
             if self.last_imu is not None and t <= self.last_imu:
                 return  # out of order: the engine drops it
             self.ops.append(("imu", t))
@@ -78,6 +80,20 @@ def test_the_engine_sees_the_offline_order_whatever_the_arrival(rig, delay):
     assert [k for k, _ in offline].count("frame") >= len(frames) - 1
     arrivals = delivered_late(stamp_order(imu, frames), delay)
     assert run(arrivals) == offline, (rig, delay)
+
+
+@pytest.mark.parametrize("delay", [0, 1, 2, 5])
+def test_speeds_keep_their_place_among_the_imu_samples(delay):
+    """A speed input (a wheel odometry not synchronised with the IMU) goes through the hold in its
+    place: the engine sees speeds, IMU samples and frames in the offline order. (A speed at the head
+    of the hold once went on as the sample a frame waits for, and the next IMU sample overtook the
+    held one, which the engine then dropped as out of order.)"""
+    imu, frames = [i / 100 for i in range(60)], [i / 10 + 0.003 for i in range(6)]
+    rank = {"imu": 0, "speed": 1, "image": 2}
+    order = sorted([("imu", t) for t in imu] + [("speed", i / 50 + 0.005) for i in range(30)]
+                   + [("image", t) for t in frames], key=lambda e: (e[1], rank[e[0]]))
+    offline = run(order, hold=False)
+    assert run(delivered_late(order, delay)) == offline
 
 
 def test_without_the_hold_a_late_image_changes_the_order():

@@ -227,6 +227,7 @@ def test_localizer_node_end_to_end(context, world):
               f"{moved[1]:.2f} m (1 m of motion each)")
         assert all(0.7 < m < 1.3 for m in moved), moved  # without TWIST_TRUST: 3.9 m over the jumped frame
         assert node.counts["odometry_jump"] == 1
+        assert node._twist_agreed == 1  # after it, trust is earned anew: one jump does not trust every later one
         assert node.counts["odometry_set_pose"] == 1 and node.counts["odometry_resets"] == 3
     finally:
         ex.remove_node(node)

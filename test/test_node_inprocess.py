@@ -208,7 +208,7 @@ def test_a_speed_topic_is_fused_as_offline(harness_factory, drive):
     """speed_topic (wheel odometry here): the node's odometry equals the offline core fed the same
     speeds; the speed sets the scale (a wheel 3 % long: the odometry 3 % long); a speed that is not
     finite is dropped and counted."""
-    ov = base_overrides(drive, speed_topic="/wheel/odometry")
+    ov = base_overrides(drive, speed_topic="/wheel/odometry", speed_timeout=0.3)
     plain = drive_messages(drive)
     truth = offline_steps(with_wheel_speed(drive, plain), ov)
     long = with_wheel_speed(drive, plain, scale=1.03)
@@ -228,6 +228,21 @@ def test_a_speed_topic_is_fused_as_offline(harness_factory, drive):
     bad.twist.twist.linear.x = float("nan")
     h.send("speed", bad)
     assert h.node.drops["speed_invalid"] == 1 and h.logged("speed_invalid")
+    bad.twist.twist.linear.x = 5.0
+    bad.header.stamp.sec -= 100  # far back (another clock, a restarted driver): dropped, never a reset
+    h.send("speed", bad)
+    assert h.node.drops["speed_out_of_order"] == 1 and h.node.events["time_jump_reset"] == 0
+    # /diagnostics: the speed input's own status; silent past speed_timeout it is an ERROR, which
+    # makes the odometry (going on on the images) no more than a WARN
+
+    def levels():
+        return {st.name.split(": ", 1)[1]: st.level[0] if isinstance(st.level, bytes) else int(st.level)
+                for st in h.diag[-1].status} if h.diag else {}
+
+    assert spin_until(h.executor, lambda: levels().get("speed input") == 2, 5), levels()
+    got = levels()
+    if max(got["imu input"], got["image input"]) < 2:
+        assert got["odometry"] < 2, got
 
 
 @pytest.mark.parametrize("imu_rate", [10.0, 400.0])

@@ -594,7 +594,8 @@ class BevoOdometry:
         """add_speed's mean speed over the frame interval ``[t0, t1]`` (linear between its samples,
         held for ``max_speed_age`` past the ends) and the mean of their variances (a wheel's error,
         its scale, is the same for the interval's samples); None where no sample lies within
-        ``max_speed_age`` of some part of the interval."""
+        ``max_speed_age`` of some part of the interval. What has arrived by the frame's processing
+        (the IMU sample after its stamp): a speed stamped before ``t1`` arriving later is not used."""
         age = self.max_speed_age
         near = [e for e in self._speed_log if t0 - age <= e[0] <= t1 + age]
         if not near or near[0][0] > t0 + age or near[-1][0] < t1 - age or t1 <= t0:
@@ -1018,7 +1019,7 @@ class BevoOdometry:
         frame = self.vehicle.step(self._vstate, **inputs)
         self._vstate = frame.state
         if frame.speed_accepted is False:
-            self.counters.rejected_speed += 1
+            self._count("rejected_speed", stamp)  # an event: the node reports it
         # what training's replay must do to the state before this step, as the engine did
         self._last_filter_inputs = {**inputs, "forget_speed": speed_forgotten,
                                     "forget_accel_bias": self._beta_forgotten}

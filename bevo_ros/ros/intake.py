@@ -86,6 +86,8 @@ class Intake:
     def speed(self, msg, info) -> None:
         """Executor callback of the speed input: in its place among the IMU samples (``ImuHold``)."""
         self.report.counts["speed_in"] += 1
+        if "speed" in self.monitors:
+            self.monitors["speed"].tick()
         self._dispatch("speed", (msg, arrival(info)))
 
     def received(self, kind: str, msg, info) -> None:
@@ -295,8 +297,8 @@ class ImuHold:
             self._period = min(now - self._image_wall, 1.0)
         self._image_wall = now
         self._last_image = t if self._last_image is None else max(self._last_image, t)
-        if self._held and self._waiting():
-            self._send_held(1)  # the sample the frame waits for
+        while self._held and self._waiting():
+            self._send_held(1)  # the sample the frame waits for (and the speeds held before it)
 
     def release_stale(self, wait: float) -> int:
         """Hand on everything held when its oldest sample has waited ``wait`` plus the last frame
@@ -509,11 +511,19 @@ class EngineFeed:
         """One vehicle speed (m/s, its variance), finite (the node checked it). Before the engine it
         is kept (bounded, as the IMU) and fed with the IMU once the camera is known."""
         if self.engine is None:
+            if len(self._speed_backlog) == self._speed_backlog.maxlen:
+                self.report.drop("no_camera_info", f"speed at {self._speed_backlog[0][0]:.6f}: more than "
+                                                   f"{self._speed_backlog.maxlen} speeds waited for the calibration")
             self._speed_backlog.append((t, (speed, variance)))
             return None
-        steps = self._call("speed", t, lambda: self.engine.add_speed(t, speed, variance) or [])
+        try:
+            self.engine.add_speed(t, speed, variance)
+        except OutOfOrderError as exc:  # dropped, never a reset: the IMU's and images' timeline decides those
+            self.report.drop("speed_duplicate" if exc.jump == 0 else "speed_out_of_order",
+                             f"speed stamp {t:.9f} is not after the previous speed stamp {exc.last:.9f}")
+            return None
         self._journal("speed", t, (speed, variance))
-        return steps
+        return []
 
     def image(self, t: float, raw, tag) -> list | None:
         """One image (``raw``: the message, as ``inputs`` takes it); ``tag`` comes back on its step."""

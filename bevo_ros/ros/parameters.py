@@ -13,7 +13,7 @@ from typing import Any
 # Everything else is read-only: topics, QoS, frames and the engine are built once at start.
 LIVE = frozenset({
     "publish_tf", "bev_image_heatmap", "path_max_length", "log_throttle_period", "image_wait",
-    "max_pending_images", "max_time_jump_back", "imu_timeout", "image_timeout", "sensor_late_factor",
+    "max_pending_images", "max_time_jump_back", "imu_timeout", "image_timeout", "speed_timeout", "sensor_late_factor",
 })
 
 INF = 1e9  # "no upper bound" (descriptor ranges are finite)
@@ -30,7 +30,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "latency_window": (1, 1_000_000),
     "torch_threads": (0, 1024),
     "camera_info_timeout": (0.0, 3600.0),
-    "imu_timeout": (0.01, 3600.0), "image_timeout": (0.01, 3600.0),
+    "imu_timeout": (0.01, 3600.0), "image_timeout": (0.01, 3600.0), "speed_timeout": (0.01, 3600.0),
     "sensor_late_factor": (1.0, 1000.0),
     "camera.fx": (0.0, INF), "camera.fy": (0.0, INF), "camera.cx": (-INF, INF), "camera.cy": (-INF, INF),
     "camera.width": (0, 100_000), "camera.height_px": (0, 100_000),

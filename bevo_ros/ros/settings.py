@@ -57,6 +57,7 @@ class NodeSettings:
     image_transport: str = "raw"
     imu_timeout: float = 1.0
     image_timeout: float = 2.0
+    speed_timeout: float = 1.0
     sensor_late_factor: float = 5.0
 
 
@@ -82,6 +83,8 @@ DESCRIPTIONS = {
                        "on <image_topic>/compressed, decoded with OpenCV)",
     "imu_timeout": "/diagnostics: IMU silent for longer than this (s) is an ERROR",
     "image_timeout": "/diagnostics: images silent for longer than this (s) are an ERROR",
+    "speed_timeout": "/diagnostics: speed_topic silent for longer than this (s) is an ERROR of its input (the "
+                     "odometry, which goes on on the images, a WARN)",
     "sensor_late_factor": "/diagnostics: an input is late (WARN) when silent for this many times its measured period",
     "camera_info_use_p": "use CameraInfo P[:3,:3] (rectified camera matrix) rather than K",
     "odometry_topic": "nav_msgs/Odometry output topic",
