@@ -32,7 +32,7 @@ from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
 from bevo_ros.ros import parameters as ros_params
 from bevo_ros.ros import settings as node_settings
-from bevo_ros.ros.diagnostics import WARN, Report, SensorMonitor, odometry_state, status_message
+from bevo_ros.ros.diagnostics import ERROR, WARN, Report, SensorMonitor, odometry_state, status_message
 from bevo_ros.ros.intake import EngineFeed, Intake, watch_clock_jumps
 from bevo_ros.ros.publishers import Outputs
 from bevo_ros.ros.rig import Rig
@@ -390,6 +390,20 @@ class BevoNode(Node):
                                       "(reversing reads as forward)")
         self._publish(self.feed.speed(stamp, speed, variance))
 
+    def _speed_type_mismatch(self, state):
+        """A speed input never heard from whose publishers carry another type than ``speed_type``:
+        DDS does not connect them, the state says so (ERROR) and what to set."""
+        topic = self.monitors["speed"].topic
+        module, name = node_settings.SPEED_TYPES[self.settings.speed_type]
+        want = f"{module.split('.')[0]}/msg/{name}"
+        types = sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)} - {want})
+        if not types:
+            return state
+        fix = [k for k, (m, n) in node_settings.SPEED_TYPES.items() if f"{m.split('.')[0]}/msg/{n}" in types]
+        return dataclasses.replace(state, level=max(state.level, ERROR), message=(
+            f"speed: {topic} is published as {', '.join(types)}, not {want} (speed_type: {self.settings.speed_type})"
+            + (f": set speed_type: {fix[0]}" if fix else ": not a speed type bevo_node reads")))
+
     def _on_clock_jump(self, info) -> None:
         if self.feed.last_imu_stamp is None and not self.feed.pending_images:
             return
@@ -419,6 +433,8 @@ class BevoNode(Node):
         self._diag_drops = drops
         self.rig.refresh()  # a /tf_static that arrived (or changed) since
         inputs = {key: m.state() for key, m in self.monitors.items()}  # per input: OK / WARN late / ERROR silent
+        if "speed" in inputs and not self.monitors["speed"].received:
+            inputs["speed"] = self._speed_type_mismatch(inputs["speed"])
         values["calibration"] = self.rig.calibration.source if self.rig.calibration is not None else "none yet"
         values["extrinsics"] = self.rig.extrinsics_source
         values["direction_of_travel"] = self.engine.direction_of_travel if self.engine is not None else "unknown"

@@ -245,6 +245,26 @@ def test_a_speed_topic_is_fused_as_offline(harness_factory, drive):
         assert got["odometry"] < 2, got
 
 
+def test_a_speed_topic_of_another_type_is_named_in_diagnostics(harness_factory, drive):
+    """speed_type says nav_msgs/Odometry, the car publishes TwistStamped: DDS never connects them, and
+    the speed input's status says what to set instead of a bare silence. (One DDS participant cannot
+    hold both types on a topic: the graph's answer is given to the node here.)"""
+    from types import SimpleNamespace
+
+    h = harness_factory(base_overrides(drive, speed_topic="/wheel/speed"))
+    graph = h.node.get_publishers_info_by_topic
+    h.node.get_publishers_info_by_topic = lambda topic: graph(topic) + [
+        SimpleNamespace(topic_type="geometry_msgs/msg/TwistStamped")]
+
+    def speed_status():
+        return next((st for m in reversed(h.diag) for st in m.status if st.name.endswith(": speed input")), None)
+
+    assert spin_until(h.executor, lambda: (st := speed_status()) is not None and "set speed_type: twist" in st.message,
+                      5), speed_status()
+    st = speed_status()
+    assert st.level == bytes([2]) and "/wheel/speed is published as geometry_msgs/msg/TwistStamped" in st.message
+
+
 @pytest.mark.parametrize("imu_rate", [10.0, 400.0])
 def test_imu_rates_10_to_400_hz_match_offline(harness_factory, imu_rate):
     drive = small_drive(seed=4, duration=0.6 if imu_rate > 100 else 1.5, imu_rate=imu_rate)
