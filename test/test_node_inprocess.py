@@ -232,6 +232,9 @@ def test_a_speed_topic_is_fused_as_offline(harness_factory, drive):
     bad.header.stamp.sec -= 100  # far back (another clock, a restarted driver): dropped, never a reset
     h.send("speed", bad)
     assert h.node.drops["speed_out_of_order"] == 1 and h.node.events["time_jump_reset"] == 0
+    bad.header.stamp.sec += 200  # far ahead of the IMU: dropped, or every later speed would be out of order
+    h.send("speed", bad)
+    assert h.node.drops["speed_future"] == 1
     # /diagnostics: the speed input's own status; silent past speed_timeout it is an ERROR, which
     # makes the odometry (going on on the images) no more than a WARN
 

@@ -597,7 +597,13 @@ class BevoOdometry:
         ``max_speed_age`` of some part of the interval. What has arrived by the frame's processing
         (the IMU sample after its stamp): a speed stamped before ``t1`` arriving later is not used."""
         age = self.max_speed_age
-        near = [e for e in self._speed_log if t0 - age <= e[0] <= t1 + age]
+        near = []  # newest first, back to the interval's start: a few samples, not the whole log
+        for e in reversed(self._speed_log):
+            if e[0] < t0 - age:
+                break
+            if e[0] <= t1 + age:
+                near.append(e)
+        near.reverse()
         if not near or near[0][0] > t0 + age or near[-1][0] < t1 - age or t1 <= t0:
             return None
         ts = np.array([e[0] for e in near])

@@ -510,6 +510,13 @@ class EngineFeed:
     def speed(self, t: float, speed: float, variance: float) -> list | None:
         """One vehicle speed (m/s, its variance), finite (the node checked it). Before the engine it
         is kept (bounded, as the IMU) and fed with the IMU once the camera is known."""
+        newest = self.last_imu_stamp
+        if newest is not None and t > newest + self.settings.max_time_jump_forward:
+            # one far ahead would make every later speed out of order until a reset
+            self.report.drop("speed_future", f"speed stamp {t:.6f} is more than max_time_jump_forward="
+                                             f"{self.settings.max_time_jump_forward} s after the newest IMU sample "
+                                             f"({newest:.6f})")
+            return None
         if self.engine is None:
             if len(self._speed_backlog) == self._speed_backlog.maxlen:
                 self.report.drop("no_camera_info", f"speed at {self._speed_backlog[0][0]:.6f}: more than "
