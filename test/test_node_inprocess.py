@@ -243,6 +243,8 @@ def test_a_speed_topic_is_fused_as_offline(harness_factory, drive):
                 for st in h.diag[-1].status} if h.diag else {}
 
     assert spin_until(h.executor, lambda: levels().get("speed input") == 2, 5), levels()
+    odometry = next(st for st in h.diag[-1].status if st.name.endswith(": odometry"))
+    assert {kv.key: kv.value for kv in odometry.values}["speeds_received"] == str(h.node.counts["speed_in"])
     got = levels()
     if max(got["imu input"], got["image input"]) < 2:
         assert got["odometry"] < 2, got

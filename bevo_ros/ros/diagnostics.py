@@ -176,6 +176,8 @@ class Report:
             "pending_images": str(pending_images),
             "tf": tf_backend,
         }
+        if self.counts["speed_in"]:
+            values["speeds_received"] = str(self.counts["speed_in"])
         values.update(counter_values("drop", self.drops))
         values.update(counter_values("event", self.events))
         return values
@@ -185,7 +187,8 @@ class Report:
         c = self.counts
         drops = ", ".join(f"{k} {n}" for k, n in sorted(self.drops.items()) if n) or "none"
         events = ", ".join(f"{k} {n}" for k, n in sorted(self.events.items()) if n) or "none"
-        return (f"imu {c['imu_in']}, images {c['images_in']}, camera_info {c['camera_info_in']} received; "
+        speeds = f", speeds {c['speed_in']}" if c["speed_in"] else ""
+        return (f"imu {c['imu_in']}, images {c['images_in']}, camera_info {c['camera_info_in']}{speeds} received; "
                 f"odometry {c['odometry_out']} published; dropped: {drops}; events: {events}")
 
 

@@ -359,7 +359,7 @@ class Journal:
         if not self.active:
             return
         self._counts[kind] += 1
-        if self._counts["imu"] > self.max_imu or self._counts["image"] > self.max_images:
+        if max(self._counts["imu"], self._counts["speed"]) > self.max_imu or self._counts["image"] > self.max_images:
             self.stop()  # too long a start to replay: a later rig change is applied as it comes
             return
         self.entries.append((kind, stamp, raw, tag))
