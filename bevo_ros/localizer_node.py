@@ -352,11 +352,9 @@ class BevoLocalizerNode(Node):
             announced = bool(due) and jump
             # A jump whose set_pose has not come (DDS does not order topics): the twist, trusted, says so.
             rebased = announced or jump and self._twist_agreed >= TWIST_TRUST
-            if announced:  # a set_pose's jump does not say the twist is wrong
-                pass
-            elif rebased:  # a jump without its set_pose happens once: trust is earned again (3 frames)
-                self._twist_agreed = 0
-            else:
+            # Trust grows with each agreeing step; a set_pose's jump leaves it; any other jump ends it (one
+            # read as a jump without its set_pose happens once: trust is earned again over TWIST_TRUST steps).
+            if not announced:
                 self._twist_agreed = self._twist_agreed + 1 if twist_motion is not None and not jump else 0
             for e in due:
                 e[2] -= 1

@@ -37,7 +37,7 @@ from bevo_ros.ros.intake import EngineFeed, Intake, watch_clock_jumps
 from bevo_ros.ros.publishers import Outputs
 from bevo_ros.ros.rig import Rig
 from bevo_ros.ros.tf import StaticTransforms
-from bevo_ros.io.ros_conversions import forward_speed_from_msg, imu_to_arrays, planar_pose_from_msg, stamp_to_sec
+from bevo_ros.io.ros_conversions import forward_speed_from_msg, imu_to_arrays, speed_frame, planar_pose_from_msg, stamp_to_sec
 
 NODE_NAME = "bevo_node"
 
@@ -133,12 +133,12 @@ class BevoNode(Node):
         if s.speed_topic:  # a sensor: its input QoS, as the IMU's
             import importlib
 
-            module, name = node_settings.SPEED_TYPES[s.speed_type]
+            package, _, name = node_settings.SPEED_TYPES[s.speed_type].split("/")
             self._handlers["speed"] = self._guard("speed", self._on_speed)
             take_speed = self._guard("speed", self.intake.speed)
             self._speed_frames_said: set[str] = set()  # frames other than base_frame, warned about once
             # two-argument callback: rclpy then passes the message info (DDS reception time)
-            self.create_subscription(getattr(importlib.import_module(module), name), s.speed_topic,
+            self.create_subscription(getattr(importlib.import_module(f"{package}.msg"), name), s.speed_topic,
                                      lambda msg, info: take_speed(msg, info), in_qos(s.imu_qos_depth))
         # Steady-clock timers: they tick with or without /clock (use_sim_time).
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -382,7 +382,7 @@ class BevoNode(Node):
         except ValueError as exc:
             self.report.drop("speed_invalid", f"speed at {stamp:.6f}: {exc}")
             return
-        frame = (msg.child_frame_id if hasattr(msg, "child_frame_id") else msg.header.frame_id).lstrip("/")
+        frame = speed_frame(msg)
         if frame != self.settings.base_frame.lstrip("/") and frame not in self._speed_frames_said:
             self._speed_frames_said.add(frame)
             self.get_logger().warning(f"{self.settings.speed_topic}: the twist is in '{frame}', not base_frame "
@@ -394,12 +394,11 @@ class BevoNode(Node):
         """A speed input never heard from whose publishers carry another type than ``speed_type``:
         DDS does not connect them, the state says so (ERROR) and what to set."""
         topic = self.monitors["speed"].topic
-        module, name = node_settings.SPEED_TYPES[self.settings.speed_type]
-        want = f"{module.split('.')[0]}/msg/{name}"
+        want = node_settings.SPEED_TYPES[self.settings.speed_type]
         types = sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)} - {want})
         if not types:
             return state
-        fix = [k for k, (m, n) in node_settings.SPEED_TYPES.items() if f"{m.split('.')[0]}/msg/{n}" in types]
+        fix = [k for k, msg_type in node_settings.SPEED_TYPES.items() if msg_type in types]
         return dataclasses.replace(state, level=max(state.level, ERROR), message=(
             f"speed: {topic} is published as {', '.join(types)}, not {want} (speed_type: {self.settings.speed_type})"
             + (f": set speed_type: {fix[0]}" if fix else ": not a speed type bevo_node reads")))

@@ -228,6 +228,11 @@ def planar_pose_from_msg(msg: Any) -> tuple[float, float, float, float, list[lis
     return float(p.x), float(p.y), float(p.z), yaw, planar
 
 
+def speed_frame(msg: Any) -> str:
+    """The frame a speed message's twist is in: an Odometry's ``child_frame_id``, else its header's."""
+    return (msg.child_frame_id if hasattr(msg, "child_frame_id") else msg.header.frame_id).lstrip("/")
+
+
 def forward_speed_from_msg(msg: Any, base_frame: str, default_variance: float) -> tuple[float, float]:
     """A vehicle's speed message -> ``(speed m/s, variance (m/s)^2)`` for
     :meth:`~bevo_ros.core.odometry.BevoOdometry.add_speed`: nav_msgs/Odometry (wheel odometry),
@@ -238,11 +243,9 @@ def forward_speed_from_msg(msg: Any, base_frame: str, default_variance: float) -
     east/north velocity) its horizontal speed ``hypot(linear.x, linear.y)``, unsigned. The variance
     is the twist covariance's ``linear.x`` entry when it has one above 0, else ``default_variance``.
     ValueError when the speed or the variance is not finite."""
-    odometry = hasattr(msg, "child_frame_id")
     twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry / *WithCovariance*
-    frame = (msg.child_frame_id if odometry else msg.header.frame_id).lstrip("/")
     vx, vy = float(twist.linear.x), float(twist.linear.y)
-    speed = vx if frame == base_frame.lstrip("/") else math.hypot(vx, vy)
+    speed = vx if speed_frame(msg) == base_frame.lstrip("/") else math.hypot(vx, vy)
     cov = float(msg.twist.covariance[0]) if hasattr(msg.twist, "covariance") else 0.0
     variance = cov if cov > 0 else float(default_variance)
     if not (math.isfinite(speed) and math.isfinite(variance) and variance > 0):

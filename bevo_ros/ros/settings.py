@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from bevo_ros.config import RENAMED, BevoConfig, ConfigError, coerce_setting, resolve_path, unknown_parameters
+from bevo_ros.io import bag
 from bevo_ros.ros import parameters as ros_params
 
 
@@ -61,9 +62,9 @@ class NodeSettings:
     sensor_late_factor: float = 5.0
 
 
-# speed_type -> the message (module, class) of speed_topic
-SPEED_TYPES = {"odometry": ("nav_msgs.msg", "Odometry"), "twist": ("geometry_msgs.msg", "TwistStamped"),
-               "twist_with_covariance": ("geometry_msgs.msg", "TwistWithCovarianceStamped")}
+# speed_type -> speed_topic's message type (the readable speeds, io.bag.SPEED_MSGS: Odometry, TwistStamped,
+# TwistWithCovarianceStamped)
+SPEED_TYPES = dict(zip(("odometry", "twist", "twist_with_covariance"), bag.SPEED_MSGS))
 
 DESCRIPTIONS = {
     # node wiring
