@@ -378,17 +378,18 @@ class BevoNode(Node):
         mean over the frame interval, the DUKF removes the car's acceleration with it."""
         stamp = stamp_to_sec(msg.header.stamp)
         try:
-            speed, variance = forward_speed_from_msg(msg, self.settings.base_frame, self.settings.speed_variance)
+            speed, variance, signed = forward_speed_from_msg(msg, self.settings.base_frame, self.settings.speed_variance)
         except ValueError as exc:
             self.report.drop("speed_invalid", f"speed at {stamp:.6f}: {exc}")
             return
         frame = speed_frame(msg)
-        if frame != self.settings.base_frame.lstrip("/") and frame not in self._speed_frames_said:
+        if not signed and frame not in self._speed_frames_said:
             self._speed_frames_said.add(frame)
             self.get_logger().warning(f"{self.settings.speed_topic}: the twist is in '{frame}', not base_frame "
                                       f"'{self.settings.base_frame}': its horizontal speed is taken, unsigned "
-                                      "(reversing reads as forward)")
-        self._publish(self.feed.speed(stamp, speed, variance))
+                                      "(the direction of travel from the images: reversing is followed after a "
+                                      "stop they confirm)")
+        self._publish(self.feed.speed(stamp, speed, variance, signed))
 
     def _speed_type_mismatch(self, state):
         """A speed input never heard from whose publishers carry another type than ``speed_type``:

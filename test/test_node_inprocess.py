@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import copy
 import math
 import sys
 from pathlib import Path
@@ -235,6 +236,15 @@ def test_a_speed_topic_is_fused_as_offline(harness_factory, drive):
     bad.header.stamp.sec += 200  # far ahead of the IMU: dropped, or every later speed would be out of order
     h.send("speed", bad)
     assert h.node.drops["speed_future"] == 1
+    # wheel odometry in base_link is signed; a twist in another frame reaches the engine unsigned (its
+    # sign then the direction of travel's), with one warning
+    assert h.node.engine._speed_unsigned is False
+    gnss = copy.deepcopy(bad)
+    gnss.child_frame_id = "gnss"
+    gnss.header.stamp.sec -= 100  # 1 us after the last speed
+    gnss.header.stamp.nanosec += 1000
+    h.send("speed", gnss)
+    assert h.node.engine._speed_unsigned is True and h.node._speed_frames_said == {"gnss"}
     # /diagnostics: the speed input's own status; silent past speed_timeout it is an ERROR, which
     # makes the odometry (going on on the images) no more than a WARN
 

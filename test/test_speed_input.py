@@ -30,15 +30,15 @@ SYNTH_PARAMS = REPO_ROOT / "params" / "synthetic.yaml"
 def test_the_speed_of_each_message_type():
     types = bag.typestore().types
     odom = bag.odometry_message(1.0, np.eye(4), "odom", "base_link", twist=(-2.5, 0.3, 0, 0, 0, 0))
-    assert forward_speed_from_msg(odom, "base_link", 0.04) == (-2.5, 0.04)  # in the base: linear.x, signed
-    assert forward_speed_from_msg(odom, "/base_link", 0.04) == (-2.5, 0.04)
+    assert forward_speed_from_msg(odom, "base_link", 0.04) == (-2.5, 0.04, True)  # in the base: linear.x, signed
+    assert forward_speed_from_msg(odom, "/base_link", 0.04) == (-2.5, 0.04, True)
     enu = bag.twist_stamped_message(1.0, (3.0, -4.0, 0.2), "enu")  # a GNSS velocity: the horizontal speed
-    assert forward_speed_from_msg(enu, "base_link", 0.04) == (5.0, 0.04)
+    assert forward_speed_from_msg(enu, "base_link", 0.04) == (5.0, 0.04, False)  # unsigned
     cov = np.zeros(36)
     cov[0] = 0.09
     twc = types["geometry_msgs/msg/TwistWithCovarianceStamped"](
         header=enu.header, twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=enu.twist, covariance=cov))
-    assert forward_speed_from_msg(twc, "base_link", 0.04) == (5.0, 0.09)  # its own variance
+    assert forward_speed_from_msg(twc, "base_link", 0.04) == (5.0, 0.09, False)  # its own variance
     bad = bag.twist_stamped_message(1.0, (float("nan"), 0.0, 0.0), "base_link")
     with pytest.raises(ValueError, match="not a finite speed"):
         forward_speed_from_msg(bad, "base_link", 0.04)

@@ -370,3 +370,84 @@ def test_a_frozen_camera_at_speed_is_no_standstill(light_drive):
     gt = d.relative_motion
     assert not any(s.standstill for s in steps[1:30])
     assert steps[20].motion[0] > 0.8 * gt[19, 0] > 0.7  # the first frozen pair: the prediction carries it
+
+
+@pytest.fixture(scope="module")
+def parking_drive():
+    """The parking preset: braking to a stop, reversing 7 m with a 29 deg turn, a stop, forward again."""
+    cam = half_camera()
+    d = preset_drive("parking", seed=1, render="lazy", camera=cam, road_tilt=True, imu_rate=10.0)
+    return cam, d, [d.image(k) for k in range(d.num_frames)]
+
+
+def _segments(gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frame pairs reversing faster than 1.1 m/s (0.11 m per frame) and those moving forward as fast."""
+    return gt[:, 0] < -0.11, gt[:, 0] > 0.11
+
+
+def test_the_engine_follows_a_car_reversing_after_a_stop(parking_drive):
+    """After the stop the images confirm, the direction is free: the reversing car is followed
+    (direction ``reverse`` once its speed passes 1 m/s; its 6.8 m backwards at over 1.1 m/s read to
+    15 %: measured 1.5 % short), the stop after it frees the direction again, and forward it goes.
+    Without the standstill check the direction stays locked forward and the reversing is read 41 %
+    short (the test can fail)."""
+    cam, d, images = parking_drive
+    gt = d.relative_motion
+    back, fwd = _segments(gt)
+    assert back.sum() > 30 and fwd.sum() > 60
+    for max_speed in (0.1, 0.0):
+        odo, steps = _run(cam, d, images, max_speed)
+        est = np.array([s.motion for s in steps[1:]])
+        direction = np.array([s.direction_of_travel for s in steps[1:]])
+        read = est[back, 0].sum() / gt[back, 0].sum()
+        print(f"standstill_max_speed {max_speed}: reversing read {read:.3f} of {-gt[back, 0].sum():.2f} m; "
+              f"directions while reversing {dict(zip(*np.unique(direction[back], return_counts=True)))}")
+        if max_speed > 0:
+            assert 0.85 < read < 1.15
+            assert (direction[back] == "reverse").mean() > 0.9
+            assert direction[-1] == "forward" and est[-1, 0] > 0.2
+        else:
+            assert read < 0.75 and set(direction) == {"forward"}  # only what DIRECTION_TOLERANCE lets through
+
+
+def test_a_signed_speed_gives_the_direction_an_unsigned_one_takes_it_from_the_images(parking_drive):
+    """A signed speed (wheel odometry in the base frame: negative reversing) sets the direction of
+    travel itself: with the standstill check off (the images cannot confirm a stop) the reversing is
+    followed, the correlation searching backwards (direction ``reverse``). An unsigned one (a GNSS
+    speed over ground, a wheel's magnitude) takes its sign from the images: after the stop they
+    confirm, from the correlation's reading, then from the direction of travel. Each lands the drive's
+    endpoint within 2 % of its path (measured 1.1 % and 0.8 %). An unsigned speed with no stop confirmed
+    stays forward and reads the reversing forwards (measured 45 %: the test can fail)."""
+    cam, d, images = parking_drive
+    gt = d.relative_motion
+    back, _ = _segments(gt)
+    mids = 0.5 * (d.frame_stamps[1:] + d.frame_stamps[:-1])
+    v = gt[:, 0] / np.diff(d.frame_stamps)
+    noise = np.random.default_rng(3).normal(0.0, 0.05, v.size)
+    path = float(np.hypot(gt[:, 0], gt[:, 1]).sum())
+    for signed, max_speed in ((True, 0.0), (False, 0.1), (False, 0.0)):
+        config = BevoConfig()
+        config.odometry.standstill_max_speed = max_speed
+        odo = build_odometry(config, FUSED, camera=cam)
+        speeds = [(float(t), float(s if signed else abs(s)) + float(e), 0.0025, signed)
+                  for t, s, e in zip(mids, v, noise)]
+        steps = feed_engine(odo, d.imu_stamps, d.gyro, d.accel, d.frame_stamps, lambda k: images[k], trailing=False,
+                            speeds=speeds)
+        est = np.array([s.motion for s in steps[1:]])
+        direction = np.array([s.direction_of_travel for s in steps[1:]])
+        drift = float(np.linalg.norm(_endpoint(est) - _endpoint(gt)) / path)
+        print(f"signed {signed}, standstill_max_speed {max_speed}: drift {drift * 100:.2f} % of {path:.1f} m; "
+              f"directions while reversing {dict(zip(*np.unique(direction[back], return_counts=True)))}")
+        if signed or max_speed > 0:
+            assert (direction[back] == "reverse").mean() > 0.9 and direction[-1] == "forward"
+            assert drift < 0.02
+        else:
+            assert set(direction) == {"forward"} and drift > 0.2
+
+
+def _endpoint(motions: np.ndarray) -> np.ndarray:
+    """The (x, y) reached by composing ``(F, 3)`` planar motions (dx, dy, dyaw) from the origin."""
+    x = y = th = 0.0
+    for dx, dy, dth in motions:
+        x, y, th = x + dx * math.cos(th) - dy * math.sin(th), y + dx * math.sin(th) + dy * math.cos(th), th + dth
+    return np.array([x, y])

@@ -157,8 +157,9 @@ def test_accel_is_specific_force(any_drive):
     # Speed along the road matches the planar motion between frames (no lateral slip): the chord
     # between frames vs the speed's exact integral (arc), and vs the trapezoid of the frame speeds.
     step = np.linalg.norm(drive.relative_motion[:, :2], axis=1)
-    arc = np.diff(drive._motion.speed_profile.integral(drive.frame_stamps - drive.imu_stamps[0]))
-    trap = 0.1 * 0.5 * (drive.speed[1:] + drive.speed[:-1])
+    # as lengths: parking reverses (standing where the direction changes)
+    arc = np.abs(np.diff(drive._motion.speed_profile.integral(drive.frame_stamps - drive.imu_stamps[0])))
+    trap = np.abs(0.1 * 0.5 * (drive.speed[1:] + drive.speed[:-1]))
     print(f"frame steps vs arc length: max rel err {np.abs(step - arc).max() / arc.max():.1e}, vs trapezoid "
           f"{np.abs(step - trap).max() / arc.max():.1e}")
     assert np.allclose(step, arc, rtol=1e-4, atol=1e-9)
@@ -479,7 +480,7 @@ def _rel_t(d: syn.SyntheticDrive) -> np.ndarray:
 
 def test_presets_listed_deterministic_and_checked():
     assert set(syn.PRESETS) == {"curve", "braking", "bend_start", "stop_and_go", "bumpy", "on_ramp", "urban",
-                                "traffic_light", "highway"}
+                                "traffic_light", "highway", "parking"}
     assert all(isinstance(v, str) and len(v) > 20 for v in syn.PRESETS.values())
     a = syn.make_drive(seed=3, preset="curve", duration=3.0, render=False)
     b = syn.preset_drive("curve", seed=3, duration=3.0, render=False)
@@ -565,6 +566,44 @@ def test_preset_stop_and_go():
     assert d.relative_motion[:, 0].min() >= 0.0  # never backwards
     assert np.all(d._motion.speed(np.linspace(-3.0, 50.0, 100001)) >= 0.0)
     assert ((step > 0.099) & (step < 0.101)).sum() >= 10  # holds at 0.1 m/frame
+
+
+def test_preset_parking_reverses():
+    """The one preset that reverses: a stop, 1.5 m/s backwards through a 29 deg turn (the yaw rate's
+    sign with the speed's: the heading turns as a car's does backing into a bay), a stop, forward."""
+    d = syn.make_drive(seed=4, preset="parking", noise=False, render=False)
+    fwd = d.relative_motion[:, 0]
+    back = fwd < -0.1
+    standing = np.abs(fwd) < 1e-9
+    stops = int(np.sum(standing[1:] & ~standing[:-1]))
+    turn = math.degrees(d.relative_motion[back, 2].sum())
+    print(f"\nparking: backwards {-fwd[back].sum():.2f} m over {back.sum()} frames, turning {turn:+.1f} deg; "
+          f"{stops} stops; speed {d.speed.min():.2f}..{d.speed.max():.2f} m/s")
+    assert d.speed.min() == pytest.approx(-1.5) and d.speed.max() == pytest.approx(4.0)
+    assert back.sum() >= 40 and fwd[back].min() == pytest.approx(-0.15, abs=1e-6)
+    assert stops == 2 and standing.sum() >= 30
+    assert turn == pytest.approx(-28.6, abs=0.5)  # -0.2 rad/s for 2.5 s (ramps included)
+    assert fwd[-1] == pytest.approx(0.3, abs=1e-6)  # forward again at 3 m/s
+    moved = np.abs(fwd) > 0.01
+    assert np.all(np.abs(d.relative_motion[moved, 1]) < 0.02)  # no sideslip either way
+
+
+def test_the_road_stands_still_under_a_car_at_rest():
+    """The road's grade and banking pass under a moving car; at a light they stay as they are: at
+    rest the gyro reads nothing and the gravity attitude holds (the slope's and camber's sines run
+    on the road's clock, ``_RoadClock``). Moving at a steady speed the clock is time itself (the
+    drives without a stop are as before)."""
+    d = syn.make_drive(seed=2, preset="traffic_light", noise=False, render=False)
+    rest = np.flatnonzero(np.abs(d.speed) < 1e-9)
+    assert rest.size > 100  # 15 s at rest
+    k = d.frame_imu_index[rest]
+    print(f"\nat rest: |gyro| max {np.abs(d.gyro_true[k]).max():.1e} rad/s, gravity attitude moved "
+          f"{np.degrees(np.ptp(d.pitch_roll_gravity[rest], axis=0))} deg; moving it turns "
+          f"{np.degrees(np.ptp(d.road_slope_camber, axis=0))} deg")
+    assert np.abs(d.gyro_true[k]).max() < 1e-8 and np.ptp(d.pitch_roll_gravity[rest], axis=0).max() < 1e-9
+    assert np.ptp(d.road_slope_camber[:, 0]) > math.radians(0.05)  # the grade changes while it moves
+    assert d._motion.road_clock is not None
+    assert syn.make_drive(seed=2, preset="curve", render=False)._motion.road_clock is None  # 15 m/s throughout
 
 
 def test_preset_bumpy():

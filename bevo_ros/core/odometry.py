@@ -373,6 +373,7 @@ class BevoOdometry:
         self._frame_clock.reset()
         self._ext_speed = None  # (stamp, VehicleState) from add_speed
         self._speed_log: deque[tuple[float, float, float]] = deque(maxlen=4000)  # add_speed's (stamp, m/s, var)
+        self._speed_unsigned = False  # the latest add_speed was a magnitude: its sign is the direction of travel
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
         self._gyro_prev = None  # fused: the previous IMU sample's rates
         self._gyro_prev2 = None  # fused: the sample before that, (rates, yaw rate about the vertical); its interval is the previous _imu_dt
@@ -570,15 +571,23 @@ class BevoOdometry:
         out += self._release(lambda s: s <= stamp)
         return out
 
-    def add_speed(self, stamp: float, speed: float, variance: float = 0.01) -> None:
+    def add_speed(self, stamp: float, speed: float, variance: float = 0.01, signed: bool = True) -> None:
         """Fused mode: a forward speed that does not come from the images (wheel odometry, CAN),
-        m/s (signed: negative reversing) with its variance. While fresh (``max_speed_age``) the DUKF
+        m/s with its variance. While fresh (``max_speed_age``) the DUKF
         removes the whole vehicle acceleration with it, forward dv/dt included (see :meth:`_fuse_imu`),
         and the motion filter measures each frame's speed with its mean over the frame interval
         (:meth:`_external_speed`) before the images do: the scale then comes from it, no longer from
-        the BEV's pitch. Feed it in stamp order with the IMU and images."""
+        the BEV's pitch. Feed it in stamp order with the IMU and images.
+
+        ``signed``: negative reversing, and beyond ``DIRECTION_SPEED`` it sets the direction of travel
+        itself (no stop the images confirm needed). Unsigned (a GNSS speed over ground, a wheel's
+        magnitude): its size only, the direction from the images (:attr:`direction_of_travel`, else
+        the motion filter's speed; after a stop the correlation's sign, :meth:`_fused_motion`)."""
         if not (math.isfinite(stamp) and math.isfinite(speed) and math.isfinite(variance) and variance > 0):
             raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
+        self._speed_unsigned = not signed
+        if not signed:  # the speed crosses zero where the sign changes: no jump in the DUKF's dv/dt
+            speed = abs(speed) if (self._direction or (1 if self._vstate.v >= 0 else -1)) > 0 else -abs(speed)
         if self._ext_speed is None:
             state = self.vehicle.step(initial_vehicle_state(), 1.0, 0.0, forward=speed, forward_var=variance).state
         else:
@@ -956,7 +965,9 @@ class BevoOdometry:
         imu_var = None if imu_accel is None else 0.0  # vibration: imu_accel_density; gravity's error: beta
         predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_var), dt)
         outside = self._external_speed(self._prev_stamp, stamp) if self._speed_log else None
-        if outside is not None:  # the correlation's prior, and the filter below, start from it
+        # An unsigned speed after a stop (direction either way): the correlation's reading gives its sign (below).
+        signless = outside is not None and self._speed_unsigned and self._direction == 0
+        if outside is not None and not signless:  # the correlation's prior, and the filter below, start from it
             predicted = self.vehicle.speed_update(predicted, *outside)
         # The BEV shift (px) of no motion of the base over this frame: the pitch-change shift and the
         # turn about the BEV's centre. A base motion (dx, dy) adds (dx, dy) / mpp to it (core/motion).
@@ -1017,6 +1028,11 @@ class BevoOdometry:
                             speed_forgotten = True
         if reg.shift_gated is not None and bool(reg.shift_gated[0]):
             self.counters.gated_peak += 1  # a state, not an event: following a car would crowd the events out
+        if signless:
+            # the images' direction once their reading is clear of zero (3 sigma); until then no speed
+            forward, std = float(measured[0]), math.sqrt(float(cov[0, 0]))
+            outside = None if still or abs(forward) <= 3.0 * std else (math.copysign(abs(outside[0]), forward),
+                                                                        outside[1])
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
                       quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, rest_var=rest_var)
@@ -1033,6 +1049,10 @@ class BevoOdometry:
         self._accel_has_inertial = imu_accel is not None
         if still:
             self._direction = 0
+        elif outside is not None and not self._speed_unsigned and abs(outside[0]) > DIRECTION_SPEED:
+            # A signed speed says the direction without a stop the images confirm (dark, plain road,
+            # standstill check off).
+            self._direction = 1 if outside[0] > 0 else -1
         elif self._direction == 0 and abs(frame.state.v) > DIRECTION_SPEED:
             self._direction = 1 if frame.state.v > 0 else -1
         acc_t, acc_r = bool(frame.accepted[0]), bool(frame.accepted[1])

@@ -9,7 +9,7 @@ import os
 import warnings
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -436,15 +436,21 @@ def stamp_order(imu_stamps, frame_stamps, image_first: bool = False,
 
 
 def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: bool = False,
-                trailing: bool = True, by_stamp: bool = False) -> list:
+                trailing: bool = True, by_stamp: bool = False,
+                speeds: Sequence[tuple[float, float, float]] = ()) -> list:
     """Feed ``odo`` (a ``BevoOdometry``) in :func:`stamp_order`, then flush; ``image(k)`` gives frame
-    ``k``. Returns every ``OdometryStep``."""
-    steps = []
+    ``k``; ``speeds``, ``(stamp, m/s, variance)`` in stamp order (``add_speed``), each before the
+    first IMU sample or image stamped at or after it. Returns every ``OdometryStep``."""
+    steps, n = [], 0
     for kind, j in stamp_order(imu_stamps, frame_stamps, image_first, trailing, by_stamp):
+        stamp = float(imu_stamps[j] if kind == "imu" else frame_stamps[j])
+        while n < len(speeds) and speeds[n][0] <= stamp:
+            odo.add_speed(*speeds[n])
+            n += 1
         if kind == "imu":
-            steps += odo.add_imu(float(imu_stamps[j]), gyro[j], accel[j])
+            steps += odo.add_imu(stamp, gyro[j], accel[j])
         else:
-            steps += odo.add_image(float(frame_stamps[j]), image(j))
+            steps += odo.add_image(stamp, image(j))
     return steps + odo.flush()
 
 

@@ -327,7 +327,7 @@ class Journal:
 
     ``(kind, stamp, raw, tag)`` entries (kind ``imu``, ``image``, ``flush``, ``set_pose`` or ``speed``;
     ``raw`` the caller's input before the rig made it the engine's: the IMU in its own axes, the image
-    message, the set_pose arguments, the speed and its variance). Bounded:
+    message, the set_pose arguments, the speed, its variance and whether it is signed). Bounded:
     past ``max_imu`` IMU or ``max_images`` image entries, or past ``frames`` frames out, it stops
     (``active`` false) and forgets them until the next restart.
     """
@@ -507,9 +507,10 @@ class EngineFeed:
         self._journal("imu", t, raw)
         return steps
 
-    def speed(self, t: float, speed: float, variance: float) -> list | None:
-        """One vehicle speed (m/s, its variance), finite (the node checked it). Before the engine it
-        is kept (bounded, as the IMU) and fed with the IMU once the camera is known."""
+    def speed(self, t: float, speed: float, variance: float, signed: bool = True) -> list | None:
+        """One vehicle speed (m/s, its variance, whether it is signed: ``add_speed``), finite (the node
+        checked it). Before the engine it is kept (bounded, as the IMU) and fed with the IMU once the
+        camera is known."""
         newest = self.last_imu_stamp
         if newest is not None and t > newest + self.settings.max_time_jump_forward:
             # one far ahead would make every later speed out of order until a reset
@@ -521,15 +522,15 @@ class EngineFeed:
             if len(self._speed_backlog) == self._speed_backlog.maxlen:
                 self.report.drop("no_camera_info", f"speed at {self._speed_backlog[0][0]:.6f}: more than "
                                                    f"{self._speed_backlog.maxlen} speeds waited for the calibration")
-            self._speed_backlog.append((t, (speed, variance)))
+            self._speed_backlog.append((t, (speed, variance, signed)))
             return None
         try:
-            self.engine.add_speed(t, speed, variance)
+            self.engine.add_speed(t, speed, variance, signed)
         except OutOfOrderError as exc:  # dropped, never a reset: the IMU's and images' timeline decides those
             self.report.drop("speed_duplicate" if exc.jump == 0 else "speed_out_of_order",
                              f"speed stamp {t:.9f} is not after the previous speed stamp {exc.last:.9f}")
             return None
-        self._journal("speed", t, (speed, variance))
+        self._journal("speed", t, (speed, variance, signed))
         return []
 
     def image(self, t: float, raw, tag) -> list | None:

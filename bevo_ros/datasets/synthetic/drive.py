@@ -16,7 +16,7 @@ from bevo_ros.core.geometry import CameraModel
 from bevo_ros.core.rate_integration import GYRO_SAMPLING
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
-from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_hills, _random_motion, _rpy,
+from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_hills, _random_motion, _RoadClock, _rpy,
                                                 _rx, _ry, _rz, _with_preset)
 from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
@@ -199,7 +199,7 @@ def make_drive(
         start_pose: world ``(x, y, yaw)`` at the first frame; default random.
         preset: a named, deterministic manoeuvre (:data:`PRESETS`: ``curve``, ``braking``,
             ``bend_start``, ``stop_and_go``, ``bumpy``, ``on_ramp``, ``urban``, ``traffic_light``,
-            ``highway``): it fixes speed and yaw rate (``speed_range``,
+            ``highway``, ``parking``, the one that reverses): it fixes speed and yaw rate (``speed_range``,
             ``speed_variation``, ``curvature``, ``max_yaw_rate``, ``max_lateral_accel`` are then unused);
             suspension, bumps, road tilt, start pose and noise still follow ``seed`` and the other
             arguments. None = the seeded random drive.
@@ -289,10 +289,16 @@ def make_drive(
     v_ref = speed_range[1]  # vibration envelope: relative to the fastest speed
     if pre_set is not None:
         motion = _with_preset(motion, pre_set, np.random.default_rng([int(seed), 5]), -pre, t_imu[-1] + post, bumps)
+    # the road's grade and banking stand still under a car at rest (1 s of margin for the IMU's differences)
+    motion = replace(motion, road_clock=_RoadClock.of(motion, -pre - 1.0, t_imu[-1] + post + 1.0))
     if vertical_curves:
         # past the end by the renderer's reach (haze_end), so the last frame sees its road ahead
         hills_range = (float(motion.distance(-pre)), float(motion.distance(t_imu[-1] + post)) + options.haze_end)
-        v_max = float(motion.speed(np.linspace(-pre, t_imu[-1] + post, 2000)).max())
+        span = np.linspace(-pre, t_imu[-1] + post, 2000)
+        v_max = float(np.abs(motion.speed(span)).max())
+        if pre_set is not None and pre_set.reverses:  # the distance travelled is not monotonic
+            s = motion.distance(span)
+            hills_range = (float(s.min()), float(s.max()) + options.haze_end)
         motion = replace(motion, hills=_random_hills(np.random.default_rng([int(seed), 7]), *hills_range, v_max))
     # Dense grid (>= 1 kHz, containing every IMU stamp) for the position integral.
     sub = max(1, int(math.ceil(1000.0 / imu_rate)))
@@ -304,9 +310,9 @@ def make_drive(
     xy_imu = xy_dense[j_pre + np.arange(n_imu) * sub]
     if pre_set is not None:
         v_dense = motion.speed(t_dense)
-        if v_dense.min() < 0:  # a preset bug, never the user's
+        if v_dense.min() < 0 and not pre_set.reverses:  # a preset bug, never the user's
             raise AssertionError(f"preset {preset!r} reverses (speed {v_dense.min():.3g} m/s)")
-        v_ref = float(v_dense.max())
+        v_ref = float(np.abs(v_dense).max())
 
     yaw = motion.yaw(t_imu)
     r_grav = motion.r_grav_base(t_imu)

@@ -40,7 +40,7 @@ def noisy_imu(gyro_true: np.ndarray, accel_true: np.ndarray, t_imu: np.ndarray, 
         nrng.normal(0, imu_noise.accel_bias_walk * math.sqrt(dt), (n_imu, 3)), 0)
     # Vibration: engine harmonics (speed-dependent amplitude) + broadband road roughness.
     vib = np.zeros((n_imu, 3))
-    env = 0.5 + 0.5 * speed / max(v_ref, 1e-3)
+    env = 0.5 + 0.5 * np.abs(speed) / max(v_ref, 1e-3)
     nyq = 0.5 * imu_rate
     for axis, gain in enumerate((0.7, 0.7, 1.5)):
         for _ in range(3):

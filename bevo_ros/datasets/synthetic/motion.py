@@ -9,7 +9,9 @@ Model of the drive (all signals are smooth analytic functions of time, so the IM
   load transfer from the longitudinal/lateral acceleration) and its
   height follows from the fixed camera height (the geometry module's constant-elevation model);
 * the road is tilted against gravity by a slowly varying slope and camber, defined relative to
-  the heading (a banked, graded road the car follows):
+  the heading (a banked, graded road the car follows); they vary with the road's own clock,
+  which runs with the suspension's excitation (``_RoadClock``), so under a car at rest the road
+  does not tilt:
   ``R_grav_base = Rz(yaw) @ Ry(slope) @ Rx(camber) @ Ry(pitch_rel) @ Rx(roll_rel)``;
 * the velocity in the gravity frame is the road-frame velocity carried by the local road tilt,
   ``v_grav = Rz(yaw) Ry(slope) Rx(camber) [v, 0, dz/dt]``; its time derivative is the kinematic
@@ -17,8 +19,8 @@ Model of the drive (all signals are smooth analytic functions of time, so the IM
   create huge spurious accelerations far from the origin);
 * speed and yaw rate are seeded random (sines, curve events) or a named preset (:data:`PRESETS`:
   sustained curve, hard braking, start inside a bend, stop-and-go, bumpy road, on-ramp, urban,
-  traffic light, highway) built from C4 smooth steps with closed-form integrals; the suspension,
-  road tilt and noise stay seeded either way;
+  traffic light, highway, parking: the one that reverses) built from C4 smooth steps with
+  closed-form integrals; the suspension, road tilt and noise stay seeded either way;
 * gyro = body angular velocity of ``R_grav_base`` (5-point central differences of the analytic
   rotation, error ~1e-9 rad/s), accel = specific force ``R_grav_base^T (a_grav + [0, 0, g])``
   (error ~3e-8 m/s^2).
@@ -316,7 +318,7 @@ _DEG = math.pi / 180.0
 class _Motion:
     """Analytic drive signals of relative time ``t`` (seconds from the first stamp)."""
 
-    speed_profile: _Profile  # v(t) >= 0, m/s
+    speed_profile: _Profile  # v(t) m/s, negative reversing (only the ``parking`` preset)
     yaw0: float
     yaw_rate_profile: _Profile  # rad/s; yaw = yaw0 + its integral
     pitch_sines: _Sines
@@ -337,10 +339,13 @@ class _Motion:
     # Crests and sags: slope steps as a function of the distance travelled (m -> rad), a road's
     # vertical curves; the renderer bends the road ahead with them (the drive's ``road_profile``).
     hills: _Ramps | None = None
+    # The clock the slope's and camber's sines run on (None: time itself, a drive never slower
+    # than excitation_speed): it stops with the car.
+    road_clock: "_RoadClock | None" = None
 
     def excitation(self, t):
-        """Road excitation of the suspension in [0, 1]: a C2 smoothstep of ``speed / excitation_speed``."""
-        u = np.clip(self.speed(t) / self.excitation_speed, 0.0, 1.0)
+        """Road excitation of the suspension in [0, 1]: a C2 smoothstep of ``|speed| / excitation_speed``."""
+        u = np.clip(np.abs(self.speed(t)) / self.excitation_speed, 0.0, 1.0)
         return u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
 
     def speed(self, t):
@@ -366,12 +371,17 @@ class _Motion:
         """Distance travelled since ``t = 0`` (negative before), m."""
         return self.speed_profile.integral(np.asarray(t, dtype=np.float64), 0.0)
 
+    def road_time(self, t):
+        """The road's clock (s): ``t`` while the car moves faster than ``excitation_speed``, slower
+        below it, standing still with the car."""
+        return t if self.road_clock is None else self.road_clock(t)
+
     def slope(self, t):
-        out = self.slope0 + self.slope_sines(t)
+        out = self.slope0 + self.slope_sines(self.road_time(t))
         return out if self.hills is None else out + self.hills(self.distance(t))
 
     def camber(self, t):
-        return self.camber0 + self.camber_sines(t)
+        return self.camber0 + self.camber_sines(self.road_time(t))
 
     def r_road_base(self, t):
         return _ry(self.pitch_rel(t)) @ _rx(self.roll_rel(t))
@@ -407,6 +417,34 @@ class _Motion:
         """Accelerometer reading without noise, ``(N, 3)`` m/s^2 in the base frame."""
         a = _d5(self.vel_grav, t) + np.array([0.0, 0.0, GRAVITY])
         return (np.swapaxes(self.r_grav_base(t), -1, -2) @ a[..., None])[..., 0]
+
+
+@dataclass(frozen=True)
+class _RoadClock:
+    """``tau(t) = integral of excitation(t) dt`` from ``tau(0) = 0``: the slope and camber (seeded
+    sines of time, as a road's grade and banking pass under a car at a steady speed) stand still
+    while the car does. A cubic Hermite spline through the integral on a 1 ms grid, its slope the
+    excitation itself at each node, so the IMU's finite differences see a smooth clock."""
+
+    spline: object  # scipy.interpolate.CubicHermiteSpline
+
+    @staticmethod
+    def of(m: "_Motion", t_lo: float, t_hi: float) -> "_RoadClock | None":
+        """The clock over ``[t_lo, t_hi]`` (s; evaluated beyond it the spline extrapolates), or None
+        where the car never drops below ``excitation_speed`` there (then it is time itself)."""
+        from scipy.interpolate import CubicHermiteSpline
+
+        n = int(math.ceil((t_hi - t_lo) / 1e-3))
+        grid = np.linspace(t_lo, t_hi, n + 1)
+        rate = m.excitation(grid)
+        if rate.min() >= 1.0:
+            return None
+        tau = np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(grid))])
+        tau -= np.interp(0.0, grid, tau)
+        return _RoadClock(CubicHermiteSpline(grid, tau, rate))
+
+    def __call__(self, t):
+        return self.spline(t)
 
 
 def _random_motion(rng: np.random.Generator, t_lo: float, t_hi: float, *, speed_range, speed_variation,
@@ -489,6 +527,7 @@ class _Preset:
     bumps_gain: float = 1.0  # times the ``bumps`` argument
     vibration_gain: float = 1.0  # times ImuNoise.accel_vibration
     bump_rate: float = 0.0  # extra short bump events per second (potholes, joints)
+    reverses: bool = False  # the speed goes negative (only then may it)
 
 
 def _stop_and_go_speed() -> _Ramps:
@@ -538,6 +577,12 @@ _PRESETS: dict[str, _Preset] = {
         "pulling away to 8 m/s by t = 30 s and turning right; 32 s",
         32.0, _levels(10.0, [(1.0, 8.0, 0.0), (24.0, 6.0, 8.0)]),
         _levels(0.0, [(2.0, 2.0, 0.03), (5.0, 2.0, 0.0), (27.0, 2.0, -0.08), (30.0, 2.0, 0.0)])),
+    "parking": _Preset(
+        "parking: 4 m/s braking to a stop at t = 4 s, 2 s at rest, reversing at 1.5 m/s from t = 6 s with a 29 deg "
+        "turn into a bay (7.5 m radius, t = 7.5..11 s), stopping at t = 13 s, 2 s at rest, pulling away "
+        "forward to 3 m/s by t = 18 s; 22 s",
+        22.0, _levels(4.0, [(1.0, 3.0, 0.0), (6.0, 2.0, -1.5), (11.0, 2.0, 0.0), (15.0, 3.0, 3.0)]),
+        _levels(0.0, [(7.5, 1.0, -0.2), (10.0, 1.0, 0.0)]), reverses=True),
     "highway": _Preset(
         "highway: 28 m/s (100 km/h) into a 1000 m radius left curve (0.028 rad/s) at t = 2 s, a gentle right one "
         "at t = 7 s, slowing to 25 m/s over t = 6..10 s; 12 s",
