@@ -416,7 +416,7 @@ def test_a_signed_speed_gives_the_direction_an_unsigned_one_takes_it_from_the_im
     followed, the correlation searching backwards (direction ``reverse``). An unsigned one (a GNSS
     speed over ground, a wheel's magnitude) takes its sign from the images: after the stop they
     confirm, from the correlation's reading, then from the direction of travel. Each lands the drive's
-    endpoint within 2 % of its path (measured 1.1 % and 0.8 %). An unsigned speed with no stop confirmed
+    endpoint within 2 % of its path (measured 1.1 % and 0.9 %). An unsigned speed with no stop confirmed
     stays forward and reads the reversing forwards (measured 45 %: the test can fail)."""
     cam, d, images = parking_drive
     gt = d.relative_motion
@@ -443,6 +443,35 @@ def test_a_signed_speed_gives_the_direction_an_unsigned_one_takes_it_from_the_im
             assert drift < 0.02
         else:
             assert set(direction) == {"forward"} and drift > 0.2
+
+
+def test_an_unsigned_speed_behind_a_car_pulling_away_stays_forward():
+    """At the light a car ahead pulls away first, which in the BEV moves as the road would if the
+    ego reversed. An unsigned speed takes its sign from the correlation after the stop, only once
+    that reading is clear of zero: the engine pulls away forward, never ``reverse``, and drifts as
+    with a signed speed (measured 0.80 % against 0.75 %; the whole drive, 32 s). The correlation's
+    prior and the direction lock hold the car's peak out here even with no margin over zero: the
+    test guards the case, it does not single out the 3-sigma margin."""
+    cam = half_camera()
+    d = preset_drive("traffic_light", seed=1, render="lazy", camera=cam, imu_rate=10.0, traffic=True)
+    images = [d.image(k) for k in range(d.num_frames)]
+    gt = d.relative_motion
+    mids = 0.5 * (d.frame_stamps[1:] + d.frame_stamps[:-1])
+    v = gt[:, 0] / np.diff(d.frame_stamps)
+    noise = np.random.default_rng(3).normal(0.0, 0.05, v.size)
+    path = float(np.hypot(gt[:, 0], gt[:, 1]).sum())
+    drift = {}
+    for signed in (True, False):
+        odo = build_odometry(BevoConfig(), FUSED, camera=cam)
+        speeds = [(float(t), abs(float(s) + float(e)), 0.0025, signed) for t, s, e in zip(mids, v, noise)]
+        steps = feed_engine(odo, d.imu_stamps, d.gyro, d.accel, d.frame_stamps, lambda k: images[k], trailing=False,
+                            speeds=speeds)
+        est = np.array([s.motion for s in steps[1:]])
+        direction = [s.direction_of_travel for s in steps[1:]]
+        drift[signed] = float(np.linalg.norm(_endpoint(est) - _endpoint(gt)) / path)
+        print(f"signed {signed}: drift {drift[signed] * 100:.2f} %; directions {sorted(set(direction))}")
+        assert "reverse" not in direction and direction[-1] == "forward" and odo.counters.standstill > 50
+    assert drift[False] < max(2 * drift[True], 0.01)
 
 
 def _endpoint(motions: np.ndarray) -> np.ndarray:

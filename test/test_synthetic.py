@@ -584,6 +584,8 @@ def test_preset_parking_reverses():
     assert stops == 2 and standing.sum() >= 30
     assert turn == pytest.approx(-28.6, abs=0.5)  # -0.2 rad/s for 2.5 s (ramps included)
     assert fwd[-1] == pytest.approx(0.3, abs=1e-6)  # forward again at 3 m/s
+    with pytest.raises(ValueError, match="reverses"):  # other cars follow the path forwards
+        syn.make_drive(seed=4, preset="parking", traffic=True, render=False)
     moved = np.abs(fwd) > 0.01
     assert np.all(np.abs(d.relative_motion[moved, 1]) < 0.02)  # no sideslip either way
 

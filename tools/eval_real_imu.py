@@ -48,7 +48,7 @@ import torch
 from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry
 from bevo_ros.datasets.kitti import read_oxts
 from bevo_ros.datasets.rosbag import feed_engine
-from bevo_ros.datasets.synthetic import PRESETS, kitti_like_camera, preset_drive
+from bevo_ros.datasets.synthetic import PRESETS, REVERSING_PRESETS, kitti_like_camera, preset_drive
 from bevo_ros.datasets.synthetic.imu import ImuNoise
 from bevo_ros.datasets.synthetic.oxts_drive import drive_from_oxts
 from bevo_ros.evaluation.metrics import motion_scores
@@ -256,6 +256,11 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             print(f"eval_real_imu: unknown presets {unknown}; choose from {sorted(PRESETS)}", file=sys.stderr)
             return 2
+        if args.traffic and REVERSING_PRESETS & set(names):
+            left = sorted(REVERSING_PRESETS & set(names))
+            print(f"eval_real_imu: {', '.join(left)} left out: other cars follow the path forwards, and it reverses",
+                  file=sys.stderr)
+            names = [n for n in names if n not in REVERSING_PRESETS]
         sources = [(f"{n}/{s}", n, int(s)) for n in names for s in args.seeds.split(",")]
     elif not args.raw.is_dir():
         print(f"eval_real_imu: {args.raw} not found (the shared KITTI data)", file=sys.stderr)

@@ -271,7 +271,10 @@ class BevoOdometry:
             -9 m/s. After a confirmed stop either direction; the first one the motion filter's speed
             passes :data:`DIRECTION_SPEED` in is kept. Reversing without a confirmed stop (the
             images too dark or plain to confirm one, or the standstill check off) is then not
-            followed: turn it off where a vehicle reverses so.
+            followed: turn it off where a vehicle reverses so. A signed vehicle speed
+            (:meth:`add_speed`) sets the direction itself; an unsigned one takes the direction the
+            engine keeps (freed only by a confirmed stop, lock or not): reversing with one needs a
+            confirmed stop whatever this setting.
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
@@ -581,8 +584,9 @@ class BevoOdometry:
 
         ``signed``: negative reversing, and beyond ``DIRECTION_SPEED`` it sets the direction of travel
         itself (no stop the images confirm needed). Unsigned (a GNSS speed over ground, a wheel's
-        magnitude): its size only, the direction from the images (:attr:`direction_of_travel`, else
-        the motion filter's speed; after a stop the correlation's sign, :meth:`_fused_motion`)."""
+        magnitude): its size only, the sign that of the direction of travel the engine keeps (set
+        by the motion filter's speed once past ``DIRECTION_SPEED`` after a stop the images confirm;
+        right after one, the correlation's reading once clear of zero, :meth:`_fused_motion`)."""
         if not (math.isfinite(stamp) and math.isfinite(speed) and math.isfinite(variance) and variance > 0):
             raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
         self._speed_unsigned = not signed

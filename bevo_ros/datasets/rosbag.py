@@ -437,10 +437,10 @@ def stamp_order(imu_stamps, frame_stamps, image_first: bool = False,
 
 def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: bool = False,
                 trailing: bool = True, by_stamp: bool = False,
-                speeds: Sequence[tuple[float, float, float]] = ()) -> list:
+                speeds: Sequence[tuple] = ()) -> list:
     """Feed ``odo`` (a ``BevoOdometry``) in :func:`stamp_order`, then flush; ``image(k)`` gives frame
-    ``k``; ``speeds``, ``(stamp, m/s, variance)`` in stamp order (``add_speed``), each before the
-    first IMU sample or image stamped at or after it. Returns every ``OdometryStep``."""
+    ``k``; ``speeds``, ``add_speed``'s arguments ``(stamp, m/s, variance[, signed])`` in stamp order,
+    each before the first IMU sample or image stamped at or after it. Returns every ``OdometryStep``."""
     steps, n = [], 0
     for kind, j in stamp_order(imu_stamps, frame_stamps, image_first, trailing, by_stamp):
         stamp = float(imu_stamps[j] if kind == "imu" else frame_stamps[j])

@@ -16,8 +16,8 @@ from bevo_ros.core.geometry import CameraModel
 from bevo_ros.core.rate_integration import GYRO_SAMPLING
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
-from bevo_ros.datasets.synthetic.motion import (_PRESETS, _integrate_xy, _Motion, _random_hills, _random_motion, _RoadClock, _rpy,
-                                                _rx, _ry, _rz, _with_preset)
+from bevo_ros.datasets.synthetic.motion import (_PRESETS, REVERSING_PRESETS, _integrate_xy, _Motion, _random_hills,
+                                                _random_motion, _RoadClock, _rpy, _rx, _ry, _rz, _with_preset)
 from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
 
@@ -249,6 +249,9 @@ def make_drive(
     traffic = as_traffic_options(traffic)
     if vertical_curves and traffic is not None:
         raise ValueError("vertical_curves and traffic cannot be combined: the vehicles stand on the road's plane")
+    if traffic is not None and preset in REVERSING_PRESETS:
+        raise ValueError(f"traffic cannot be combined with the {preset!r} preset: the vehicles follow the "
+                         "drive's path forwards, and it reverses")
     if not (math.isfinite(float(grade)) and abs(float(grade)) <= 0.35):
         raise ValueError(f"grade must be a finite angle within +-0.35 rad (20 deg), got {grade!r}")
     if render not in (True, False, "lazy"):

@@ -35,7 +35,7 @@ import numpy as np
 
 from bevo_ros.core.geometry import CameraModel
 
-__all__ = ["GRAVITY", "PRESETS"]
+__all__ = ["GRAVITY", "PRESETS", "REVERSING_PRESETS"]
 
 GRAVITY = 9.80665
 
@@ -592,6 +592,8 @@ _PRESETS: dict[str, _Preset] = {
 
 PRESETS: dict[str, str] = {name: p.description for name, p in _PRESETS.items()}
 """Named deterministic drives for :func:`make_drive` ``(preset=...)``: name -> description."""
+REVERSING_PRESETS: frozenset[str] = frozenset(name for name, p in _PRESETS.items() if p.reverses)
+"""The presets whose car reverses (no traffic with them: other cars follow the path forwards)."""
 
 
 def _random_hills(rng: np.random.Generator, s_lo: float, s_hi: float, v_max: float) -> _Ramps:
