@@ -93,8 +93,9 @@ DESCRIPTIONS = {
                       "pose in odom_frame at the header stamp (0: at the latest frame); x, y, z and yaw are set, the "
                       "attitude is measured; empty disables",
     "speed_topic": "a vehicle speed input the motion filter fuses each frame (wheel odometry, CAN, GNSS; empty "
-                   "disables): in base_frame its linear.x (signed), in another frame its horizontal speed; the "
-                   "odometry's scale is then that speed's, so calibrate it",
+                   "disables): in base_frame its linear.x (signed), in another frame its horizontal speed "
+                   "(unsigned: the direction of travel from the images); the odometry's scale is then that "
+                   "speed's, so calibrate it",
     "speed_type": "speed_topic's message type: 'odometry' (nav_msgs/Odometry), 'twist' (geometry_msgs/TwistStamped) "
                   "or 'twist_with_covariance' (geometry_msgs/TwistWithCovarianceStamped)",
     "speed_variance": "variance of speed_topic's speed, (m/s)^2, where the message's twist covariance has none",
