@@ -603,12 +603,13 @@ class BevoOdometry:
         self._ext_speed = (stamp, state)
         self._speed_log.append((stamp, float(speed), float(variance)))
 
-    def _external_speed(self, t0: float, t1: float) -> tuple[float, float] | None:
+    def _external_speed(self, t0: float, t1: float, magnitude: bool = False) -> tuple[float, float] | None:
         """add_speed's mean speed over the frame interval ``[t0, t1]`` (linear between its samples,
         held for ``max_speed_age`` past the ends) and the mean of their variances (a wheel's error,
         its scale, is the same for the interval's samples); None where no sample lies within
         ``max_speed_age`` of some part of the interval. What has arrived by the frame's processing
-        (the IMU sample after its stamp): a speed stamped before ``t1`` arriving later is not used."""
+        (the IMU sample after its stamp): a speed stamped before ``t1`` arriving later is not used.
+        ``magnitude``: the mean of their sizes (an unsigned speed whose sign is yet to be given)."""
         age = self.max_speed_age
         near = []  # newest first, back to the interval's start: a few samples, not the whole log
         for e in reversed(self._speed_log):
@@ -623,7 +624,7 @@ class BevoOdometry:
         if len(ts) > 1 and float(np.diff(np.clip(ts, t0, t1)).max()) > 2 * age:
             return None
         knots = np.concatenate([[t0], ts[(ts > t0) & (ts < t1)], [t1]])
-        values = np.interp(knots, ts, np.array([e[1] for e in near]))
+        values = np.interp(knots, ts, np.array([abs(e[1]) if magnitude else e[1] for e in near]))
         mean = float(np.sum(0.5 * (values[1:] + values[:-1]) * np.diff(knots)) / (t1 - t0))
         return mean, float(np.mean([e[2] for e in near]))
 
@@ -1035,8 +1036,8 @@ class BevoOdometry:
         if signless:
             # the images' direction once their reading is clear of zero (3 sigma); until then no speed
             forward, std = float(measured[0]), math.sqrt(float(cov[0, 0]))
-            outside = None if still or abs(forward) <= 3.0 * std else (math.copysign(abs(outside[0]), forward),
-                                                                        outside[1])
+            size = self._external_speed(self._prev_stamp, stamp, magnitude=True)
+            outside = None if still or abs(forward) <= 3.0 * std else (math.copysign(size[0], forward), size[1])
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
                       quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, rest_var=rest_var)
