@@ -80,7 +80,7 @@ def generate_launch_description():
         ExecuteProcess(
             cmd=[ExecutableInPackage(executable="play_bag", package=PACKAGE), bag, "--rate", rate,
                  "--namespace", namespace, "--wait-for-subscribers", "10",
-                 "--wait-topics", "/imu/data", "/camera/image_rect", "/camera/camera_info"],
+                 "--wait-params", params_file],  # the node's inputs in its parameters, the speed among them
             output="screen",
             condition=IfCondition(has_bag),
         ),

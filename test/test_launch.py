@@ -152,12 +152,14 @@ def test_launch_file_names_only_what_exists(description):
     parser = play.build_parser()
     args = []
     for c in cmd[1:]:
-        args.append(c if isinstance(c, str) else {"bag": "some_bag", "rate": "1.0", "namespace": "car1"}[c.args[0]])
+        args.append(c if isinstance(c, str) else {"bag": "some_bag", "rate": "1.0", "namespace": "car1",
+                                                   "params_file": "car.yaml"}[c.args[0]])
     parsed = parser.parse_args(args)
     assert parsed.bag == "some_bag" and parsed.namespace == "car1" and "--wait-for-subscribers" in flags
-    defaults = NodeSettings()  # it waits for the node's own inputs (root-namespace bag names)
-    assert set(parsed.wait_topics) == {"/" + defaults.imu_topic, "/" + defaults.image_topic,
-                                       "/" + defaults.camera_info_topic}
+    assert parsed.wait_params == "car.yaml" and parsed.wait_topics is None  # the node's inputs, from its file
+    defaults = NodeSettings()  # the node's own inputs (root-namespace bag names)
+    assert play.node_input_topics(str(REPO / "params" / "kitti.yaml")) == [
+        "/" + defaults.imu_topic, "/" + defaults.image_topic, "/" + defaults.camera_info_topic]
 
     # RViz gets the installed config, in the namespace, each topic it shows remapped to the namespace's
     rviz = [n for n in nodes if n.kwargs["package"] == "rviz2"][0]

@@ -179,6 +179,23 @@ def test_bad_input_exit_2(tmp_path):
     assert proc.returncode == 2 and "missing: bag not found" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_wait_params_waits_for_the_nodes_inputs(tmp_path, small_bag):
+    """``--wait-params FILE`` (what the launch file gives): the bag topics bevo_node subscribes to with
+    that parameters file, its speed input among them; an unusable file is a clear error (exit 2)."""
+    from bevo_ros.commands import play
+
+    params = tmp_path / "car.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    imu_topic: sensors/imu\n    use_camera_info: false\n"
+                      "    speed_topic: /wheel/odometry\n")
+    assert play.node_input_topics(str(params)) == ["/sensors/imu", "/camera/image_rect", "/wheel/odometry"]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    use_camera_info: maybe\n")
+    proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--wait-for-subscribers", "1", "--wait-params",
+                           str(bad)], env=_env(), capture_output=True, text=True, timeout=60)
+    print(proc.stderr.strip())
+    assert proc.returncode == 2 and "use_camera_info" in proc.stderr and "Traceback" not in proc.stderr
+
+
 def test_recorded_qos_replays_tf_static_latched_and_namespace(tmp_path, listener):
     """/tf_static recorded transient local is offered latched: a subscriber that appears after it
     was published still gets it; --namespace moves the sensor topics but not /tf_static."""

@@ -25,6 +25,7 @@ examples:
   bevo play seq06_bag --rate 2 --start 1.5     # twice as fast, from 1.5 s into the bag
   bevo play seq06_bag --topics /imu/data /camera/image_rect --wait-for-subscribers 10
   bevo play seq06_bag --wait-for-subscribers 10 --wait-topics /imu/data /camera/image_rect
+  bevo play seq06_bag --wait-for-subscribers 10 --wait-params params/kitti.yaml   # the node's inputs
 DDS discovery follows ROS_DOMAIN_ID and ROS_AUTOMATIC_DISCOVERY_RANGE (use LOCALHOST on shared
 networks). Ctrl-C stops cleanly (exit code 130).
 """
@@ -57,6 +58,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wait-topics", nargs="+", metavar="TOPIC",
                    help="with --wait-for-subscribers: wait only for these (bag) topics, e.g. the node's inputs "
                         "(topics nobody subscribes to, like ground truth, would otherwise hold the start)")
+    p.add_argument("--wait-params", metavar="FILE",
+                   help="with --wait-for-subscribers: wait too for the inputs bevo_node takes with this parameters "
+                        "file (its imu, image, camera_info and, when set, speed topics), as the launch file does")
     p.add_argument("--namespace", default="", metavar="NS",
                    help="publish the bag's topics under this namespace (/imu/data -> /NS/imu/data), for a node "
                         "started in NS; /tf, /tf_static and /clock stay global")
@@ -148,6 +152,18 @@ class Player:
         return pending
 
 
+def node_input_topics(params_file: str) -> list[str]:
+    """The bag topics bevo_node subscribes to with ``params_file`` (its relative names from the root,
+    as the player publishes a bag's topics into the node's namespace): IMU, images, CameraInfo when
+    it uses it, the speed when set. ConfigError (a ValueError) for an unusable file."""
+    from bevo_ros.config import load_params_file
+    from bevo_ros.ros.settings import settings_from_flat
+
+    s = settings_from_flat(load_params_file(params_file))
+    names = [s.imu_topic, s.image_topic, s.camera_info_topic if s.use_camera_info else "", s.speed_topic]
+    return ["/" + n.lstrip("/") for n in names if n]
+
+
 def play(player: Player, args, start_ns: int | None) -> None:
     """Publish every message at its bag time (scaled by ``args.rate``), with /clock."""
     wall0 = bag0 = None
@@ -197,6 +213,8 @@ def main(argv: list[str] | None = None) -> int:
             raise UserError(f"{args.bag}: no messages to play")
         first_ns, _ = bag.bag_time_range(args.bag)
         recorded = bag.topic_qos(args.bag)
+        if args.wait_params:
+            args.wait_topics = [*(args.wait_topics or []), *node_input_topics(args.wait_params)]
     except (UserError, FileNotFoundError, ValueError) as exc:
         print(f"{prog_name('play_bag')}: error: {exc}", file=sys.stderr)
         return 2
