@@ -159,7 +159,7 @@ def test_launch_file_names_only_what_exists(description):
     assert parsed.wait_params == "car.yaml" and parsed.wait_topics is None  # the node's inputs, from its file
     defaults = NodeSettings()  # the node's own inputs (root-namespace bag names)
     assert play.node_input_topics(str(REPO / "params" / "kitti.yaml")) == [
-        "/" + defaults.imu_topic, "/" + defaults.image_topic, "/" + defaults.camera_info_topic]
+        defaults.imu_topic, defaults.image_topic, defaults.camera_info_topic]
 
     # RViz gets the installed config, in the namespace, each topic it shows remapped to the namespace's
     rviz = [n for n in nodes if n.kwargs["package"] == "rviz2"][0]

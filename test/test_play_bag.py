@@ -179,21 +179,28 @@ def test_bad_input_exit_2(tmp_path):
     assert proc.returncode == 2 and "missing: bag not found" in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_wait_params_waits_for_the_nodes_inputs(tmp_path, small_bag):
-    """``--wait-params FILE`` (what the launch file gives): the bag topics bevo_node subscribes to with
-    that parameters file, its speed input among them; an unusable file is a clear error (exit 2)."""
+def test_wait_params_waits_for_the_nodes_inputs(tmp_path, small_bag, capsys):
+    """``--wait-params FILE`` (what the launch file gives): the topics bevo_node subscribes to with
+    that parameters file, its speed input and compressed images among them, as the bag's names. A
+    file whose node section cannot be read (a namespaced one) or an absolute name under a namespace
+    is said, and the replay goes on with the default inputs."""
     from bevo_ros.commands import play
 
     params = tmp_path / "car.yaml"
     params.write_text("/**:\n  ros__parameters:\n    imu_topic: sensors/imu\n    use_camera_info: false\n"
-                      "    speed_topic: /wheel/odometry\n")
-    assert play.node_input_topics(str(params)) == ["/sensors/imu", "/camera/image_rect", "/wheel/odometry"]
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("/**:\n  ros__parameters:\n    use_camera_info: maybe\n")
-    proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--wait-for-subscribers", "1", "--wait-params",
-                           str(bad)], env=_env(), capture_output=True, text=True, timeout=60)
+                      "    speed_topic: /wheel/odometry\n    image_transport: compressed\n")
+    assert play.node_input_topics(str(params)) == ["sensors/imu", "camera/image_rect/compressed", "/wheel/odometry"]
+    assert play._wait_topics_from_params(str(params), "car1") == [
+        "/sensors/imu", "/camera/image_rect/compressed", "/wheel/odometry"]  # the bag's names
+    assert "/wheel/odometry are absolute" in capsys.readouterr().err
+    ns = tmp_path / "ns.yaml"
+    ns.write_text("/car1/bevo_node:\n  ros__parameters:\n    speed_topic: wheel/odometry\n")
+    proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--wait-for-subscribers", "0.5", "--wait-params",
+                           str(ns), "--namespace", "car1", "-q"],
+                          env=_env(), capture_output=True, text=True, timeout=120)
     print(proc.stderr.strip())
-    assert proc.returncode == 2 and "use_camera_info" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr
+    assert "waiting for the default inputs /imu/data, /camera/image_rect, /camera/camera_info" in proc.stderr
 
 
 def test_recorded_qos_replays_tf_static_latched_and_namespace(tmp_path, listener):

@@ -153,15 +153,38 @@ class Player:
 
 
 def node_input_topics(params_file: str) -> list[str]:
-    """The bag topics bevo_node subscribes to with ``params_file`` (its relative names from the root,
-    as the player publishes a bag's topics into the node's namespace): IMU, images, CameraInfo when
-    it uses it, the speed when set. ConfigError (a ValueError) for an unusable file."""
+    """The topics bevo_node subscribes to with ``params_file``, as its parameters name them (relative
+    or absolute): IMU, images (``<image_topic>/compressed`` with ``image_transport: compressed``),
+    CameraInfo when it uses it, the speed when set. ConfigError (a ValueError) for a file the
+    node's section cannot be read from."""
     from bevo_ros.config import load_params_file
     from bevo_ros.ros.settings import settings_from_flat
 
     s = settings_from_flat(load_params_file(params_file))
-    names = [s.imu_topic, s.image_topic, s.camera_info_topic if s.use_camera_info else "", s.speed_topic]
-    return ["/" + n.lstrip("/") for n in names if n]
+    image = s.image_topic.rstrip("/") + "/compressed" if s.image_transport == "compressed" else s.image_topic
+    return [n for n in (s.imu_topic, image, s.camera_info_topic if s.use_camera_info else "", s.speed_topic) if n]
+
+
+def _wait_topics_from_params(params_file: str, namespace: str) -> list[str]:
+    """``--wait-params``: :func:`node_input_topics` as the bag's names (the player publishes bag topic
+    ``/x`` as ``/NS/x``, where a node in NS subscribes to a relative ``x``). A file it cannot read
+    (a namespaced section: ``/car1/bevo_node``) or an absolute name under a namespace is said on
+    stderr, and the default inputs are waited for instead: the replay goes on either way."""
+    from bevo_ros.config import ConfigError
+    from bevo_ros.ros.settings import NodeSettings
+
+    try:
+        names = node_input_topics(params_file)
+    except ConfigError as exc:
+        d = NodeSettings()
+        names = [d.imu_topic, d.image_topic, d.camera_info_topic]
+        print(f"{prog_name('play_bag')}: --wait-params: {exc}; waiting for the default inputs "
+              f"{', '.join('/' + n for n in names)}", file=sys.stderr)
+    outside = [n for n in names if n.startswith("/")]
+    if namespace and outside:
+        print(f"{prog_name('play_bag')}: --wait-params: {', '.join(outside)} are absolute: the node subscribes "
+              f"to them outside namespace {namespace!r}, where this player does not publish them", file=sys.stderr)
+    return ["/" + n.lstrip("/") for n in names]
 
 
 def play(player: Player, args, start_ns: int | None) -> None:
@@ -214,7 +237,10 @@ def main(argv: list[str] | None = None) -> int:
         first_ns, _ = bag.bag_time_range(args.bag)
         recorded = bag.topic_qos(args.bag)
         if args.wait_params:
-            args.wait_topics = [*(args.wait_topics or []), *node_input_topics(args.wait_params)]
+            args.wait_topics = [*(args.wait_topics or []), *_wait_topics_from_params(args.wait_params, args.namespace)]
+        if args.wait_for_subscribers > 0 and args.wait_topics and not set(args.wait_topics) & set(topics):
+            print(f"{prog_name('play_bag')}: none of the topics to wait for ({', '.join(args.wait_topics)}) is "
+                  "played from the bag: not waiting", file=sys.stderr)
     except (UserError, FileNotFoundError, ValueError) as exc:
         print(f"{prog_name('play_bag')}: error: {exc}", file=sys.stderr)
         return 2
