@@ -591,7 +591,7 @@ class BevoOdometry:
             raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
         self._speed_unsigned = not signed
         if not signed:  # the speed crosses zero where the sign changes: no jump in the DUKF's dv/dt
-            speed = abs(speed) if (self._direction or (1 if self._vstate.v >= 0 else -1)) > 0 else -abs(speed)
+            speed = math.copysign(speed, self._direction or (1.0 if self._vstate.v >= 0 else -1.0))
         if self._ext_speed is None:
             state = self.vehicle.step(initial_vehicle_state(), 1.0, 0.0, forward=speed, forward_var=variance).state
         else:
@@ -969,9 +969,11 @@ class BevoOdometry:
         imu_accel = self._inertial_accel(self._prev_stamp, stamp) if n.imu_accel_density > 0 else None
         imu_var = None if imu_accel is None else 0.0  # vibration: imu_accel_density; gravity's error: beta
         predicted = self.vehicle.predict(self.vehicle.inertial_update(self._vstate, dt, imu_accel, imu_var), dt)
-        outside = self._external_speed(self._prev_stamp, stamp) if self._speed_log else None
-        # An unsigned speed after a stop (direction either way): the correlation's reading gives its sign (below).
-        signless = outside is not None and self._speed_unsigned and self._direction == 0
+        # An unsigned speed after a stop (direction either way): its size now, the correlation's reading
+        # gives its sign (below).
+        signless = self._speed_unsigned and self._direction == 0
+        outside = self._external_speed(self._prev_stamp, stamp, magnitude=signless) if self._speed_log else None
+        signless = signless and outside is not None
         if outside is not None and not signless:  # the correlation's prior, and the filter below, start from it
             predicted = self.vehicle.speed_update(predicted, *outside)
         # The BEV shift (px) of no motion of the base over this frame: the pitch-change shift and the
@@ -1036,8 +1038,7 @@ class BevoOdometry:
         if signless:
             # the images' direction once their reading is clear of zero (3 sigma); until then no speed
             forward, std = float(measured[0]), math.sqrt(float(cov[0, 0]))
-            size = self._external_speed(self._prev_stamp, stamp, magnitude=True)
-            outside = None if still or abs(forward) <= 3.0 * std else (math.copysign(size[0], forward), size[1])
+            outside = None if still or abs(forward) <= 3.0 * std else (math.copysign(outside[0], forward), outside[1])
         inputs = dict(dt=dt, gyro_yaw=gyro_yaw, forward=float(measured[0]), forward_var=float(cov[0, 0]),
                       lateral=float(measured[1]), lateral_var=float(cov[1, 1]), rotation=rot, rotation_var=rot_var,
                       quality=quality, imu_accel=imu_accel, imu_accel_var=imu_var, rest_var=rest_var)

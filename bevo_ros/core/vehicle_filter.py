@@ -176,6 +176,14 @@ class VehicleFrame:
     speed_accepted: object = None  # the outside speed (``step``'s ``speed``) used; None without one
 
 
+def _widen_speed_belief(P: list, widen, like) -> list:
+    """``P`` with the speed/acceleration block (and only it) times 4 where ``widen`` (bool, or a bool
+    tensor shaped as ``like``, the state's dtype): after a rejected speed measurement, so that a
+    lasting disagreement opens the gate within a few frames instead of locking the filter out."""
+    k = torch.where(widen, 4.0, 1.0).to(like.dtype) if isinstance(widen, Tensor) else 4.0 if widen else 1.0
+    return [[P[i][j] * (k if i < 2 and j < 2 else 1.0) for j in range(N_STATE)] for i in range(N_STATE)]
+
+
 def _where(cond, a, b):
     if isinstance(cond, Tensor):
         return torch.where(cond, a, b)
@@ -253,12 +261,7 @@ class VehicleFilter:
     def _speed_update(self, x: list, P: list, speed, speed_var):
         x, P, accepted, _ = _scalar_update(x, P, 0, speed, speed_var, self.noise.gate, True)
         # rejected: the belief, not the sensor, may be wrong (widened as for the images' forward motion)
-        if isinstance(accepted, Tensor):
-            k = torch.where(accepted, 1.0, 4.0).to(x[0].dtype)
-        else:
-            k = 1.0 if accepted else 4.0
-        P = [[P[i][j] * (k if i < 2 and j < 2 else 1.0) for j in range(N_STATE)] for i in range(N_STATE)]
-        return x, P, accepted
+        return x, _widen_speed_belief(P, ~accepted if isinstance(accepted, Tensor) else not accepted, x[0]), accepted
 
     def step(self, s: VehicleState, dt, gyro_yaw, forward=None, forward_var=None, lateral=None,
              lateral_var=None, rotation=None, rotation_var=None, quality=None, imu_accel=None,
@@ -317,11 +320,8 @@ class VehicleFilter:
             # A rejected informative measurement may be the model's fault (a braking onset harder
             # than the jerk noise allows): widen the speed/acceleration belief so that a lasting
             # disagreement opens the gate within a few frames instead of locking the filter out.
-            if isinstance(acc_t, Tensor):
-                k = torch.where(informative & ~acc_t, 4.0, 1.0).to(x[0].dtype)
-            else:
-                k = 4.0 if informative and not acc_t else 1.0
-            P = [[P[i][j] * (k if i < 2 and j < 2 else 1.0) for j in range(N_STATE)] for i in range(N_STATE)]
+            P = _widen_speed_belief(P, informative & ~acc_t if isinstance(acc_t, Tensor) else informative and not acc_t,
+                                    x[0])
         if have and rotation is not None:
             z_b = (gyro_yaw - rotation) / dt
             r_b = (rotation_var + n.gyro_yaw_density * dt) / (dt * dt)

@@ -296,12 +296,10 @@ def make_drive(
     motion = replace(motion, road_clock=_RoadClock.of(motion, -pre - 1.0, t_imu[-1] + post + 1.0))
     if vertical_curves:
         # past the end by the renderer's reach (haze_end), so the last frame sees its road ahead
-        hills_range = (float(motion.distance(-pre)), float(motion.distance(t_imu[-1] + post)) + options.haze_end)
         span = np.linspace(-pre, t_imu[-1] + post, 2000)
+        travelled = motion.distance(span)  # not monotonic where the car reverses
+        hills_range = (float(travelled.min()), float(travelled.max()) + options.haze_end)
         v_max = float(np.abs(motion.speed(span)).max())
-        if pre_set is not None and pre_set.reverses:  # the distance travelled is not monotonic
-            s = motion.distance(span)
-            hills_range = (float(s.min()), float(s.max()) + options.haze_end)
         motion = replace(motion, hills=_random_hills(np.random.default_rng([int(seed), 7]), *hills_range, v_max))
     # Dense grid (>= 1 kHz, containing every IMU stamp) for the position integral.
     sub = max(1, int(math.ceil(1000.0 / imu_rate)))
