@@ -105,6 +105,12 @@ class FilterSettings:
     # drivers publish (a filtered angular_velocity): set it for those, it matters at 10-50 Hz.
     # core/rate_integration.
     gyro_sampling: str = "interval_mean"
+    # Fused mode: the pitch and roll gyro's bias between stops (core/gyro_bias.py), a bias state beside
+    # the DUKF that its accelerometer innovations observe: the bias's prior standard deviation (rad/s;
+    # a factory-calibrated MEMS part's turn-on bias, ~0.1 deg/s) and its random walk (rad/s/sqrt(s)).
+    # 0 leaves the bias to the stops the images confirm (item 9).
+    gyro_bias_std: float = 0.002
+    gyro_bias_walk: float = 2e-4
 
 
 @dataclass
@@ -601,6 +607,8 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         kernels=config.kernels,
         standstill_max_speed=config.odometry.standstill_max_speed,
         direction_lock=config.odometry.direction_lock,
+        gyro_bias_std=config.filter.gyro_bias_std,
+        gyro_bias_walk=config.filter.gyro_bias_walk,
     )
     odometry.imu_limits = limits
     return odometry

@@ -460,3 +460,19 @@ def test_scalar_step_reports_the_accelerometer_pull():
     nose_down = [-9.81 * math.sin(0.05), 0.0, 9.81 * math.cos(0.05)]  # a reading of +0.05 rad pitch
     _, _, pulled = f.step_scalar(mean, cov, [0.0, 0.0, 0.0], nose_down, dt, noise, return_pull=True)
     assert 0.0 < pulled[0] < 0.05 and abs(pulled[1]) < 1e-9
+
+
+def test_scalar_step_reports_the_innovation():
+    """``return_innovation``: the accelerometer's (pitch, roll) less the gyro-only prediction, after
+    the pull if both are asked for; the posterior is the same. core/gyro_bias learns from it."""
+    f = DUKF(1e-4, 1e-2).double()
+    noise = f.noise_floats()
+    mean, cov, dt = (0.01, -0.02), (1e-3, 1e-4, 2e-3), 0.01
+    g, accel = [0.02, 0.05, 0.1], [-9.81 * math.sin(0.05), 0.3, 9.81 * math.cos(0.05)]
+    m, c, pull, innovation = f.step_scalar(mean, cov, g, accel, dt, noise, return_pull=True, return_innovation=True)
+    assert (m, c) == f.step_scalar(mean, cov, g, accel, dt, noise)
+    z = accel_to_pitch_roll(torch.tensor(accel, dtype=torch.float64)).tolist()
+    predicted = (m[0] - pull[0], m[1] - pull[1])
+    assert innovation == pytest.approx((z[0] - predicted[0], z[1] - predicted[1]), abs=1e-12)
+    m2, c2, only = f.step_scalar(mean, cov, g, accel, dt, noise, return_innovation=True)
+    assert (m2, c2, only) == (m, c, innovation)

@@ -45,7 +45,7 @@ except ImportError:
 import numpy as np
 import torch
 
-from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry
+from bevo_ros.config import REPO_ROOT, BevoConfig, build_odometry, load_config
 from bevo_ros.datasets.kitti import read_oxts
 from bevo_ros.datasets.rosbag import feed_engine
 from bevo_ros.datasets.synthetic import PRESETS, REVERSING_PRESETS, kitti_like_camera, preset_drive
@@ -84,14 +84,22 @@ def use_true_road_pitch(odo, d) -> None:
     odo.pitch_change_correction = False
 
 
+# The shared drives' IMU is KITTI's OXTS: params/kitti.yaml's pitch/roll gyro bias setting (it corrects
+# its own rates); the presets' synthetic MEMS gyro runs with the default (filter.gyro_bias_std).
+_KITTI_FILTER = load_config(REPO_ROOT / "params" / "kitti.yaml")[0].filter
+OXTS_GYRO_BIAS = (_KITTI_FILTER.gyro_bias_std, _KITTI_FILTER.gyro_bias_walk)
+
+
 def run_clip(d, images, f0: int, f1: int, mode: str, steps_out: list | None = None,
-             true_road_pitch: bool = False) -> tuple[np.ndarray, np.ndarray]:
+             true_road_pitch: bool = False, oxts: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The engine over frames f0..f1 fed by stamp (IMU first on equal stamps). -> ``(F-1, 3)``
     motions and ``(F, 2)`` the BEV's road-relative pitch and roll less the mounting (rad); the
     engine's ``OdometryStep`` s are appended to ``steps_out`` if given; ``true_road_pitch``:
-    :func:`use_true_road_pitch`."""
+    :func:`use_true_road_pitch`; ``oxts``: the drive's IMU is KITTI's OXTS (its gyro bias setting)."""
     config = BevoConfig()
     config.odometry.mode = mode
+    if oxts:
+        config.filter.gyro_bias_std, config.filter.gyro_bias_walk = OXTS_GYRO_BIAS
     learned = load_learned_params(LEARNED[mode])
     odo = build_odometry(config, learned, camera=d.camera)
     if true_road_pitch:
@@ -309,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             for mode in modes:
                 steps: list = []
-                est, bev_attitude = run_clip(d, images, f0, f1, mode, steps, args.true_road_pitch)
+                est, bev_attitude = run_clip(d, images, f0, f1, mode, steps, args.true_road_pitch,
+                                             oxts=args.presets is None)
                 bev_pitch = bev_attitude[:, 0]
                 score = motion_scores(est, gt)
                 drift, scale = score["drift"], score["scale"]

@@ -439,7 +439,8 @@ class DUKF(nn.Module):
         noise: tuple[tuple[float, float], tuple[float, float]],
         extra_var: tuple[float, float] = (0.0, 0.0),
         return_pull: bool = False,
-    ) -> tuple[tuple[float, float], tuple[float, float, float]] | tuple[tuple[float, float], tuple[float, float, float], tuple[float, float]]:
+        return_innovation: bool = False,
+    ) -> tuple:
         """:meth:`step` for one vehicle in plain float64 arithmetic: the inference path.
 
         The same math as ``_predict`` + ``_update`` (sigma points, motion model, closed-form
@@ -452,10 +453,12 @@ class DUKF(nn.Module):
             noise: ``noise_floats()``; extra_var: added to Q for this message (rad^2, pitch/roll):
             the fused engine's vehicle-acceleration uncertainty (0 reproduces the tensor path);
             return_pull: also return the update's share of the step, posterior minus predicted mean
-            (the accelerometer's pull on (pitch, roll), rad).
+            (the accelerometer's pull on (pitch, roll), rad); return_innovation: also return the
+            accelerometer's (pitch, roll) less the predicted mean (rad; core/gyro_bias reads it).
 
         Returns:
-            the posterior ``(mean, cov)`` in the same form, and with ``return_pull`` the pull.
+            the posterior ``(mean, cov)`` in the same form, then the pull with ``return_pull``,
+            then the innovation with ``return_innovation``.
         """
         (o0, o1), (q0, q1) = noise
         p, r = mean
@@ -499,9 +502,12 @@ class DUKF(nn.Module):
         c10 = pb - (pb * k00 + pd * k10)
         c11 = pd - (pb * k01 + pd * k11)
         cov_out = (c00 + jit, 0.5 * (c01 + c10), c11 + jit)
+        out: tuple = (new_mean, cov_out)
         if return_pull:
-            return new_mean, cov_out, (new_mean[0] - mp, new_mean[1] - mr)
-        return new_mean, cov_out
+            out += ((new_mean[0] - mp, new_mean[1] - mr),)
+        if return_innovation:
+            out += ((ep, er),)
+        return out
 
     def step(self, state: DukfState, gyro: Tensor, accel: Tensor, dt: Tensor) -> DukfState:
         """``predict`` then ``update`` for one IMU message.

@@ -23,6 +23,7 @@ from .compiled import EngineKernels
 from .dukf import DUKF, steady_state_variance
 from .frame_clock import FrameClock
 from .geometry import BevSpec, CameraModel, mounting_for_extrinsics
+from .gyro_bias import GyroBiasFilter
 from .motion import pitch_change_shift, pitch_scale_sensitivity, registration_from_vehicle_motion, roll_yaw_sensitivity
 from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
 from .trajectory import PlanarTrajectory, check_pose
@@ -302,6 +303,8 @@ class BevoOdometry:
         gyro_sampling: str = "interval_mean",
         standstill_max_speed: float = 0.1,
         direction_lock: bool = True,
+        gyro_bias_std: float = 0.002,
+        gyro_bias_walk: float = 2e-4,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -313,6 +316,8 @@ class BevoOdometry:
         self.vehicle = VehicleFilter(vehicle_noise)
         self.suspension_gradients = (float(suspension_gradients[0]), float(suspension_gradients[1]))
         self.initial_attitude_std = float(initial_attitude_std)
+        GyroBiasFilter(gyro_bias_std, gyro_bias_walk, self.initial_attitude_std)  # refuse bad values now
+        self.gyro_bias_std, self.gyro_bias_walk = float(gyro_bias_std), float(gyro_bias_walk)
         self.pitch_change_correction = bool(pitch_change_correction)
         self.direction_lock = bool(direction_lock)
         self._frame_clock = FrameClock(frame_clock_window)
@@ -390,7 +395,8 @@ class BevoOdometry:
         self._direction = 1  # fused: direction of travel, +1 forward, -1 reverse, 0 either (after a stop)
         # fused: the raw gyro's (stamp, x, y) rates, for the rest intervals' mean (REST_BIAS_MEMORY)
         self._gyro_xy: deque[tuple[float, float, float]] = deque(maxlen=4000)
-        self._xy_bias = (0.0, 0.0)  # fused: the gyro's x (roll) and y (pitch) rate biases, rad/s
+        # fused: the gyro's x (roll) and y (pitch) rate biases, from the stops and between them
+        self._gyro_bias = GyroBiasFilter(self.gyro_bias_std, self.gyro_bias_walk, self.initial_attitude_std)
         self._xy_bias_time = REST_BIAS_PRIOR  # the rest time behind them, s (at most REST_BIAS_MEMORY)
         self._rest_since: float | None = None  # fused: the start of the current standstill, s
         self._standstill.reset()
@@ -481,7 +487,7 @@ class BevoOdometry:
         """Fused mode: the gyro biases the engine takes off (rad/s, base x, y, z): x and y from the
         rest intervals' mean rates (REST_BIAS_MEMORY), z the motion filter's yaw-rate bias. Zeros
         until the first standstill (and in paper mode)."""
-        return (*self._xy_bias, float(self._vstate.b) if self.mode == "fused" else 0.0)
+        return (*self._gyro_bias.xy, float(self._vstate.b) if self.mode == "fused" else 0.0)
 
     @property
     def pose(self) -> tuple[float, float, float]:
@@ -632,7 +638,8 @@ class BevoOdometry:
         """Fused mode, one IMU sample: compensated DUKF, suspension-aware road tilt, gyro yaw."""
         vs = self._vstate
         self._gyro_xy.append((stamp, g[0], g[1]))
-        g = [g[0] - self._xy_bias[0], g[1] - self._xy_bias[1], g[2]]
+        bx, by = self._gyro_bias.xy
+        g = [g[0] - bx, g[1] - by, g[2]]
         elapsed = 0.0 if self._prev_stamp is None else max(stamp - self._prev_stamp, 0.0)
         speed, speed_var = vs.speed_at(elapsed)
         # The forward acceleration from the accelerometer's forward reading at the latest filtered
@@ -698,8 +705,10 @@ class BevoOdometry:
             # Start from the mounting attitude with a wide variance and take the first sample as a
             # measurement: one accelerometer sample read in a bend is not locked in.
             v0 = self.initial_attitude_std**2
-            mean, cov, pull = self.dukf.step_scalar(self.mounting_attitude, (v0, 0.0, v0), g, f, 0.0, self._noise,
-                                                    extra, return_pull=True)
+            mean, cov, pull, innovation = self.dukf.step_scalar(
+                self.mounting_attitude, (v0, 0.0, v0), g, f, 0.0, self._noise, extra, return_pull=True,
+                return_innovation=True)
+            self._gyro_bias.restart()
             self._start_share = (cov[0] / v0, cov[2] / v0)
             self._yaw_rate = None
             self._imu_restarts += 1
@@ -712,8 +721,8 @@ class BevoOdometry:
             # presets with instantaneous rates: 13.1 % per frame with the trapezoid, 11.2 % with it).
             rate = interval_rate(self.gyro_sampling, g, self._gyro_prev, None if prev2 is None else prev2[0],
                                  self._imu_dt, h1)
-            mean, cov, pull = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise, extra,
-                                                    return_pull=True)
+            mean, cov, pull, innovation = self.dukf.step_scalar(*self._state, rate, f, self._imu_dt, self._noise,
+                                                                extra, return_pull=True, return_innovation=True)
             if self._prev is None:  # only _move_dukf_start reads it, before the first frame
                 # the start's share of the mean, d mean / d start = the product of the updates' (1 - K) =
                 # P_post / P_pred per angle
@@ -721,6 +730,10 @@ class BevoOdometry:
                 self._start_share = (self._start_share[0] * cov[0] / (prior[0] + o_p * self._imu_dt),
                                      self._start_share[1] * cov[2] / (prior[2] + o_r * self._imu_dt))
         self._state = (mean, cov)
+        # The pitch and roll rates' biases between stops (core/gyro_bias), from the same innovation.
+        (o_p, o_r), (q_p, q_r) = self._noise
+        self._gyro_bias.step(0.0 if restarted else self._imu_dt, (o_p, o_r), innovation,
+                             (q_p + extra[0], q_r + extra[1]))
         # The DUKF's variance above its steady state is uncertainty it has not worked off yet (its
         # start from the mounting attitude, a restart, the accelerometer discounted through an
         # acceleration): that share of its pitch pull moves its level towards gravity and is no
@@ -1126,8 +1139,9 @@ class BevoOdometry:
             self.counters.rest_bias_skipped += 1
             return
         held = self._xy_bias_time
-        self._xy_bias = ((self._xy_bias[0] * held + mx * span) / (held + span),
-                         (self._xy_bias[1] * held + my * span) / (held + span))
+        (bx, by) = self._gyro_bias.xy  # the stops' estimate as carried since by the accelerometer's
+        self._gyro_bias.set_at_rest(((bx * held + mx * span) / (held + span), (by * held + my * span) / (held + span)),
+                                    REST_BIAS_PRIOR / (held + span))
         self._xy_bias_time = min(held + span, REST_BIAS_MEMORY)
 
     def _stop_is_plausible(self, dt: float) -> bool:
