@@ -463,16 +463,22 @@ def test_scalar_step_reports_the_accelerometer_pull():
 
 
 def test_scalar_step_reports_the_innovation():
-    """``return_innovation``: the accelerometer's (pitch, roll) less the gyro-only prediction, after
-    the pull if both are asked for; the posterior is the same. core/gyro_bias learns from it."""
+    """``return_innovation``: the accelerometer's (pitch, roll) less the gyro-only prediction and the
+    gain's diagonal, after the pull if both are asked for; the posterior is the same. core/gyro_bias
+    learns from them."""
     f = DUKF(1e-4, 1e-2).double()
     noise = f.noise_floats()
     mean, cov, dt = (0.01, -0.02), (1e-3, 1e-4, 2e-3), 0.01
     g, accel = [0.02, 0.05, 0.1], [-9.81 * math.sin(0.05), 0.3, 9.81 * math.cos(0.05)]
-    m, c, pull, innovation = f.step_scalar(mean, cov, g, accel, dt, noise, return_pull=True, return_innovation=True)
+    m, c, pull, (innovation, gain) = f.step_scalar(mean, cov, g, accel, dt, noise, return_pull=True,
+                                                   return_innovation=True)
     assert (m, c) == f.step_scalar(mean, cov, g, accel, dt, noise)
     z = accel_to_pitch_roll(torch.tensor(accel, dtype=torch.float64)).tolist()
     predicted = (m[0] - pull[0], m[1] - pull[1])
     assert innovation == pytest.approx((z[0] - predicted[0], z[1] - predicted[1]), abs=1e-12)
+    # the gain's diagonal: a pitch-only innovation moves the pitch by gain[0] times it
+    _, _, pull_p, ((ep, er), gain_p) = f.step_scalar((0.0, 0.0), (cov[0], 0.0, cov[2]), [0.0] * 3, [-9.81 * math.sin(0.05), 0.0,
+                                                     9.81 * math.cos(0.05)], dt, noise, return_pull=True, return_innovation=True)
+    assert abs(er) < 1e-12 and pull_p[0] == pytest.approx(gain_p[0] * ep, rel=1e-9) and 0 < gain_p[0] < 1
     m2, c2, only = f.step_scalar(mean, cov, g, accel, dt, noise, return_innovation=True)
-    assert (m2, c2, only) == (m, c, innovation)
+    assert (m2, c2, only) == (m, c, (innovation, gain))

@@ -454,7 +454,8 @@ class DUKF(nn.Module):
             the fused engine's vehicle-acceleration uncertainty (0 reproduces the tensor path);
             return_pull: also return the update's share of the step, posterior minus predicted mean
             (the accelerometer's pull on (pitch, roll), rad); return_innovation: also return the
-            accelerometer's (pitch, roll) less the predicted mean (rad; core/gyro_bias reads it).
+            accelerometer's (pitch, roll) less the predicted mean (rad) and the gain's diagonal
+            (pitch from pitch, roll from roll): ``((ep, er), (k_pp, k_rr))`` (core/gyro_bias reads them).
 
         Returns:
             the posterior ``(mean, cov)`` in the same form, then the pull with ``return_pull``,
@@ -506,7 +507,7 @@ class DUKF(nn.Module):
         if return_pull:
             out += ((new_mean[0] - mp, new_mean[1] - mr),)
         if return_innovation:
-            out += ((ep, er),)
+            out += (((ep, er), (k00, k11)),)
         return out
 
     def step(self, state: DukfState, gyro: Tensor, accel: Tensor, dt: Tensor) -> DukfState:

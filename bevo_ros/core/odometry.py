@@ -276,6 +276,9 @@ class BevoOdometry:
             (:meth:`add_speed`) sets the direction itself; an unsigned one takes the direction the
             engine keeps (freed only by a confirmed stop, lock or not): reversing with one needs a
             confirmed stop whatever this setting.
+        gyro_bias_std, gyro_bias_walk: fused mode: the pitch and roll gyro's bias prior std (rad/s)
+            and random walk (rad/s/sqrt(s)) of the bias state beside the DUKF
+            (:mod:`~bevo_ros.core.gyro_bias`); 0: the stops' estimate alone (the engine before it).
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
@@ -485,8 +488,8 @@ class BevoOdometry:
     @property
     def gyro_bias(self) -> tuple[float, float, float]:
         """Fused mode: the gyro biases the engine takes off (rad/s, base x, y, z): x and y from the
-        rest intervals' mean rates (REST_BIAS_MEMORY), z the motion filter's yaw-rate bias. Zeros
-        until the first standstill (and in paper mode)."""
+        rest intervals' mean rates and, with ``gyro_bias_std``, the DUKF's accelerometer between
+        stops (core/gyro_bias), z the motion filter's yaw-rate bias. Zeros in paper mode."""
         return (*self._gyro_bias.xy, float(self._vstate.b) if self.mode == "fused" else 0.0)
 
     @property
@@ -708,7 +711,7 @@ class BevoOdometry:
             mean, cov, pull, innovation = self.dukf.step_scalar(
                 self.mounting_attitude, (v0, 0.0, v0), g, f, 0.0, self._noise, extra, return_pull=True,
                 return_innovation=True)
-            self._gyro_bias.restart()
+            self._gyro_bias.restart(0.0 if self._last_imu is None else stamp - self._last_imu)
             self._start_share = (cov[0] / v0, cov[2] / v0)
             self._yaw_rate = None
             self._imu_restarts += 1
@@ -732,8 +735,8 @@ class BevoOdometry:
         self._state = (mean, cov)
         # The pitch and roll rates' biases between stops (core/gyro_bias), from the same innovation.
         (o_p, o_r), (q_p, q_r) = self._noise
-        self._gyro_bias.step(0.0 if restarted else self._imu_dt, (o_p, o_r), innovation,
-                             (q_p + extra[0], q_r + extra[1]))
+        self._gyro_bias.step(0.0 if restarted else self._imu_dt, (o_p, o_r), innovation[0], (q_p, q_r), extra,
+                             innovation[1])
         # The DUKF's variance above its steady state is uncertainty it has not worked off yet (its
         # start from the mounting attitude, a restart, the accelerometer discounted through an
         # acceleration): that share of its pitch pull moves its level towards gravity and is no
@@ -1138,10 +1141,12 @@ class BevoOdometry:
         if max(abs(mx), abs(my)) > REST_BIAS_MAX:
             self.counters.rest_bias_skipped += 1
             return
+        if self._gyro_bias.enabled:  # the stop against the estimate carried since, by their variances
+            self._gyro_bias.observe_rest((mx, my), span, REST_BIAS_PRIOR)
+            return
         held = self._xy_bias_time
-        (bx, by) = self._gyro_bias.xy  # the stops' estimate as carried since by the accelerometer's
-        self._gyro_bias.set_at_rest(((bx * held + mx * span) / (held + span), (by * held + my * span) / (held + span)),
-                                    REST_BIAS_PRIOR / (held + span))
+        (bx, by) = self._gyro_bias.xy
+        self._gyro_bias.set_xy(((bx * held + mx * span) / (held + span), (by * held + my * span) / (held + span)))
         self._xy_bias_time = min(held + span, REST_BIAS_MEMORY)
 
     def _stop_is_plausible(self, dt: float) -> bool:
