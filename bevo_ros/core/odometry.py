@@ -115,7 +115,10 @@ MOVING_MARGIN = 0.05
 # standstill was lost and the stop crept 9.9 m). A rest interval reading more than REST_BIAS_MAX
 # (rad/s) is no bias but motion the images missed, and is left out. The DUKF then predicts with the
 # rates less the estimate: before this, the 10 Hz traffic_light preset's DUKF pitch ran 3 deg off
-# over its 15 s stop (MEMS bias 0.1-0.2 deg/s), read as tilt after the pull-away.
+# over its 15 s stop (MEMS bias 0.1-0.2 deg/s), read as tilt after the pull-away. With the bias state
+# between stops (filter.gyro_bias_std > 0, fused item 18, core/gyro_bias) a stop's mean instead weighs
+# against its estimate by their variances, the stop counting as its span against REST_BIAS_PRIOR
+# seconds of the prior, the memory the bias's walk.
 REST_BIAS_MEMORY = 30.0  # s
 REST_BIAS_PRIOR = 2.0  # s
 REST_BIAS_SETTLE = 1.0  # s
@@ -1123,7 +1126,7 @@ class BevoOdometry:
     def _observe_rest_bias(self, start: float, end: float) -> None:
         """Fused mode, the images say the car stood still from ``start`` to ``end`` (s): once the stop
         has lasted REST_BIAS_SETTLE, the gyro's mean x and y rates over the IMU samples in between are
-        their biases (REST_BIAS_MEMORY)."""
+        their biases (REST_BIAS_MEMORY; with the bias state between stops, weighed against it)."""
         if self._rest_since is None:
             self._rest_since = start
         if start - self._rest_since < REST_BIAS_SETTLE:
