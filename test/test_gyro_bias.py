@@ -82,10 +82,10 @@ def test_an_untrusted_accelerometer_teaches_nothing():
     """The DUKF's measurement variance grows with the vehicle-acceleration uncertainty: a sample it
     does not trust (huge variance) leaves the bias where it was, its variance walking."""
     axis = predict_axis(BiasAxis(0.001, 1e-4, -1e-6, 4e-6), 0.1, 3e-6, 4e-8)
-    after = update_axis(axis, innovation=0.2, measurement_var=1e12)
+    after = update_axis(axis, innovation=0.2, measurement_var=1e12, angle_gain=0.0)
     assert abs(after.bias - 0.001) < 1e-15
     assert after.p_bb == pytest.approx(4e-6 - 0.1 * 0.0 + 4e-9, rel=1e-6)
-    trusted = update_axis(axis, innovation=0.2, measurement_var=1e-2)
+    trusted = update_axis(axis, innovation=0.2, measurement_var=1e-2, angle_gain=axis.p_aa / (axis.p_aa + 1e-2))
     assert trusted.bias < 0.001  # an angle above the prediction: the rate less the bias was too small
     f = GyroBiasFilter(0.002, 2e-4, attitude_std=0.05)
     for _ in range(50):  # the vehicle-acceleration variance over TRUST_RATIO x Q: that axis learns nothing

@@ -33,7 +33,7 @@ Floats, not tensors: one step per IMU message on the inference path, as ``DUKF.s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 __all__ = ["BiasAxis", "GyroBiasFilter", "predict_axis", "update_axis", "MEASUREMENT_CORRELATION_TIME", "TRUST_RATIO"]
 
@@ -47,9 +47,9 @@ MEASUREMENT_CORRELATION_TIME = 0.1
 TRUST_RATIO = 3.0
 
 
-@dataclass(frozen=True)
-class BiasAxis:
-    """One axis's belief: the bias (rad/s) and the covariance of ``[angle, bias]``.
+class BiasAxis(NamedTuple):
+    """One axis's belief: the bias (rad/s) and the covariance of ``[angle, bias]`` (a tuple: built
+    four times per IMU message).
 
     Attributes:
         bias: rad/s, the gyro reads the true rate plus this.
@@ -71,11 +71,10 @@ def predict_axis(axis: BiasAxis, dt: float, process_density: float, walk_density
     return BiasAxis(axis.bias, p_aa, axis.p_ab - dt * axis.p_bb, axis.p_bb + walk_density * dt)
 
 
-def update_axis(axis: BiasAxis, innovation: float, measurement_var: float, angle_gain: float | None = None) -> BiasAxis:
+def update_axis(axis: BiasAxis, innovation: float, measurement_var: float, angle_gain: float) -> BiasAxis:
     """The accelerometer's angle less the predicted one (rad), with its variance (rad^2).
 
-    ``angle_gain``: the gain the angle was actually corrected with (the DUKF's; None: this filter's
-    optimal one). The bias's gain ``p_ab / S`` is optimal whatever the angle's; the covariance is
+    ``angle_gain``: the gain the angle was actually corrected with (the DUKF's). The bias's gain ``p_ab / S`` is optimal whatever the angle's; the covariance is
     the Joseph form for that pair of gains. An innovation above zero says the angle integrated from
     the rates came out low: the rate less the bias was too small, the bias too large (``p_ab < 0``
     after a predict makes the gain negative). An infinite variance: nothing learnt.
@@ -83,8 +82,7 @@ def update_axis(axis: BiasAxis, innovation: float, measurement_var: float, angle
     if not math.isfinite(measurement_var):
         return axis
     s = axis.p_aa + measurement_var
-    k_a = axis.p_aa / s if angle_gain is None else angle_gain
-    k_b = axis.p_ab / s
+    k_a, k_b = angle_gain, axis.p_ab / s
     p_aa = (1.0 - k_a) ** 2 * axis.p_aa + k_a * k_a * measurement_var
     p_ab = (1.0 - k_a) * (axis.p_ab - k_b * axis.p_aa) + k_a * k_b * measurement_var
     p_bb = axis.p_bb - k_b * axis.p_ab
