@@ -549,6 +549,15 @@ def vehicle_noise(config: BevoConfig, learned: LearnedParams):
                         rotation_gate=config.odometry.rotation_gate)
 
 
+def gyro_bias_prior(config: BevoConfig, learned: LearnedParams) -> tuple[float, float]:
+    """Fused item 18's prior ``(std, walk)``: the learned file's ``gyro_bias`` (what ``bevo train``
+    measured against a ground truth and the engine read better with) when it has one, else the
+    parameters' ``filter.gyro_bias_std`` / ``gyro_bias_walk`` (the IMU's datasheet)."""
+    if learned.gyro_bias is not None:
+        return float(learned.gyro_bias[0]), float(learned.gyro_bias[1])
+    return float(config.filter.gyro_bias_std), float(config.filter.gyro_bias_walk)
+
+
 def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     """The engine both the node and the offline commands (bevo_ros.pipeline) run: one construction, one behaviour."""
     from bevo_ros.core.device import resolve_device
@@ -586,6 +595,7 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     vehicle = vehicle_noise(config, learned)
     spec = bev_spec(config)
     limits = imu_limits(config)
+    gyro_bias_std, gyro_bias_walk = gyro_bias_prior(config, learned)
     odometry = BevoOdometry(
         camera=camera if camera is not None else camera_model(config.camera),
         spec=spec,
@@ -607,8 +617,8 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         kernels=config.kernels,
         standstill_max_speed=config.odometry.standstill_max_speed,
         direction_lock=config.odometry.direction_lock,
-        gyro_bias_std=config.filter.gyro_bias_std,
-        gyro_bias_walk=config.filter.gyro_bias_walk,
+        gyro_bias_std=gyro_bias_std,
+        gyro_bias_walk=gyro_bias_walk,
     )
     odometry.imu_limits = limits
     return odometry

@@ -161,12 +161,17 @@ def test_cli_writes_loadable_yaml_and_resumes(synth, tmp_path, capsys):
     assert tool.main(common + ["--epochs", "2", "--resume", str(ckpt_path), "--suspension-evals", "3"]) == 0
     said = capsys.readouterr().out
     assert "suspension (" in said and "engine runs" in said  # the fused params learn the suspension too
+    # and measure the gyro's x / y bias against the ground truth (kept only as the engine judges it)
+    assert "gyro bias (x / y, deg/s, against the ground truth" in said
     ckpt2 = load_checkpoint(ckpt_path)
     assert ckpt2["epoch"] == 2 and [h["epoch"] for h in ckpt2["history"]] == [1, 2]
     assert ckpt2["adam"]["log_process_var"]["step"] == 6
     assert ckpt2["before"] == ckpt["before"]  # the same run, continued
     resumed = load_learned_params(out)
     assert resumed.info["epochs_run"] == 2
+    measured = resumed.info["gyro_bias_measured"]
+    assert measured["seconds"] > 3 and len(measured["biases_rad_s"]) == 1
+    assert resumed.gyro_bias is None or "validation_rmse" in measured
     # kept only when the validation frames say so, and then recorded
     fit = resumed.info.get("suspension_fit")
     if fit is None:
@@ -522,7 +527,7 @@ def test_validation_rmse_scores_the_engine_run_on_and_started_at_the_validation(
 
 
 def test_validation_errors_run_the_engine_once_per_parameters_with_a_memo(monkeypatch):
-    """bevo train's three judgements share one memo: the parameters already run (a refused fit leaves
+    """bevo train's judgements share one memo: the parameters already run (a refused fit leaves
     the next judgement's current ones the same) are not run again; other parameters or splits are."""
     from dataclasses import replace
 
@@ -554,7 +559,8 @@ def test_validation_errors_run_the_engine_once_per_parameters_with_a_memo(monkey
     assert len(runs) == 2 and again is first  # provenance is no parameter
     suspension_training.validation_errors(seqs, None, replace(a, suspension_gradients=(0.004, 0.0)), "3/4", memo)
     suspension_training.validation_errors(seqs, None, replace(a, vehicle={"jerk_density": 2.0}), "3/4", memo)
+    suspension_training.validation_errors(seqs, None, replace(a, gyro_bias=(0.0, 2e-4)), "3/4", memo)
     suspension_training.validation_errors(seqs, None, a, "20%", memo)
-    assert len(runs) == 8
-    suspension_training.validation_errors(seqs, None, a, "3/4")  # no memo: run again
     assert len(runs) == 10
+    suspension_training.validation_errors(seqs, None, a, "3/4")  # no memo: run again
+    assert len(runs) == 12

@@ -12,8 +12,9 @@ O/Q are written to --out as the learned-parameters YAML bevo_node loads; a YAML 
 (current and best O/Q, Adam state, history: plain numbers) is written atomically every epoch.
 
 Fused mode (odometry.mode: fused, the default) then fits what its engine adds, on the training
-frames: the suspension gradients (--suspension-evals engine runs per axis) and the vehicle motion
-filter's noise (--vehicle-steps). Each of these, and the trained O/Q themselves, is kept only if the
+frames: the suspension gradients (--suspension-evals engine runs per axis), the vehicle motion
+filter's noise (--vehicle-steps) and the pitch and roll gyro's bias prior, measured against the ground
+truth's attitude (--no-gyro-bias to skip). Each of these, and the trained O/Q themselves, is kept only if the
 fused engine reads the validation frames clearly better than with the configuration's learned file's
 values (the squared translation errors of the validation frame pairs fall, over blocks of 10 pairs,
 by more than chance would at 95 %, one-sided Student's t; at least 20 pairs); the file written says
@@ -105,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--suspension-evals", type=int, default=8,
                    help="fused mode: engine runs per axis searching the suspension gradients after O/Q, scored by "
                         "the per-frame translation error (0 = keep the configuration's; default 8)")
+    p.add_argument("--no-gyro-bias", action="store_true",
+                   help="fused mode: do not measure the pitch and roll gyro's bias prior (filter.gyro_bias_std / "
+                        "walk) against the ground truth; the learned file then keeps the configuration's")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
@@ -165,6 +169,7 @@ def _train(args: argparse.Namespace) -> int:
     from bevo_ros.datasets.rosbag import RigSettings, load_sequence
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, check_resume, train, training_setup
+    from bevo_ros.training.gyro_bias import fit_gyro_bias_on_sequences
     from bevo_ros.training.suspension import fit_suspension_on_sequences
     from bevo_ros.training.vehicle import fit_vehicle_on_sequences
 
@@ -208,17 +213,21 @@ def _train(args: argparse.Namespace) -> int:
                    setup=setup, resume_anyway=args.resume_anyway)
     result.learned.suspension_gradients = base.suspension_gradients
     result.learned.vehicle = dict(base.vehicle)
-    memo: dict = {}  # the engine's validation errors per learned parameters: the three judgements share runs
+    result.learned.gyro_bias = base.gyro_bias
+    memo: dict = {}  # the engine's validation errors per learned parameters: the judgements share runs
     if config.odometry.mode == "fused":
         _keep_trained_oq_if_the_engine_agrees(result.learned, base, seqs, config, args.split, memo)
-    fits = config.odometry.mode == "fused" and (args.suspension_evals > 0 or args.vehicle_steps > 0)
+    fits = config.odometry.mode == "fused" and (args.suspension_evals > 0 or args.vehicle_steps > 0
+                                                or not args.no_gyro_bias)
     if fits:  # the trained O/Q first (the base's other numbers): a Ctrl-C in the fits below keeps them
         save_learned_params(result.learned, out)
-        print(f"wrote {out} (O/Q; the suspension and vehicle-filter fits follow)")
+        print(f"wrote {out} (O/Q; the suspension, vehicle-filter and gyro-bias fits follow)")
     if config.odometry.mode == "fused" and args.suspension_evals > 0:
         fit_suspension_on_sequences(result.learned, seqs, config, args.split, args.suspension_evals, memo)
     if config.odometry.mode == "fused" and args.vehicle_steps > 0:
         fit_vehicle_on_sequences(result.learned, seqs, config, args.split, args.vehicle_steps, memo)
+    if config.odometry.mode == "fused" and not args.no_gyro_bias:
+        fit_gyro_bias_on_sequences(result.learned, seqs, config, args.split, memo)
     save_learned_params(result.learned, out)
     o, q = result.learned.process_noise_density, result.learned.measurement_noise_variance
     b, a = result.before, result.after

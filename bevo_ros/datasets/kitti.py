@@ -209,9 +209,16 @@ def interpolated_oxts(oxts: OxtsData, rtol: float = 1e-9) -> np.ndarray:
     sample's 1.3 deg of heading error), drive 0018 has 14 at record 1500. The first and last
     records cannot be judged (no neighbour on one side): False.
     """
-    x = np.concatenate([oxts.accel, oxts.gyro], 1)
-    out = np.zeros(len(oxts), dtype=bool)
-    if len(oxts) >= 3:
+    return linear_fill(np.concatenate([oxts.accel, oxts.gyro], 1), rtol)
+
+
+def linear_fill(samples: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
+    """``(N, C)`` evenly spaced samples -> ``(N,)`` bool: those that lie exactly on the straight line
+    through their two neighbours in every channel (second difference below ``rtol`` of their size),
+    a fill by linear interpolation (:func:`interpolated_oxts`); the first and last: False."""
+    x = np.asarray(samples, dtype=np.float64)
+    out = np.zeros(len(x), dtype=bool)
+    if len(x) >= 3:
         d2 = np.abs(x[2:] - 2.0 * x[1:-1] + x[:-2])
         scale = 1.0 + np.abs(x[2:]) + np.abs(x[1:-1]) + np.abs(x[:-2])
         out[1:-1] = (d2 <= rtol * scale).all(axis=1)

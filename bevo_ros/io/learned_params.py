@@ -1,5 +1,6 @@
 """The learned-parameters YAML (the DUKF's O and Q, the vehicle filter's noise, the suspension
-gradients) that ``bevo train`` writes and bevo_node, ``bevo run`` and the other commands load."""
+gradients, the pitch and roll gyro's bias prior) that ``bevo train`` writes and bevo_node, ``bevo run``
+and the other commands load."""
 from __future__ import annotations
 
 import datetime as _dt
@@ -33,6 +34,10 @@ class LearnedParams:
     # learned fields only) and the suspension's (pitch, roll) lean per m/s^2, rad/(m/s^2).
     vehicle: dict[str, float] = field(default_factory=dict)
     suspension_gradients: tuple[float, float] = (0.0, 0.0)
+    # Fused item 18: the x / y gyro bias's prior (std rad/s, walk rad/s/sqrt(s)) that ``bevo train``
+    # measured against the ground truth (bevo_ros.training.gyro_bias); None: the parameters'
+    # ``filter.gyro_bias_std`` / ``gyro_bias_walk`` (bevo_ros.config.gyro_bias_prior).
+    gyro_bias: tuple[float, float] | None = None
 
 
 def learned_to_dict(params: LearnedParams) -> dict[str, Any]:
@@ -44,6 +49,8 @@ def learned_to_dict(params: LearnedParams) -> dict[str, Any]:
         "vehicle_filter": {k: float(v) for k, v in params.vehicle.items()},
         "suspension_gradients": {"pitch": float(params.suspension_gradients[0]),
                                  "roll": float(params.suspension_gradients[1]), "units": "rad/(m/s^2)"},
+        **({} if params.gyro_bias is None else {"gyro_bias": {
+            "std": float(params.gyro_bias[0]), "walk": float(params.gyro_bias[1]), "units": "rad/s, rad/s/sqrt(s)"}}),
         "info": dict(params.info),
     }
 
@@ -64,7 +71,7 @@ def save_learned_params(params: LearnedParams, path: str | os.PathLike) -> Path:
 
 # The sections a learned-parameters file may have.
 LEARNED_SECTIONS = ("format", "process_noise_density", "measurement_noise_variance", "vehicle_filter",
-                    "suspension_gradients", "info")
+                    "suspension_gradients", "gyro_bias", "info")
 
 
 def load_learned_params(path: str | os.PathLike) -> LearnedParams:
@@ -119,8 +126,25 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
         if not (math.isfinite(numbers[k]) and (numbers[k] >= 0 if zero_ok else numbers[k] > 0)):
             raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number "
                               + (">= 0 (0 = off)" if zero_ok else "> 0"))
+    gyro_bias = None
+    if "gyro_bias" in doc:  # optional: without it the parameters' filter.gyro_bias_std / walk hold
+        section = doc["gyro_bias"]
+        if not isinstance(section, dict):
+            raise ConfigError(f"learned-parameters file {path}: 'gyro_bias' must be a mapping with 'std' and 'walk'")
+        values = []
+        for key in ("std", "walk"):
+            v = section.get(key)
+            try:
+                x = float(v) if not isinstance(v, bool) else math.nan
+            except (TypeError, ValueError):
+                x = math.nan
+            if not (math.isfinite(x) and 0.0 <= x <= 1.0):  # the parameters' range (ros/parameters.py)
+                raise ConfigError(f"learned-parameters file {path}: 'gyro_bias.{key}' = {v!r} must be a number in "
+                                  f"[0, 1] (rad/s, rad/s/sqrt(s))")
+            values.append(x)
+        gyro_bias = (values[0], values[1])
     learned = LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info, numbers,
-                            pair("suspension_gradients", positive=False, default=(0.0, 0.0)))
+                            pair("suspension_gradients", positive=False, default=(0.0, 0.0)), gyro_bias)
     if "suspension_gradients" not in doc:  # said once the file is known good (a bad one is refused alone)
         warnings.warn(f"learned-parameters file {path} has no 'suspension_gradients': fused mode then models no "
                       f"suspension lean (0, 0); params/learned_default.yaml holds the defaults", UserWarning,

@@ -146,8 +146,10 @@ DESCRIPTIONS = {
                             "KITTI's OXTS, delta-angle IMUs) or 'instantaneous' (the rate at its stamp)",
     "filter.gyro_bias_std": "fused mode: the pitch and roll gyro's bias prior std (rad/s; ~0.1 deg/s for a calibrated "
                             "MEMS part), a bias state beside the DUKF observed by its accelerometer innovations "
-                            "between stops; 0 = the stops alone",
-    "filter.gyro_bias_walk": "fused mode: that bias's random walk (rad/s/sqrt(s))",
+                            "between stops; 0 = the stops alone; the learned file's gyro_bias (bevo train) takes its "
+                            "place when it has one",
+    "filter.gyro_bias_walk": "fused mode: that bias's random walk (rad/s/sqrt(s)); the learned file's gyro_bias "
+                             "takes its place when it has one",
     "filter.turn_compensation": "subtract speed x yaw rate (centripetal) from the accelerometer before the DUKF update",
     "filter.max_imu_gap": "longest IMU gap (s) the filter predicts across; longer gaps re-initialise it",
     "filter.mounting_pitch": "static pitch (rad, nose down +) of the base relative to a level road (rig calibration; only with the road-tilt low-pass on)",

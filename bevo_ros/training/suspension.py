@@ -82,7 +82,8 @@ def validation_errors(seqs, config, learned, split: str = "3/4", memo: dict | No
 
     key = None if memo is None else (
         split, tuple(map(float, learned.process_noise_density)), tuple(map(float, learned.measurement_noise_variance)),
-        tuple(sorted((k, float(v)) for k, v in learned.vehicle.items())), tuple(map(float, learned.suspension_gradients)))
+        tuple(sorted((k, float(v)) for k, v in learned.vehicle.items())), tuple(map(float, learned.suspension_gradients)),
+        None if learned.gyro_bias is None else tuple(map(float, learned.gyro_bias)))
     if key is not None and key in memo:
         return memo[key]
 
