@@ -545,6 +545,9 @@ def vehicle_noise(config: BevoConfig, learned: LearnedParams):
     (``odometry.min_quality``, ``gate``, ``rotation_gate``); the engine's and the training replay's."""
     from bevo_ros.core.vehicle_filter import VehicleNoise
 
+    if not config.odometry.gate >= 1.0:  # sigmas; 0 refused every measurement (and NaN compares false)
+        raise ConfigError(f"odometry.gate must be >= 1 (standard deviations; inf = never gate), "
+                          f"got {config.odometry.gate}")
     return VehicleNoise(**learned.vehicle, min_quality=config.odometry.min_quality, gate=config.odometry.gate,
                         rotation_gate=config.odometry.rotation_gate)
 

@@ -544,3 +544,81 @@ def test_a_killed_writer_leaves_a_partial_that_the_next_run_removes(tmp_path):
         pass
     assert partials(out) == [] and w.removed_partials == running
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drive_bag", "other"]
+
+
+# ------------------------------------------------------------------------------ the engine's edges (review 2026-12-06)
+def _engine(**odometry):
+    from bevo_ros.datasets.synthetic import kitti_like_camera
+
+    config = BevoConfig()
+    for k, v in odometry.items():
+        setattr(config.odometry, k, v)
+    learned = load_learned_params(resolve_path(config.learned_params_file))
+    return build_odometry(config, learned, camera=kitti_like_camera(scale=0.25))
+
+
+def test_a_gate_below_one_sigma_is_refused_and_a_refused_belief_stays_finite():
+    """odometry.gate 0 (in the node's range before) refused every measurement; each refusal widened
+    the speed's variance 4x without end, to inf within a minute, and the DUKF's compensation on to
+    NaN: every later IMU sample raised. Now refused at construction, and the widening stops at
+    MAX_WIDENED_VAR: a wheel speed the gate always refuses leaves the engine finite."""
+    from bevo_ros.config import ConfigError
+    from bevo_ros.core.vehicle_filter import MAX_WIDENED_VAR
+    from bevo_ros.ros.parameters import check
+
+    with pytest.raises(ConfigError, match="odometry.gate must be >= 1"):
+        _engine(gate=0.0)
+    assert check("odometry.gate", 0.0) is not None and check("odometry.gate", 5.0) is None
+    odo = _engine(gate=1.0)
+    for k in range(3000):  # 30 s of IMU at rest, a 100 Hz wheel speed alternating far beyond any gate
+        t = T0 + 0.01 * k
+        odo.add_imu(t, (0.0, 0.0, 0.0), (0.0, 0.0, G))
+        odo.add_speed(t, 1e6 if k % 2 else -1e6, 1e-6)
+    state = odo._ext_speed[1]
+    # the widening stopped: what is left is the prediction's linear growth without a measurement
+    assert MAX_WIDENED_VAR[0] <= state.P[0][0] < 1e7 and np.isfinite(odo._state[0]).all()
+    odo.add_imu(T0 + 31.0, (0.0, 0.0, 0.0), (0.0, 0.0, G))  # raised ValueError (NaN attitude) before
+
+
+def test_a_refused_speed_sample_changes_nothing():
+    """A speed stamped before the previous one is refused before it touches the engine: its
+    unsigned flag no longer stuck (the direction of travel read it)."""
+    from bevo_ros.core.odometry import OutOfOrderError
+
+    odo = _engine()
+    odo.add_speed(T0 + 10.0, 5.0, 0.01, signed=True)
+    with pytest.raises(OutOfOrderError):
+        odo.add_speed(T0 + 9.0, 5.0, 0.01, signed=False)
+    assert odo._speed_unsigned is False and len(odo._speed_log) == 1
+
+
+def test_a_frame_before_the_imu_is_dropped_whichever_arrives_first():
+    """An image stamped before the first IMU sample has no attitude: dropped and counted whether it
+    arrives before that sample (the node's usual start: a camera's latency) or after it (it was
+    processed with the first sample's attitude then); likewise one older than the kept history."""
+    img = np.random.default_rng(0).integers(0, 255, (94, 310), dtype=np.uint8)
+    for image_first in (True, False):
+        odo = _engine()
+        if image_first:
+            out = odo.add_image(T0, img)
+            out += odo.add_imu(T0 + 0.01, (0.0, 0.0, 0.0), (0.0, 0.0, G))
+        else:
+            odo.add_imu(T0 + 0.01, (0.0, 0.0, 0.0), (0.0, 0.0, G))
+            out = odo.add_image(T0, img)
+        assert out == [] and odo.counters.dropped_no_imu == 1, image_first
+    odo = _engine()
+    for k in range(4500):  # 4.5 s at 1 kHz: more than the history's 4000 samples
+        odo.add_imu(T0 + 1e-3 * k, (0.0, 0.0, 0.1), (0.0, 0.0, G))
+    assert odo.add_image(T0 + 0.2, img) == [] and odo.counters.dropped_no_imu == 1
+    assert len(odo.add_image(T0 + 4.0, img)) == 1
+
+
+def test_a_bev_size_of_any_number_runs():
+    """The motion-consistency weight averaged over 5 px blocks and needed a BEV size that is a
+    multiple of 5: the node's range [8, 4096] let 8, 101 or 128 through and every frame after the
+    first raised. Partial blocks now: a 101 px BEV runs, and 100 px is as before."""
+    msgs = drive_messages(small_drive(duration=0.6))
+    base = camera_overrides(small_drive(duration=0.6).camera)
+    for size in (8, 101):
+        steps = offline_steps(msgs, dict(base, **{"bev.size": size}))
+        assert len(steps) >= 5 and np.isfinite([s.position for s in steps]).all(), size

@@ -601,7 +601,8 @@ class BevoOdometry:
         right after one, the correlation's reading once clear of zero, :meth:`_fused_motion`)."""
         if not (math.isfinite(stamp) and math.isfinite(speed) and math.isfinite(variance) and variance > 0):
             raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
-        self._speed_unsigned = not signed
+        if self._ext_speed is not None and stamp <= self._ext_speed[0]:  # refused before it changes anything
+            raise OutOfOrderError("speed", stamp, self._ext_speed[0])
         if not signed:  # the speed crosses zero where the sign changes: no jump in the DUKF's dv/dt
             speed = math.copysign(speed, self._direction or (1.0 if self._vstate.v >= 0 else -1.0))
         if self._ext_speed is None:
@@ -609,9 +610,8 @@ class BevoOdometry:
         else:
             last, state = self._ext_speed
             dt = stamp - last
-            if dt <= 0:
-                raise OutOfOrderError("speed", stamp, last)
             state = self.vehicle.step(state, dt, 0.0, forward=speed * dt, forward_var=variance * dt * dt).state
+        self._speed_unsigned = not signed
         self._ext_speed = (stamp, state)
         self._speed_log.append((stamp, float(speed), float(variance)))
 
@@ -833,7 +833,13 @@ class BevoOdometry:
     def _process_or_drop(self, stamp: float, img: np.ndarray, tag: Any = None) -> list[OdometryStep]:
         """One frame, or a counted drop when its BEV has no valid pixel (e.g. an absurd attitude):
         ``_process`` changes no state before that check, so the next frame simply carries on.
-        Any other exception is a bug and propagates."""
+        Any other exception is a bug and propagates. A frame stamped before the oldest IMU sample
+        kept (before the first since the start or a reset, whichever way the two arrived; or older
+        than the whole history: 4000 samples, 4 s at 1 kHz) has no attitude and no gyro yaw: dropped
+        and counted too (it was given the oldest sample's)."""
+        if not self._history or stamp < self._history[0][0]:
+            self._count("dropped_no_imu", stamp, tag)
+            return []
         try:
             return [self._process(stamp, img, tag)]
         except InvalidBevError:
@@ -1190,7 +1196,7 @@ class BevoOdometry:
         the car did not make (10 Hz urban preset with +-10 ms IMU stamps: 20.3 -> 10.4 cm per
         frame; 9.6 with exact stamps). Not across a DUKF restart."""
         i = bisect.bisect_right(self._history, stamp, key=lambda h: h[0]) - 1
-        t0, pr_road, state, yaw, epoch, pull = self._history[max(i, 0)]  # older than the whole history: its oldest entry
+        t0, pr_road, state, yaw, epoch, pull = self._history[max(i, 0)]  # (_process_or_drop keeps i >= 0)
         if 0 <= i < len(self._history) - 1:
             t1, road1, state1, yaw1, epoch1, pull1 = self._history[i + 1]
             w = (stamp - t0) / (t1 - t0)

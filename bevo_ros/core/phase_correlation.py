@@ -698,7 +698,8 @@ def motion_consistency_weight(prev_spectrum: Tensor, curr_image: Tensor, shift: 
 
     The road moves by one shift; a car ahead, its shadow, a passing car move by their own. The
     absolute difference after the move (exact sub-pixel, in the Fourier domain), averaged over
-    ``block x block`` px blocks (``S`` a multiple of ``block``), against ``scale`` x the road's level
+    ``block x block`` px blocks (the last row and column of blocks partial where ``S`` is no multiple
+    of ``block``: a 101 px BEV failed here), against ``scale`` x the road's level
     of it (the blocks' mean over the current image's support, then the mean of the blocks below
     twice that: the other motion left out): ``1 / (1 + x^4)`` per block.
     """
@@ -709,15 +710,16 @@ def motion_consistency_weight(prev_spectrum: Tensor, curr_image: Tensor, shift: 
     phase = (torch.polar(one, (-2.0 * math.pi) * fr * shift[:, None, :1])
              * torch.polar(one, (-2.0 * math.pi) * fc * shift[:, None, 1:]))  # (B, S, S // 2 + 1)
     moved = torch.fft.irfft2(prev_spectrum * phase, s=(S, S))
-    r = F.avg_pool2d((curr_image - moved).abs_()[:, None], block)[:, 0]  # (B, S / block, S / block)
-    support = F.avg_pool2d((curr_image != 0).to(r.dtype)[:, None], block)[:, 0] > 0.5
+    # (B, ceil(S / block), ceil(S / block)); a partial block is its own pixels' mean
+    r = F.avg_pool2d((curr_image - moved).abs_()[:, None], block, ceil_mode=True)[:, 0]
+    support = F.avg_pool2d((curr_image != 0).to(r.dtype)[:, None], block, ceil_mode=True)[:, 0] > 0.5
     level = torch.where(support, r, 0.0).sum(dim=(-2, -1)) / support.sum(dim=(-2, -1)).clamp_min(1)
     low = support & (r < 2.0 * level[:, None, None])
     level = torch.where(low, r, 0.0).sum(dim=(-2, -1)) / low.sum(dim=(-2, -1)).clamp_min(1)
     x = r / (scale * level.clamp_min(1e-12))[:, None, None]
     x = x * x
     w = 1.0 / (1.0 + x * x)
-    return w.repeat_interleave(block, dim=-2).repeat_interleave(block, dim=-1)
+    return w.repeat_interleave(block, dim=-2).repeat_interleave(block, dim=-1)[..., :S, :S]
 
 
 @constant_cache(8)

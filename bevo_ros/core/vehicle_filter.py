@@ -176,11 +176,22 @@ class VehicleFrame:
     speed_accepted: object = None  # the outside speed (``step``'s ``speed``) used; None without one
 
 
+# The widening stops where the speed's / acceleration's standard deviation reaches 10 x a start's
+# (300 m/s, 30 m/s^2): every measurement refused for good (a gate of 0) ran them to inf, and the
+# DUKF's compensation on to NaN, within a minute.
+MAX_WIDENED_VAR = (300.0**2, 30.0**2)
+
+
 def _widen_speed_belief(P: list, widen, like) -> list:
     """``P`` with the speed/acceleration block (and only it) times 4 where ``widen`` (bool, or a bool
     tensor shaped as ``like``, the state's dtype): after a rejected speed measurement, so that a
-    lasting disagreement opens the gate within a few frames instead of locking the filter out."""
-    k = torch.where(widen, 4.0, 1.0).to(like.dtype) if isinstance(widen, Tensor) else 4.0 if widen else 1.0
+    lasting disagreement opens the gate within a few frames instead of locking the filter out. Less
+    than 4 (not below 1) where that would take a variance past :data:`MAX_WIDENED_VAR`."""
+    if isinstance(widen, Tensor):
+        room = torch.minimum(MAX_WIDENED_VAR[0] / P[0][0], MAX_WIDENED_VAR[1] / P[1][1]).clamp(1.0, 4.0)
+        k = torch.where(widen, room, torch.ones_like(room)).to(like.dtype)
+    else:
+        k = max(1.0, min(4.0, MAX_WIDENED_VAR[0] / P[0][0], MAX_WIDENED_VAR[1] / P[1][1])) if widen else 1.0
     return [[P[i][j] * (k if i < 2 and j < 2 else 1.0) for j in range(N_STATE)] for i in range(N_STATE)]
 
 

@@ -41,7 +41,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "filter.gyro_bias_std": (0.0, 1.0), "filter.gyro_bias_walk": (0.0, 1.0),
     "filter.max_acceleration": (0.1, INF), "filter.max_angular_rate": (0.01, INF),
     "max_time_jump_forward": (0.001, INF), "time_jump_confirmations": (1, 1000),
-    "odometry.min_quality": (0.0, 1.0), "odometry.gate": (0.0, INF), "odometry.rotation_gate": (0.0, math.pi),
+    "odometry.min_quality": (0.0, 1.0), "odometry.gate": (1.0, INF), "odometry.rotation_gate": (0.0, math.pi),
     "odometry.initial_attitude_std": (1e-6, math.pi),  # the DUKF and the gyro bias state need a start variance
     "odometry.frame_clock_window": (0, 100_000), "odometry.standstill_max_speed": (0.0, 10.0),
 }
