@@ -252,7 +252,7 @@ def coerce_setting(value: Any, default: Any, name: str, source: str | None = Non
                 return type(default)(out)
         elif isinstance(value, str):
             return value
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # int(inf): an infinite count
         pass
     # YAML 1.1 reads a bare on / off / yes / no as a bool: where text is expected, say how to write it
     hint = (f" (YAML reads a bare {'on' if value else 'off'} as true/false: quote it, '{'on' if value else 'off'}')"
@@ -489,6 +489,8 @@ def extrinsics_problem(T) -> str | None:
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), rtol=0, atol=1e-4):
         return "rotation part is not orthonormal"
+    if np.linalg.det(R) < 0:  # orthonormal, but a mirror: no camera can be mounted so
+        return "rotation part is a reflection (determinant -1), not a rotation"
     return None
 
 

@@ -32,7 +32,8 @@ from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
 from bevo_ros.ros import parameters as ros_params
 from bevo_ros.ros import settings as node_settings
-from bevo_ros.ros.diagnostics import ERROR, WARN, Report, SensorMonitor, odometry_state, status_message
+from bevo_ros.ros.diagnostics import (BLIND_FRAME_EVENTS, ERROR, WARN, Report, SensorMonitor, odometry_state,
+                                     status_message)
 from bevo_ros.ros.intake import EngineFeed, Intake, watch_clock_jumps
 from bevo_ros.ros.publishers import Outputs
 from bevo_ros.ros.rig import Rig
@@ -144,7 +145,9 @@ class BevoNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(min(0.05, s.image_wait / 2), self._guard("flush_timer", self._on_flush_timer), clock=steady)
         self.create_timer(s.diagnostics_period, self._guard("diagnostics", self._publish_diagnostics), clock=steady)
+        self._path_restart_at: float | None = None  # a waiting set_pose's stamp: the path restarts there
         self._diag_drops = 0  # drops_total at the last /diagnostics
+        self._diag_frames = (0, 0)  # odometry published and frames the images moved nothing of, at the last one
         # with use_sim_time, /clock jumping back (bag restarted) resets like robot_localization
         self._jump_handle = watch_clock_jumps(self, s.max_time_jump_back, self._guard("clock_jump", self._on_clock_jump))
 
@@ -276,6 +279,7 @@ class BevoNode(Node):
     def _reset(self) -> None:
         self.feed.reset()
         self._published_stamp = None
+        self._path_restart_at = None
         self.intake.clear()  # IMU held for the next image (ordered_intake): the old trajectory's
         self.rig.drop_held("the odometry was reset (time jump or ~/reset) while they waited for a calibration")
         self.outputs.path.clear()
@@ -296,6 +300,10 @@ class BevoNode(Node):
             elif p.name == "max_time_jump_back":
                 for g in self.intake.guards.values():
                     g.max_back = value
+                # the /clock jump handler's threshold too (it kept the start's value)
+                if self._jump_handle is not None:
+                    self._jump_handle.unregister()
+                self._jump_handle = watch_clock_jumps(self, value, self._guard("clock_jump", self._on_clock_jump))
             elif p.name in ("imu_timeout", "image_timeout", "speed_timeout"):
                 if p.name.split("_")[0] in self.monitors:
                     self.monitors[p.name.split("_")[0]].timeout = value
@@ -356,6 +364,9 @@ class BevoNode(Node):
             self.report.drop("set_pose_invalid", f"set_pose: {exc}")
             return
         stamp = stamp_to_sec(msg.header.stamp)
+        if stamp < 0.0:  # taken as 0, "the latest frame", before
+            self.report.drop("set_pose_invalid", f"set_pose stamp {stamp:.6f} is negative (0 means the latest frame)")
+            return
         newest = self.feed.last_imu_stamp
         if stamp > 0.0 and newest is not None and stamp > newest + self.settings.max_time_jump_forward:
             # no frame would reach it soon, maybe never (a wall-clock stamp into a sim-time replay)
@@ -372,6 +383,9 @@ class BevoNode(Node):
             return
         if how in ("latest", "at stamp", "oldest"):  # in effect now (else when its frame, or the engine, comes)
             self.outputs.path.clear()
+            self._path_restart_at = None
+        elif how == "waits":  # the path restarts at the first frame published at or after its stamp
+            self._path_restart_at = stamp
         self.events["set_pose"] += 1
         when = {"latest": "at the latest frame", "at stamp": f"at {stamp:.6f}", "oldest": (
             f"at the oldest frame kept (its stamp {stamp:.6f} is older)"), "waits": (
@@ -426,6 +440,9 @@ class BevoNode(Node):
             if replayed and self._published_stamp is not None and step.stamp <= self._published_stamp:
                 continue
             self._published_stamp = step.stamp
+            if self._path_restart_at is not None and step.stamp >= self._path_restart_at:
+                self._path_restart_at = None  # a set_pose that waited for this frame: in effect from it
+                self.outputs.path.clear()
             stamp, arrival, _ = step.tag
             odom = self.outputs.odometry(step, stamp)
             self.report.published(arrival, float(step.peak_quality))
@@ -451,8 +468,12 @@ class BevoNode(Node):
         # a silent speed input is its own ERROR; the odometry goes on on the images: a WARN of it
         for_odometry = {k: dataclasses.replace(st, level=min(st.level, WARN)) if k == "speed" else st
                         for k, st in inputs.items()}
+        frames = int(values["odometry_published"])
+        blind = sum(int(values.get(f"event.{e}", "0")) for e in BLIND_FRAME_EVENTS)
+        (prev_frames, prev_blind), self._diag_frames = self._diag_frames, (frames, blind)
         statuses = [status_message(name, "odometry", odometry_state(values, for_odometry, self.engine is not None,
-                                                                    drops - prev_drops))]
+                                                                    drops - prev_drops, frames - prev_frames,
+                                                                    blind - prev_blind))]
         statuses += [status_message(name, f"{key} input", st) for key, st in inputs.items()]
         statuses.append(status_message(name, "calibration", self.rig.state()))
         msg = DiagnosticArray(status=statuses)

@@ -42,8 +42,8 @@ from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.io.ros_conversions import forward_speed_from_msg, quaternion_from_rpy, stamp_to_ns, stamp_to_sec
 
 
-def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str = bag.IMU_TOPIC,
-        image_topic: str = bag.IMAGE_TOPIC, first_frame: int = 0, progress: bool = False,
+def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str | None = None,
+        image_topic: str | None = None, first_frame: int = 0, progress: bool = False,
         rig: RigSettings = RigSettings(), keep_bevs: bool = True, prog: str = "run_bag"
         ) -> tuple[list[OdometryStep], bag.BagContents, BevoOdometry]:
     """Feed a bag through the engine; returns the per-frame results, the recording (no images) and the engine.
@@ -57,7 +57,10 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
     (:func:`~bevo_ros.datasets.rosbag.extrinsics_for_recording` of the recording returned says which).
     Its stderr lines start with ``prog``: the command that runs it (``bevo run``, ``bevo map``:
     ``bevo_ros.commands.prog_name``)."""
-    rec = bag.read_recording(bag_path, imu_topic=imu_topic, image_topic=image_topic, load_images=False)
+    topics = rig.read_topics()  # the params' (the node's) unless given
+    imu_topic = topics["imu_topic"] = imu_topic or topics["imu_topic"]
+    topics["image_topic"] = image_topic or topics["image_topic"]
+    rec = bag.read_recording(bag_path, **topics, load_images=False)
     T_base_cam, source = extrinsics_for_recording(rec, config, rig)
     calib = calibration_for_recording(rec, config, rig)
     learned = load_learned_params(learned_path)
@@ -169,7 +172,19 @@ def camera_trajectory(base: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:
     return np.linalg.inv(cam[0]) @ cam
 
 
-def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.BagContents, T_base_cam: np.ndarray) -> list[Path]:
+def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.BagContents, T_base_cam: np.ndarray,
+                  prog: str = "run_bag") -> list[Path]:
+    """The run's files in ``out``: the trajectory (KITTI camera poses, TUM), the attitude CSV and the
+    bag's ground truth at the frames (``gt_kitti.txt``) where it has one stamped at the images; where
+    it has none (or one at other stamps: said on stderr, the run's files still written) an earlier
+    run's ``gt_kitti.txt`` is removed, as ``bevo evaluate`` would score this trajectory against it."""
+    stamps = np.array([s.stamp for s in steps])
+    gt_cam = None
+    if rec.gt_poses is not None:  # before any file is written: a refusal here left a folder half new, half old
+        try:
+            gt_cam = camera_trajectory(gt_at(stamps, rec.gt_stamps, rec.gt_poses), T_base_cam)
+        except ValueError as exc:
+            print(f"{prog}: warning: no gt_kitti.txt written: the bag's {exc}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     base = base_poses(steps)
     paths = [out / "trajectory_kitti.txt", out / "trajectory_tum.txt", out / "pitch_roll.csv"]
@@ -179,7 +194,6 @@ def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.BagContents, T_
         q = quaternion_from_rpy(*map(float, s.rpy))  # the node's published orientation
         lines.append(f"{s.stamp:.9f} " + " ".join(f"{v:.9f}" for v in (*s.position, *q)))
     atomic_write_text(paths[1], "\n".join(lines) + "\n")
-    stamps = np.array([s.stamp for s in steps])
     ref_p = ref_r = np.full(len(steps), np.nan)
     if rec.gt_pitch is not None:
         ref_p = np.interp(stamps, rec.gt_att_stamps, rec.gt_pitch)
@@ -189,8 +203,7 @@ def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.BagContents, T_
         rows.append(f"{s.stamp:.9f},{s.rpy[1]:.9f},{s.rpy[0]:.9f},{rp:.9f},{rr:.9f},"
                     f"{s.pitch_roll_road[0]:.9f},{s.pitch_roll_road[1]:.9f},{s.peak_quality:.6f}")
     atomic_write_text(paths[2], "\n".join(rows) + "\n")
-    if rec.gt_poses is not None:
-        gt_cam = camera_trajectory(gt_at(stamps, rec.gt_stamps, rec.gt_poses), T_base_cam)
+    if gt_cam is not None:
         paths.append(out / "gt_kitti.txt")
         kitti.write_poses(paths[-1], gt_cam)
     else:  # an earlier run's ground truth into the same folder would be evaluated against this trajectory
@@ -202,9 +215,11 @@ def evaluate_files(gt_path: str | Path, est_path: str | Path, out: str | Path, p
                    first: int = 0, convention: str = "camera", title: str = ""):
     """Score KITTI-format estimated poses against ground truth (frames ``first ..`` of it) and write
     the report into ``out``; returns ``(metrics, written paths)``. Bad input raises ValueError."""
+    if first < 0:
+        raise ValueError(f"--first {first}: the GT frame of the first estimated pose, counted from 0")
     gt = kitti.read_poses(gt_path)
     est = kitti.read_poses(est_path)
-    if first < 0 or first + len(est) > len(gt):
+    if first + len(est) > len(gt):
         raise ValueError(f"{est_path}: {len(est)} poses from GT frame {first} need "
                          f"{first + len(est)} GT poses, {gt_path} has {len(gt)}")
     if len(gt) != len(est) or first:

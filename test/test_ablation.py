@@ -158,3 +158,19 @@ def test_synthetic_alone_takes_the_synthetic_rigs_parameters(ablation, tmp_path,
                        (["--synthetic", "5", "--params", str(REPO_ROOT / "params" / "kitti.yaml")], "kitti.yaml")):
         assert ablation.main(argv + ["--out", str(tmp_path / "out")]) == 0
         assert seen[-1][0].endswith(want), (argv, seen[-1])
+
+
+def test_two_bags_of_one_name_keep_their_rows_and_the_paper_rows_take_the_papers_file(ablation, tmp_path):
+    """Two bags in folders of the same name were one key of the report (the first bag's rows lost)
+    and one plot; and without --learned the paper's rows ran on the fused default's O/Q where
+    `bevo run --mode paper` takes params/learned_paper.yaml. Each bag its own key now, and the
+    paper's file for the paper's rows."""
+    a = make_bumpy_bag(tmp_path / "a" / "tiny_bag", seconds=2.0, seed=5)
+    b = make_bumpy_bag(tmp_path / "b" / "tiny_bag", seconds=2.0, seed=6)
+    out = tmp_path / "ablation"
+    assert ablation.main([str(a), str(b), "--out", str(out), "--params", str(SYNTH_PARAMS), "--gt-attitude", "imu"]) == 0
+    report = json.loads((out / "ablation.json").read_text())
+    assert sorted(report["bags"]) == ["tiny_bag", "tiny_bag_2"]
+    assert report["bags"]["tiny_bag"]["rows"] != report["bags"]["tiny_bag_2"]["rows"]
+    assert (out / "tiny_bag_ablation.png").is_file() and (out / "tiny_bag_2_ablation.png").is_file()
+    assert report["learned"]["source"].endswith("learned_paper.yaml")

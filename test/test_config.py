@@ -267,6 +267,12 @@ def test_rig_settings_follow_the_nodes_settings_and_rules():
         RigSettings.from_params({"extrinsics_from_tf": "false"})  # a string is no bool (it would read as True)
     with pytest.raises(ConfigError, match="base_frame"):
         RigSettings.from_params({"base_frame": ""})
+    # the topics too: a bag recorded in the root namespace holds the node's relative names under /
+    rig = RigSettings.from_params({"imu_topic": "car/imu", "camera_info_topic": "/cam2/camera_info"})
+    assert rig.read_topics() == {"imu_topic": "/car/imu", "image_topic": "/camera/image_rect",
+                                 "camera_info_topic": "/cam2/camera_info"}
+    assert (node.imu_topic, node.image_topic, node.camera_info_topic) == (
+        RigSettings().imu_topic, RigSettings().image_topic, RigSettings().camera_info_topic)
 
 
 def test_bad_tf_static_extrinsics_name_their_source():

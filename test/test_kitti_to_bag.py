@@ -348,3 +348,11 @@ def test_a_killed_conversion_leaves_nothing_after_the_next_run(kitti_root, tmp_p
     assert "partial output of an interrupted run" in capsys.readouterr().err
     assert _no_partial(out) and bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 3
     assert [p.name for p in tmp_path.iterdir()] == ["o"]
+
+
+def test_a_negative_oxts_offset_is_refused(tmp_path):
+    """--oxts-offset -5 sliced no OXTS record and failed with an IndexError deep in the conversion."""
+    from bevo_ros.datasets.kitti_bag import ConversionError, ConversionOptions, load_source
+
+    with pytest.raises(ConversionError, match="--oxts-offset -5: must be >= 0"):
+        load_source(ConversionOptions(output=tmp_path / "b", odometry=tmp_path, oxts_offset=-5))

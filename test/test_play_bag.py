@@ -179,6 +179,15 @@ def test_bad_input_exit_2(tmp_path):
     assert proc.returncode == 2 and "missing: bag not found" in proc.stderr and "Traceback" not in proc.stderr
 
 
+def test_a_bad_namespace_or_clock_topic_is_exit_2(small_bag):
+    """rclpy's name check raised out of the player (a traceback, exit 1)."""
+    for argv in (["--namespace", "bad ns"], ["--clock-topic", "bad topic"]):
+        proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--rate", "0", "--linger", "0", "-q", *argv],
+                              env=_env(), capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2 and "Invalid topic name" in proc.stderr and "Traceback" not in proc.stderr, (
+            argv, proc.stderr)
+
+
 def test_wait_params_waits_for_the_nodes_inputs(tmp_path, small_bag, capsys):
     """``--wait-params FILE`` (what the launch file gives): the topics bevo_node subscribes to with
     that parameters file, its speed input and compressed images among them, as the bag's names. A

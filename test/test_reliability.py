@@ -622,3 +622,178 @@ def test_a_bev_size_of_any_number_runs():
     for size in (8, 101):
         steps = offline_steps(msgs, dict(base, **{"bev.size": size}))
         assert len(steps) >= 5 and np.isfinite([s.position for s in steps]).all(), size
+
+
+# ------------------------------------------------------------------------------ the node's edges (review 2026-12-06)
+def _statuses(h) -> dict[str, tuple[int, str, dict]]:
+    h.diag.clear()
+    assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
+    return {st.name.split(": ", 1)[1]: (st.level[0] if isinstance(st.level, bytes) else st.level, st.message,
+                                        {kv.key: kv.value for kv in st.values}) for st in h.diag[-1].status}
+
+
+def test_the_node_refuses_unusable_frames_and_extrinsics_at_start(harness):
+    """A camera.base_T_camera that is no rotation (or a mirror) started the node, which then dropped
+    every image as bad_extrinsics while /diagnostics called the calibration OK; odom_frame equal to
+    base_frame, or a frame id with a leading '/' (tf2 refuses both); an infinite count. Refused at
+    start now, naming the parameter."""
+    from bevo_ros.config import ConfigError, extrinsics_problem
+
+    T = np.eye(4)
+    T[1, 1] = -1.0  # orthonormal, determinant -1
+    assert "reflection" in extrinsics_problem(T)
+    base = list(overrides()["camera.base_T_camera"])
+    squashed = base.copy()
+    squashed[2] *= 2.0
+    for extra, said in (({"camera.base_T_camera": squashed}, "camera.base_T_camera"),
+                        ({"odom_frame": "base_link"}, "odom_frame"), ({"odom_frame": "/odom"}, "odom_frame"),
+                        ({"path_max_length": float("inf")}, "path_max_length")):
+        with pytest.raises(ConfigError, match=said):
+            harness(**extra)
+
+
+def test_a_degenerate_tf_static_and_imu_frame_churn_stay_harmless(harness):
+    """A /tf_static base_link -> imu_link with a zero quaternion was stored as a NaN rotation and
+    every IMU sample in that frame dropped as non-finite: left out now (logged), the IMU's axes
+    taken as the base's. IMU frame ids that keep changing grew the rig's caches and the
+    calibration status without bound: kept to MAX_IMU_FRAMES."""
+    from geometry_msgs.msg import TransformStamped
+    from tf2_msgs.msg import TFMessage
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from bevo_ros.ros.rig import MAX_IMU_FRAMES
+
+    h = harness()
+    if h.node.static_tf is None or h.node.static_tf.backend != "tf2_msgs":
+        pytest.skip("the node's own /tf_static listener (tf2_msgs) is not the backend here")
+    qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+    pub = h.tester.create_publisher(TFMessage, "/tf_static", qos)
+    t = TransformStamped()
+    t.header.frame_id, t.child_frame_id = "base_link", "imu_link"
+    t.transform.rotation.w = 0.0  # the quaternion all zero (its default is the identity)
+    assert spin_until(h.executor, lambda: pub.get_subscription_count() > 0, 10)
+    pub.publish(TFMessage(transforms=[t]))
+    spin_until(h.executor, lambda: False, 0.5)
+    assert h.node.static_tf.lookup("base_link", "imu_link") is None
+    drive = small_drive(duration=1.2)
+    msgs = [(k, m) for k, m in drive_messages(drive)]
+    for k, m in msgs:
+        if k == "imu":
+            m.header.frame_id = "imu_link"
+    h.send_all(msgs)
+    h.settle()
+    assert h.node.counts["odometry_out"] >= 5 and h.node.drops.get("imu_nonfinite", 0) == 0
+    for i in range(3 * MAX_IMU_FRAMES):
+        h.send("imu", imu_msg(100.0 + 0.01 * i, [0, 0, 0], [0, 0, 9.81], frame_id=f"imu_{i}"))
+    h.settle()
+    rig = h.node.rig
+    assert len(rig._R_base_imu) <= MAX_IMU_FRAMES and len(rig._imu_frame_warned) <= MAX_IMU_FRAMES
+    assert len(_statuses(h)["calibration"][2]["imu_frames"]) < 40 * MAX_IMU_FRAMES
+
+
+def test_bad_camera_info_is_a_counted_drop_not_a_black_camera(harness):
+    """plumb_bob with 3 coefficients made OpenCV raise inside the callback (an internal error with a
+    traceback); a NaN R was accepted and every image remapped to black with the calibration OK. Both
+    are bad_camera_info drops now; NaN in a field the calibration ignores no longer makes every
+    repeat of the same message a new calibration."""
+    drive = small_drive(duration=1.2)
+    K = drive.camera.K.double().numpy()
+    for case in ("d3", "r_nan"):
+        h = harness(use_camera_info=True, camera_info_timeout=30.0, undistort="on")
+        info = camera_info(K, drive.camera.width, drive.camera.height_px)
+        info.distortion_model = "plumb_bob"
+        info.d = [1e-6, 0.0, 0.0] if case == "d3" else [1e-6, 0.0, 0.0, 0.0, 0.0]
+        if case == "r_nan":
+            info.r = [float("nan")] * 9
+        for _ in range(3):
+            h.send("info", info)
+        h.send_all(drive_messages(drive)[:40])
+        h.settle()
+        assert h.node.drops.get("bad_camera_info", 0) == 3 and not h.node.drops.get("callback_error"), case
+        assert h.node.counts["odometry_out"] == 0, case
+    h = harness(use_camera_info=True, camera_info_timeout=30.0)
+    info = camera_info(K, drive.camera.width, drive.camera.height_px)
+    info.k = [float("nan")] * 9  # ignored: P is used
+    for _ in range(5):
+        h.send("info", info)
+    h.send_all(drive_messages(drive)[:40])
+    h.settle()
+    assert h.node.counts["odometry_out"] >= 3 and not h.node.events.get("camera_changed")
+
+
+def test_diagnostics_warn_when_the_images_move_nothing(harness):
+    """A covered or black camera: every frame rejected as textureless, the pose the motion filter's
+    prediction, and /diagnostics said OK 'running'. A WARN now."""
+    from bevo_ros.io.ros_conversions import stamp_to_sec
+
+    drive = small_drive(duration=1.2)
+    h = harness(sensor_late_factor=1000.0, imu_timeout=60.0, image_timeout=60.0)
+    black = np.zeros((drive.camera.height_px, drive.camera.width), np.uint8)
+    msgs = [(k, image_msg(stamp_to_sec(m.header.stamp), black)) if k == "image" else (k, m)
+            for k, m in drive_messages(drive)]
+    h.send_all(msgs)
+    h.settle()
+    level, message, _ = _statuses(h)["odometry"]
+    assert h.node.events["rejected_textureless"] >= 10 and level == 1 and "rejected" in message
+
+
+def test_live_jump_threshold_and_deprecated_names(harness):
+    """max_time_jump_back is live: the /clock jump handler kept the start's threshold (a 1.2 s step
+    back reset the odometry after the parameter had been raised to 5 s). The deprecated camera.height
+    could be set and deleted at run time, doing nothing: read-only now."""
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    from bevo_ros.io.ros_conversions import stamp_to_sec
+
+    drive = small_drive(duration=1.2)
+    h = harness(use_sim_time=True, max_time_jump_back=0.5)
+    assert h.node.set_parameters([Parameter("max_time_jump_back", value=5.0)])[0].successful
+    assert not h.node.set_parameters([Parameter("camera.height", value=3.0)])[0].successful
+    clock_pub = h.tester.create_publisher(Clock, "/clock", 10)
+    assert spin_until(h.executor, lambda: clock_pub.get_subscription_count() > 0, 5)
+    msgs = drive_messages(drive)
+
+    def clock(stamp) -> None:
+        clock_pub.publish(Clock(clock=stamp))
+        target = stamp_to_sec(stamp)
+        assert spin_until(h.executor, lambda: abs(h.node.get_clock().now().nanoseconds * 1e-9 - target) < 1e-6, 5)
+
+    clock(msgs[-1][1].header.stamp)
+    h.send_all(msgs[:40])
+    h.settle()
+    clock(msgs[0][1].header.stamp)  # 1.2 s back: within the 5 s now set
+    assert h.node.events["clock_jump_reset"] == 0
+
+
+def test_a_set_pose_that_waits_restarts_the_path_where_it_takes_effect(context):
+    """A set_pose stamped after the latest frame takes effect when a frame reaches it: the path kept
+    the old trajectory and jumped to the set pose; it restarts there now. A negative stamp is dropped
+    (it was taken as 0, the latest frame)."""
+    from test_node_inprocess import Harness, _set_pose_msg
+
+    from bevo_ros.io.ros_conversions import stamp_to_sec
+
+    drive = small_drive(duration=1.2)
+    ov = overrides()
+    ov.update(input_qos="reliable", imu_qos_depth=1000, image_qos_depth=100, log_throttle_period=0.0,
+              use_camera_info=False, path_max_length=100)
+    h = Harness(context, ov)
+    try:
+        pub = h.tester.create_publisher(type(_set_pose_msg(0, 0, 0, 0, 1.0)), "/bevo/set_pose", 10)
+        assert spin_until(h.executor, lambda: pub.get_subscription_count() > 0, 10)
+        msgs = drive_messages(drive)
+        half = len(msgs) // 2
+        h.send_all(msgs[:half])
+        h.settle()
+        pub.publish(_set_pose_msg(100.0, 100.0, 0.0, 0.0, -5.0))
+        assert spin_until(h.executor, lambda: h.node.drops.get("set_pose_invalid", 0) == 1, 5)
+        pub.publish(_set_pose_msg(100.0, 100.0, 0.0, 0.0, stamp_to_sec(msgs[half - 1][1].header.stamp) + 0.05))
+        assert spin_until(h.executor, lambda: h.node.events["set_pose"] == 1, 5)
+        h.send_all(msgs[half:])
+        h.settle()
+        assert spin_until(h.executor, lambda: h.paths and h.paths[-1].header.stamp == h.odom[-1].header.stamp, 5)
+        xs = [p.pose.position.x for p in h.paths[-1].poses]
+        assert min(xs) > 50.0 and len(xs) >= 3  # only the poses from the set one on
+    finally:
+        h.close()

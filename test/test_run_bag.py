@@ -66,6 +66,17 @@ def test_drive_to_recording_equals_its_bag(synthetic_bag):
 
 def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):
     drive, path = synthetic_bag
+    # the params' topics are the bag's, as the node's (a CameraInfo on another topic was passed over)
+    from bevo_ros import pipeline
+
+    config, _ = load_config(SYNTH_PARAMS)
+    assert pipeline.run_bag(path, config, config.learned_params_file, keep_bevs=False)[1].camera_info is not None
+    from bevo_ros.config import ConfigError
+
+    with pytest.raises(ConfigError, match="no CameraInfo read"):  # synthetic.yaml has no camera.* intrinsics
+        pipeline.run_bag(path, config, config.learned_params_file, keep_bevs=False,
+                         rig=RigSettings(camera_info_topic="cam2/camera_info"))
+
     out = tmp_path / "run"
     assert run.main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "-q"]) == 0
     est = kitti.read_poses(out / "trajectory_kitti.txt")
@@ -347,9 +358,18 @@ def test_run_bag_names_wrong_topics_and_frames_and_leaves_no_stale_ground_truth(
     steps, rec, _ = pipeline.run_bag(path, config, config.learned_params_file)
     out.mkdir()
     (out / "gt_kitti.txt").write_text("an earlier run's\n")
+    gt_poses = rec.gt_poses
     rec.gt_poses = None
     written = pipeline.write_outputs(out, steps, rec, np.eye(4))
     assert not (out / "gt_kitti.txt").exists() and all(p.is_file() for p in written)
+    # Ground truth at other stamps (a 100 Hz INS, a shift): it raised after the trajectory was written, the
+    # earlier run's gt_kitti.txt left beside it for evaluate; now said, and that file removed.
+    (out / "gt_kitti.txt").write_text("an earlier run's\n")
+    rec.gt_poses, rec.gt_stamps_ns = gt_poses, rec.gt_stamps_ns + 50_000_000
+    capsys.readouterr()
+    written = pipeline.write_outputs(out, steps, rec, np.eye(4), prog="bevo run")
+    assert "bevo run: warning: no gt_kitti.txt written" in capsys.readouterr().err
+    assert not (out / "gt_kitti.txt").exists() and len(written) == 3 and all(p.is_file() for p in written)
 
 
 def test_train_and_calibrate_refuse_bad_arguments_before_working(synthetic_bag, tmp_path, capsys):
@@ -678,3 +698,59 @@ def test_map_refuses_frames_past_the_bag_and_a_negative_margin(synthetic_bag, tm
     said = capsys.readouterr()
     assert f"bevo map: {len(range(2, n, 5))} BEVs" in said.out and out.exists()
     assert "bevo map: camera calibration from" in said.err and "run_bag" not in said.err, said.err  # the engine's lines
+
+
+def test_the_commands_refuse_what_would_lose_files_or_mislead(synthetic_bag, tmp_path, capsys, monkeypatch):
+    """Found by a read-only review (2026-12-06): `bevo map --out X.png` wrote the PNG and then its YAML
+    over it (exit 0, the map lost); `bevo train --checkpoint` equal to `--out` overwrote the
+    checkpoint; `bevo evaluate` kept an earlier report's pitch_roll.png beside a report without one,
+    took a negative --first for a count problem and a directory for a missing file; `bevo calibrate`
+    exited 1 on a failed fit (the commands' convention: 2, one line). Each refused before any work
+    (exit 2) or cleaned up now; and the offline commands read the params' topics, as the node does."""
+    from bevo_ros.commands import map as map_cmd
+    from bevo_ros.commands import train
+
+    drive, path = synthetic_bag
+    cases = (
+        (map_cmd.main, [str(path), "--out", str(tmp_path / "m.png"), "--params", SYNTH_PARAMS], "give the map's YAML"),
+        (train.main, [str(path), "--out", str(tmp_path / "l.yaml"), "--checkpoint", str(tmp_path / "l.yaml"),
+                      "--params", SYNTH_PARAMS, "-q"], "is --out itself"),
+    )
+    for main, argv, message in cases:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err, err
+    assert not (tmp_path / "m.png").exists() and not (tmp_path / "l.yaml").exists()
+
+    # the params' topics are the bag's, as the node's (a CameraInfo on another topic was passed over)
+    from bevo_ros import pipeline
+
+    config, _ = load_config(SYNTH_PARAMS)
+    assert pipeline.run_bag(path, config, config.learned_params_file, keep_bevs=False)[1].camera_info is not None
+    from bevo_ros.config import ConfigError
+
+    with pytest.raises(ConfigError, match="no CameraInfo read"):  # synthetic.yaml has no camera.* intrinsics
+        pipeline.run_bag(path, config, config.learned_params_file, keep_bevs=False,
+                         rig=RigSettings(camera_info_topic="cam2/camera_info"))
+
+    out = tmp_path / "run"
+    assert run.main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "-q"]) == 0
+    gt, est, pr = out / "gt_kitti.txt", out / "trajectory_kitti.txt", out / "pitch_roll.csv"
+    report = tmp_path / "eval"
+    assert evaluate.main(["--gt", str(gt), "--est", str(est), "--pitch-roll", str(pr), "--out", str(report)]) == 0
+    assert (report / "pitch_roll.png").is_file()
+    assert evaluate.main(["--gt", str(gt), "--est", str(est), "--out", str(report)]) == 0
+    assert not (report / "pitch_roll.png").exists()  # the earlier report's, read as this one's
+    for argv, message in ((["--gt", str(gt), "--est", str(est), "--first", "-1"], "--first -1: the GT frame"),
+                          (["--gt", str(out), "--est", str(est)], "a directory, not the")):
+        assert evaluate.main([*argv, "--out", str(report)]) == 2
+        err = capsys.readouterr().err
+        assert message in err, err
+
+    def no_fit(*args, **kwargs):
+        raise ValueError("pitch: no attitude in [-3.0, 3.0] deg matches the reference")
+
+    monkeypatch.setattr(calibrate_cmd, "calibrate", no_fit)  # a failed fit: exit 1 before, the convention's 2 now
+    assert calibrate_cmd.main([str(path), "--params", SYNTH_PARAMS, "--frames", "0:11"]) == 2
+    err = capsys.readouterr().err
+    assert "error: pitch: no attitude" in err and "Traceback" not in err, err

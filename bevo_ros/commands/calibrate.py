@@ -20,12 +20,11 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 
 import numpy as np
 
-from bevo_ros.commands import add_params_option, new_parser, prog_name
-from bevo_ros.config import ConfigError, bev_spec, load_config
+from bevo_ros.commands import add_params_option, bag_errors, guarded, new_parser
+from bevo_ros.config import bev_spec, load_config
 from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.io.bag import read_speed
@@ -47,36 +46,33 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    # the commands' one convention: `bevo calibrate: error: ...` and exit 2, warnings one line each
+    return guarded("calibrate_mounting", lambda: _calibrate(args), bag_errors())
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    config, flat = load_config(args.params)
+    seq = load_sequence(args.bag, config, require_gt=False, rig=RigSettings.from_params(flat, str(args.params)))
+    if args.speed_topic is None and seq.gt_poses is None:
+        raise ValueError(f"{args.bag}: no /ground_truth/odometry to calibrate against; without one, give the "
+                         "car's speed (--speed-topic)")
     try:
-        config, flat = load_config(args.params)
-        seq = load_sequence(args.bag, config, require_gt=False, rig=RigSettings.from_params(flat, str(args.params)))
-        if args.speed_topic is None and seq.gt_poses is None:
-            raise ValueError(f"{args.bag}: no /ground_truth/odometry to calibrate against; without one, give the "
-                             "car's speed (--speed-topic)")
-        try:
-            start, stop = (int(v) for v in args.frames.split(":"))
-        except ValueError:
-            raise ValueError(f"--frames {args.frames!r}: expected START:STOP, two frame numbers") from None
-        if not 0 <= start < stop - 1 < len(seq):
-            raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)} (STOP excluded), "
-                             f"the bag has {len(seq)}")
-        seq = seq.frames(start, stop)
-        if args.speed_topic:
-            reference = reference_from_speed(seq, *read_speed(args.bag, args.speed_topic))
-            source = f"{args.speed_topic}'s speed and the gyro's yaw" + (
-                f", its bias {math.degrees(reference.gyro_bias):+.3f} deg/s taken off over {reference.rest_seconds:.1f} s "
-                "at rest" if reference.rest_seconds else ", no rest to read its bias from")
-        else:
-            reference, source = reference_from_ground_truth(seq), "the ground truth"
-    except (ConfigError, ValueError, FileNotFoundError) as exc:
-        print(f"{prog_name('calibrate_mounting')}: error: {exc}", file=sys.stderr)
-        return 2
+        start, stop = (int(v) for v in args.frames.split(":"))
+    except ValueError:
+        raise ValueError(f"--frames {args.frames!r}: expected START:STOP, two frame numbers") from None
+    if not 0 <= start < stop - 1 < len(seq):
+        raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)} (STOP excluded), "
+                         f"the bag has {len(seq)}")
+    seq = seq.frames(start, stop)
+    if args.speed_topic:
+        reference = reference_from_speed(seq, *read_speed(args.bag, args.speed_topic))
+        source = f"{args.speed_topic}'s speed and the gyro's yaw" + (
+            f", its bias {math.degrees(reference.gyro_bias):+.3f} deg/s taken off over {reference.rest_seconds:.1f} s "
+            "at rest" if reference.rest_seconds else ", no rest to read its bias from")
+    else:
+        reference, source = reference_from_ground_truth(seq), "the ground truth"
     spec = bev_spec(config)
-    try:
-        pitch, roll = calibrate(seq, spec, dpc=config.dpc, reference=reference)
-    except ValueError as exc:
-        print(f"{prog_name('calibrate_mounting')}: error: {exc}", file=sys.stderr)
-        return 1
+    pitch, roll = calibrate(seq, spec, dpc=config.dpc, reference=reference)  # ValueError: no fit (exit 2)
     # Measured through the bag's rig (its /tf_static, as the node takes it): the camera's tilt to the
     # road. Written for camera.base_T_camera, with which the params lines below go.
     params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 import torch
 
@@ -75,6 +76,9 @@ def _map(args: argparse.Namespace) -> int:
         raise ValueError("--resolution must be > 0 and --every >= 1")
     if not (args.margin >= 0 and math.isfinite(args.margin)):  # < 0 cut the BEVs' own edges off the map
         raise ValueError(f"--margin {args.margin}: must be >= 0 m (the ground kept around the BEVs)")
+    if Path(args.out).suffix.lower() == ".png":  # before the engine's pass: its YAML would overwrite the image
+        raise ValueError(f"--out {args.out}: give the map's YAML (e.g. {Path(args.out).with_suffix('.yaml')}); its "
+                         "image is written beside it as .png")
     config, flat = load_config(args.params)
     topics = bag.bag_topics(args.bag)  # before the engine's pass: its metadata's image count
     images = next((topics[t][1] for t in (bag.IMAGE_TOPIC, bag.LEGACY_IMAGE_TOPIC) if t in topics), None)

@@ -248,6 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     start_ns = first_ns + int(round(args.start * 1e9)) if args.start > 0 else None
 
     import rclpy
+    from rclpy.exceptions import NameValidationException
     from rclpy.signals import SignalHandlerOptions
 
     # Python's own SIGINT handling (KeyboardInterrupt) is all we need: no spinning here.
@@ -274,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{prog_name('play_bag')}: interrupted", file=sys.stderr)
         rc = 130
-    except (UserError, ValueError) as exc:
+    except (UserError, ValueError, NameValidationException) as exc:  # e.g. --namespace "bad ns", --clock-topic
         print(f"{prog_name('play_bag')}: error: {exc}", file=sys.stderr)
         rc = 2
     finally:

@@ -26,7 +26,6 @@ from bevo_ros.commands import (add_params_option, add_threads_option, bag_errors
                                 set_threads)
 from bevo_ros.config import load_config, shipped_learned_for_mode
 from bevo_ros.datasets.rosbag import RigSettings, extrinsics_for_recording
-from bevo_ros.io import bag
 from bevo_ros.pipeline import run_bag, write_outputs
 
 
@@ -35,8 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("bag", help="rosbag2 directory (sqlite3 or mcap)")
     p.add_argument("--out", required=True, help="output directory")
     add_params_option(p, learned=True)
-    p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
-    p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
+    p.add_argument("--imu-topic", help="default: the params' imu_topic under / (/imu/data)")
+    p.add_argument("--image-topic", help="default: the params' image_topic under / (/camera/image_rect); the "
+                   "CameraInfo is read from the params' camera_info_topic")
     p.add_argument("--speed-topic", help="a vehicle speed the motion filter fuses (wheel odometry nav_msgs/Odometry, or "
                    "a TwistStamped / TwistWithCovarianceStamped: in base_frame its linear.x, else its horizontal speed); "
                    "overrides the params' speed_topic, '' = none. Its scale must be right: the odometry's scale is then its")
@@ -75,9 +75,11 @@ def _run(args: argparse.Namespace) -> int:
                               prog=prog_name("run_bag"))
     elapsed = time.perf_counter() - t0
     if len(steps) < 2:
-        raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry")
+        c = odo.counters  # why: the counts the summary below would have printed
+        raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry (imu {c.imu}, images {c.images}, "
+                         f"dropped without IMU {c.dropped_no_imu}, invalid BEV {c.dropped_invalid_bev})")
     T_base_cam, _ = extrinsics_for_recording(rec, config, rig)  # the extrinsics the engine used (float64)
-    paths = write_outputs(Path(args.out), steps, rec, T_base_cam)
+    paths = write_outputs(Path(args.out), steps, rec, T_base_cam, prog=prog_name("run_bag"))
     c = odo.counters
     print(f"{prog_name('run_bag')}: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
           f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "

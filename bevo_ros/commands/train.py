@@ -177,6 +177,8 @@ def _train(args: argparse.Namespace) -> int:
     for path, what in ((out, "--out"), (checkpoint, "the checkpoint")):  # before hours of training, not after
         if path.is_dir():
             raise ValueError(f"{what} {path} is a directory: give the learned-parameters YAML file to write")
+    if checkpoint.resolve() == out.resolve():  # the learned file would overwrite the checkpoint at the end
+        raise ValueError(f"--checkpoint {checkpoint} is --out itself: give the checkpoint another file")
     if args.lr is not None and not (args.lr > 0 and math.isfinite(args.lr)):
         raise ValueError(f"--lr {args.lr}: must be > 0")
     options = TrainOptions(

@@ -60,6 +60,8 @@ _STAMP_RE = re.compile(r"^(\d{4})-(\d{2})-(\d{2}) (\d{2}):(\d{2}):(\d{2})(?:\.(\
 # ----------------------------------------------------------------------------------------------
 def _require_file(path: PathLike, what: str) -> Path:
     path = Path(path)
+    if path.is_dir():
+        raise FileNotFoundError(f"{path}: a directory, not the {what}")
     if not path.is_file():
         raise FileNotFoundError(f"{path}: {what} not found")
     return path

@@ -135,7 +135,11 @@ class RigSettings:
     ``camera_info_use_p``, ``undistort``: the intrinsics from the bag's first CameraInfo (``P`` or
     ``K``; distorted images undistorted with OpenCV maps, ``bevo_ros.ros.camera``), else the
     ``camera.*`` parameters. ``speed_topic`` (``''`` = none): a vehicle speed the motion filter fuses
-    (``io.ros_conversions.forward_speed_from_msg``; ``speed_variance`` where the message has none)."""
+    (``io.ros_conversions.forward_speed_from_msg``; ``speed_variance`` where the message has none).
+    ``imu_topic``, ``image_topic``, ``camera_info_topic``: the node's (relative: a bag recorded in the
+    root namespace has them under ``/``, :meth:`bag_topic`); the commands' ``--imu-topic`` and
+    ``--image-topic`` override them (a bag's CameraInfo on another topic was passed over for the
+    ``camera.*`` parameters)."""
 
     base_frame: str = "base_link"
     extrinsics_from_tf: bool = True
@@ -144,6 +148,9 @@ class RigSettings:
     undistort: str = "auto"
     speed_topic: str = ""
     speed_variance: float = 0.01
+    imu_topic: str = "imu/data"
+    image_topic: str = "camera/image_rect"
+    camera_info_topic: str = "camera/camera_info"
 
     @classmethod
     def from_params(cls, flat: dict, source: str | None = None) -> "RigSettings":
@@ -161,6 +168,16 @@ class RigSettings:
         if not values["speed_variance"] > 0:
             raise ConfigError(f"speed_variance must be > 0, got {values['speed_variance']!r}{where}")
         return cls(**values)
+
+    @staticmethod
+    def bag_topic(name: str) -> str:
+        """A node's topic name as a bag recorded in the root namespace holds it (``/`` + relative)."""
+        return name if name.startswith("/") else "/" + name
+
+    def read_topics(self) -> dict[str, str]:
+        """``bag.read_recording``'s topic arguments: the node's topics in the bag."""
+        return {"imu_topic": self.bag_topic(self.imu_topic), "image_topic": self.bag_topic(self.image_topic),
+                "camera_info_topic": self.bag_topic(self.camera_info_topic)}
 
 
 def extrinsics_for_recording(rec: bag.BagContents, config: BevoConfig,
@@ -342,7 +359,7 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
     CameraInfo and ``/tf_static`` when there (distorted images undistorted), the IMU's vectors
     rotated into ``base_frame``'s axes.
     """
-    rec = bag.read_recording(bag_path)
+    rec = bag.read_recording(bag_path, **rig.read_topics())
     if rec.images is None or len(rec.frame_stamps_ns) < 2:
         raise ValueError(f"{bag_path}: needs at least 2 images")
     calib = calibration_for_recording(rec, config, rig)

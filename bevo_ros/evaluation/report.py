@@ -103,6 +103,8 @@ def write_report(out_dir: PathLike, gt: np.ndarray, est: np.ndarray, metrics: Me
     if pitch_roll is not None:
         paths.append(out / "pitch_roll.png")
         plot_pitch_roll(paths[-1], pitch_roll)
+    else:  # an earlier report's plot in the same folder would read as this run's
+        (out / "pitch_roll.png").unlink(missing_ok=True)
     return paths
 
 

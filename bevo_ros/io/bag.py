@@ -17,6 +17,7 @@ import math
 import os
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -724,6 +725,9 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
     if missing:
         raise BagError(f"{path}: required topic(s) {', '.join(missing)} missing "
                        f"(the bag has: {', '.join(sorted(topics)) or 'none'})")
+    empty = [names[k] for k in required if topics[names[k]][1] == 0]  # recorded, but not one message
+    if empty:
+        raise BagError(f"{path}: required topic(s) {', '.join(empty)} hold no message")
     for key, types in EXPECTED_TYPES.items():  # `--imu-topic /camera/image_rect` and the like
         topic = names[key]
         if topic in topics and topics[topic][0] not in types:
@@ -774,7 +778,9 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
             gt_T.append(T)
             rec.gt_frame_id, rec.gt_child_frame_id = msg.header.frame_id, msg.child_frame_id
         elif topic == TF_STATIC_TOPIC:
-            rec.static_tf.add_message(msg)
+            for what in rec.static_tf.add_message(msg):
+                warnings.warn(f"{path}: /tf_static transform left out, no rigid transform: {what}", UserWarning,
+                              stacklevel=2)
         elif topic == gt_imu_topic:
             if msg.orientation_covariance[0] == -1.0:
                 continue  # no attitude in this message

@@ -80,6 +80,9 @@ def save_map(aerial: AerialMap, path: str | os.PathLike, image_name: str | None 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     image_name = image_name or path.with_suffix(".png").name
+    if (path.parent / image_name).resolve() == path.resolve():  # `--out map.png`: the YAML overwrote the image
+        raise ValueError(f"{path}: the map's YAML would overwrite its own image {image_name}: give the YAML a name "
+                         f"ending in .yaml (the image is written beside it as .png)")
     img = aerial.image.detach().cpu().float().clamp(0.0, 1.0).numpy()
     chans = img[:3] if img.shape[0] >= 3 else img[:1]
     bgr = chans[::-1].transpose(1, 2, 0) if chans.shape[0] == 3 else chans[0]

@@ -3,6 +3,7 @@ listener (``bevo_ros.ros.tf``) and the offline commands reading a bag's ``/tf_st
 (``bevo_ros.datasets.rosbag``) both look the rig up in. No ROS needed."""
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -36,10 +37,20 @@ class StaticTree:
             self.edges[child] = (parent, np.asarray(T, dtype=np.float64))
             self.version += 1
 
-    def add_message(self, msg: Any) -> None:
-        """Every transform of a tf2_msgs/TFMessage (rclpy's or rosbags' message: the same fields)."""
+    def add_message(self, msg: Any) -> list[str]:
+        """Every transform of a tf2_msgs/TFMessage (rclpy's or rosbags' message: the same fields) but
+        those that are no rigid transform (a zero or NaN quaternion: a NaN rotation blamed every IMU
+        sample in that frame as non-finite): returned, ``"parent -> child: why"``, and left out."""
+        bad = []
         for t in msg.transforms:
+            q, p = t.transform.rotation, t.transform.translation
+            norm = float(np.linalg.norm([q.x, q.y, q.z, q.w]))
+            if not (math.isfinite(norm) and norm > 1e-9 and all(map(math.isfinite, (p.x, p.y, p.z)))):
+                bad.append(f"{t.header.frame_id} -> {t.child_frame_id}: quaternion "
+                           f"{[q.x, q.y, q.z, q.w]}, translation {[p.x, p.y, p.z]}")
+                continue
             self.add(t.header.frame_id, t.child_frame_id, matrix_from_transform(t.transform))
+        return bad
 
     def _to_root(self, frame: str) -> tuple[str, np.ndarray]:
         """``(root, T_root_frame)``: up the tree from ``frame`` (cycle-safe)."""

@@ -15,6 +15,7 @@ import numpy as np
 UNDISTORT_MODES = ("auto", "on", "off")
 # distortion_model -> OpenCV family (REP-104 / sensor_msgs/distortion_models.hpp names)
 _PINHOLE_MODELS = ("plumb_bob", "rational_polynomial")
+_PINHOLE_COEFFICIENTS = (4, 5, 8, 12, 14)  # what cv2.initUndistortRectifyMap takes
 _FISHEYE_MODELS = ("equidistant",)
 
 
@@ -68,8 +69,13 @@ def is_rectified_topic(topic: str) -> bool:
 
 
 def _key(msg: Any) -> tuple:
-    return (int(msg.width), int(msg.height), str(msg.distortion_model), tuple(np.round(msg.d, 12)),
-            tuple(np.round(msg.k, 9)), tuple(np.round(msg.r, 12)), tuple(np.round(msg.p, 9)))
+    # NaN never equals itself: a field the calibration ignores holding one made every repeat of the
+    # same message a new calibration (rebuilt and logged at the camera's rate)
+    def rounded(v, decimals: int) -> tuple:
+        return tuple(np.round(np.nan_to_num(np.asarray(v, dtype=np.float64), nan=1e30, posinf=1e31, neginf=-1e31), decimals))
+
+    return (int(msg.width), int(msg.height), str(msg.distortion_model), rounded(msg.d, 12), rounded(msg.k, 9),
+            rounded(msg.r, 12), rounded(msg.p, 9))
 
 
 def same_camera_info(calib: Calibration | None, msg: Any) -> bool:
@@ -105,17 +111,25 @@ def calibration_from_camera_info(msg: Any, use_p: bool = True, undistort: str = 
     if not np.all(np.isfinite(D)):
         raise CalibrationError(f"CameraInfo D has NaN/inf: {D.tolist()}")
     K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
-    if not (K[0, 0] > 0 and K[1, 1] > 0):
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
         raise CalibrationError("CameraInfo D is non-zero but K is not a valid camera matrix: cannot undistort")
     R = np.asarray(msg.r, dtype=np.float64).reshape(3, 3)
     if not np.any(R):
         R = np.eye(3)
+    # R rotates the rectified frame: NaN in it remapped every image to black with the calibration "OK"
+    if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), rtol=0, atol=1e-3) and np.linalg.det(R) > 0):
+        raise CalibrationError(f"CameraInfo R is not a rotation: {np.round(R, 6).tolist()}")
     P = np.asarray(msg.p, dtype=np.float64).reshape(3, 4)
+    if not np.all(np.isfinite(P[:, :3])):
+        raise CalibrationError(f"CameraInfo P has NaN/inf: {P.tolist()}")
     new_K = P[:, :3].copy() if P[0, 0] > 0 and P[1, 1] > 0 else K.copy()
     import cv2
 
     model = str(msg.distortion_model)
     if model in _PINHOLE_MODELS:
+        if D.size not in _PINHOLE_COEFFICIENTS:  # OpenCV raises (cv2.error) for any other count
+            raise CalibrationError(f"{model} distortion with {D.size} coefficients in CameraInfo D: OpenCV takes "
+                                   f"{', '.join(map(str, _PINHOLE_COEFFICIENTS))}")
         maps = cv2.initUndistortRectifyMap(K, D, R, new_K, (w, h), cv2.CV_16SC2)
     elif model in _FISHEYE_MODELS:
         if D.size < 4:

@@ -192,10 +192,17 @@ class Report:
                 f"odometry {c['odometry_out']} published; dropped: {drops}; events: {events}")
 
 
+# The engine's events for a frame whose image moved nothing: its pose is the motion filter's prediction.
+BLIND_FRAME_EVENTS = ("rejected_textureless", "rejected_translation")
+BLIND_SHARE = 0.8  # of the frames since the last report (a drive's first frame has no correlation to reject)
+
+
 def odometry_state(values: dict[str, str], inputs: dict[str, SensorState], calibrated: bool,
-                   new_drops: int) -> SensorState:
+                   new_drops: int, new_frames: int = 0, new_blind: int = 0) -> SensorState:
     """The odometry's status: WARN while uncalibrated, ERROR when an input is silent, WARN on new
-    drops, images without odometry or a late input, else OK."""
+    drops, images without odometry, most new frames blind (``new_blind`` of the ``new_frames``
+    published since the last report had :data:`BLIND_FRAME_EVENTS`, at least :data:`BLIND_SHARE`: a
+    covered, black or textureless camera, dead reckoning) or a late input, else OK."""
     worst = max((st.level for st in inputs.values()), default=OK)
     if not calibrated:
         return SensorState(WARN, "waiting for CameraInfo", values)
@@ -205,6 +212,9 @@ def odometry_state(values: dict[str, str], inputs: dict[str, SensorState], calib
         return SensorState(WARN, f"{new_drops} input(s) dropped", values)
     if float(values["image_rate_hz"]) > 0 and float(values["odometry_rate_hz"]) == 0:
         return SensorState(WARN, "images arrive but no odometry is produced", values)
+    if new_blind >= 2 and new_blind >= BLIND_SHARE * new_frames:
+        return SensorState(WARN, f"{new_blind} of the last {new_frames} frame(s) rejected (a covered, black or "
+                                 "textureless camera?): the pose is mostly the motion filter's prediction", values)
     if worst == WARN:
         return SensorState(WARN, "; ".join(st.message for st in inputs.values() if st.level == WARN), values)
     return SensorState(OK, "running", values)

@@ -25,7 +25,7 @@ from bevo_ros.core.validation import intrinsics_problem
 from bevo_ros.io.static_tf import PARAMETERS_EXTRINSICS, camera_extrinsics, imu_axes
 from bevo_ros.ros.camera import (Calibration, CalibrationError, calibration_from_camera_info,
                                  calibration_from_parameters, same_camera_info)
-from bevo_ros.ros.diagnostics import OK, WARN, Report, SensorState
+from bevo_ros.ros.diagnostics import ERROR, OK, WARN, Report, SensorState
 from bevo_ros.ros.settings import NodeSettings
 from bevo_ros.ros.tf import StaticTransforms
 from bevo_ros.io.ros_conversions import ImageConversionError, image_to_gray, stamp_to_sec
@@ -170,6 +170,9 @@ class Rig:
         if not frame or frame == base.lstrip("/"):
             return None
         cached = self._R_base_imu.get(frame)
+        if cached is None and len(self._R_base_imu) >= MAX_IMU_FRAMES:  # a stream of bogus frame ids stays bounded
+            self._R_base_imu.clear()
+            self._imu_frame_warned.clear()
         version = 0
         if self.static_tf is not None:
             if cached is None or cached[1] is None:
@@ -178,6 +181,8 @@ class Rig:
         if cached is not None and cached[0] == version:
             return cached[1]
         R = imu_axes(self.static_tf, base, frame)
+        if R is not None and not np.isfinite(R).all():  # a degenerate /tf_static rotation: unknown, not NaN rates
+            R = None
         self._R_base_imu[frame] = (version, R)
         if R is not None:
             if cached is None or cached[1] is None or not np.allclose(cached[1], R, rtol=0, atol=1e-12):
@@ -289,6 +294,9 @@ class Rig:
                                           for f, r in sorted(self._R_base_imu.items())) or "base_frame"}
         if calib is None:
             return SensorState(WARN, f"waiting for CameraInfo on {self.info_topic}", values)
+        if self.camera is None:  # calibrated, but no camera model could be built from it (the extrinsics)
+            return SensorState(ERROR, f"{calib.describe()}, but the camera extrinsics from "
+                                      f"{self.extrinsics_source} are unusable: no odometry", values)
         if s.use_camera_info and not calib.source.startswith("CameraInfo"):
             return SensorState(WARN, "no CameraInfo: the camera.* parameters stand in for it", values)
         return SensorState(OK, calib.describe(), values)

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from bevo_ros.config import RENAMED, BevoConfig, ConfigError, coerce_setting, resolve_path, unknown_parameters
+from bevo_ros.config import (RENAMED, BevoConfig, ConfigError, coerce_setting, extrinsics_problem, resolve_path,
+                             unknown_parameters)
 from bevo_ros.io import bag
 from bevo_ros.ros import parameters as ros_params
 
@@ -192,6 +193,12 @@ def validate(s: NodeSettings) -> None:
     for name in ("odom_frame", "base_frame", "imu_topic", "image_topic", "odometry_topic"):
         if not getattr(s, name):
             raise ConfigError(f"parameter '{name}' must not be empty")
+    for name in ("odom_frame", "base_frame"):
+        if getattr(s, name).startswith("/"):  # tf2 refuses such frame ids (and set_pose compared them stripped)
+            raise ConfigError(f"parameter '{name}' = {getattr(s, name)!r}: a frame id must not start with '/'")
+    if s.odom_frame == s.base_frame:
+        raise ConfigError(f"parameters 'odom_frame' and 'base_frame' are both {s.odom_frame!r}: the odometry is the "
+                          "transform between two frames")
 
 
 def settings_from_flat(flat: dict[str, Any]) -> NodeSettings:
@@ -224,13 +231,16 @@ def declare(node, node_name: str) -> tuple[NodeSettings, BevoConfig]:
         except (InvalidParameterValueException, InvalidParameterTypeException) as exc:
             raise ConfigError(f"parameter '{name}': {exc}") from None
     for old, new in RENAMED.items():  # old names still read (BevoConfig.from_flat warns)
-        value = node.declare_parameter(old, None, ParameterDescriptor(
-            description=f"deprecated: renamed {new}", dynamic_typing=True)).value
+        value = node.declare_parameter(old, None, ParameterDescriptor(  # read at start only, as its new name
+            description=f"deprecated: renamed {new} [read-only: fixed at start]", dynamic_typing=True,
+            read_only=True)).value
         if value is not None:
             flat[old] = value
     settings = settings_from_flat(flat)
     validate(settings)
     config = BevoConfig.from_flat(flat, source=f"{node_name} parameters", warn=node.get_logger().warning)
+    if (why := extrinsics_problem(config.camera.base_T_camera)) is not None:  # else no odometry, only drops
+        raise ConfigError(f"parameter 'camera.base_T_camera' is no rigid transform: {why}")
     config_flat = config.to_flat()
     for name in names:
         why = ros_params.check(name, getattr(settings, name) if hasattr(settings, name) else config_flat.get(name))

@@ -23,6 +23,7 @@ class StaticTransforms:
 
     def __init__(self, node, topic: str = "/tf_static") -> None:
         self.tree = StaticTree()
+        self._logger = node.get_logger()
         self._buffer = None
         self._sub = None
         self.backend = "none"
@@ -64,7 +65,13 @@ class StaticTransforms:
             self._sub_poll_broken = True
 
     def _on_tf_static(self, msg) -> None:
-        self.tree.add_message(msg)
+        try:
+            bad = self.tree.add_message(msg)
+        except Exception as exc:  # noqa: BLE001 - a malformed message must not stop the node's executor
+            self._logger.error(f"/tf_static message dropped: {exc!r}")
+            return
+        for what in bad:
+            self._logger.warning(f"/tf_static transform left out, no rigid transform: {what}")
 
     @property
     def version(self) -> int:

@@ -330,7 +330,11 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
         if result.status == "diverged":
             warn(result.message)
     else:
-        path = o.learned or config.learned_params_file
+        from bevo_ros.config import shipped_learned_for_mode
+
+        # the paper's rows run the paper's pipeline: the params' shipped fused file swapped for the paper's
+        # (as bevo run --mode paper does); a file given with --learned, or a user's own, as it is
+        path = o.learned or shipped_learned_for_mode(config.learned_params_file, "paper")
         learned = load_learned_params(path)
         learned_src = f"from {path}"
     log(f"learned O = {list(learned.process_noise_density)}, Q = {list(learned.measurement_noise_variance)}")
@@ -344,7 +348,13 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
         "measurement_noise_variance": list(learned.measurement_noise_variance), "source": learned_src},
         "bags": {}}
     rows_by_bag = {}
-    for b, s in zip(bag_paths, seqs):
+    names: list[str] = []  # each bag's key in the report and its plot's name: two bags' folders may share a name
+    for s in seqs:
+        name, k = s.name, 2
+        while name in names:
+            name, k = f"{s.name}_{k}", k + 1
+        names.append(name)
+    for b, s, name in zip(bag_paths, seqs, names):
         if eval_mode == "held-out":
             _, (c, d) = split_frames(len(s), o.split)
         else:
@@ -353,25 +363,25 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
         mode = gt_modes.get(str(b), o.gt_attitude)
         if not isinstance(mode, str):
             if len(mode) != len(s):
-                raise ValueError(f"{s.name}: {len(s)} frames in the bag but {len(mode)} in the drive")
+                raise ValueError(f"{name}: {len(s)} frames in the bag but {len(mode)} in the drive")
             mode = mode[c:d]
         t0 = time.perf_counter()
         label = mode if isinstance(mode, str) else "simulator (exact road-relative attitude)"
         rows = run_variants(part, config, learned, mode, o.empirical_o, o.empirical_q, device,
                             fused_learned=fused_learned)
         frames = f"frames {c}..{d - 1} of {len(s)}" + (" (held out from training)" if eval_mode == "held-out" else "")
-        md.append(table_markdown(s.name, rows, frames, label))
+        md.append(table_markdown(name, rows, frames, label))
         gt = part.gt_poses.double().numpy()
         gt = np.linalg.inv(gt[0]) @ gt
         ref = reference_attitude(part, mode, config).numpy()
-        png = out / f"{s.name}_ablation.png"
-        plot_bag(png, s.name, gt, rows, ref)
-        md.append(f"![{s.name}]({png.name})\n")
-        rows_by_bag[s.name] = rows
-        report["bags"][s.name] = {"frames": [c, d], "gt_attitude": label, "plot": png.name,
+        png = out / f"{name}_ablation.png".replace(" ", "_")
+        plot_bag(png, name, gt, rows, ref)
+        md.append(f"![{name}]({png.name})\n")
+        rows_by_bag[name] = rows
+        report["bags"][name] = {"frames": [c, d], "gt_attitude": label, "plot": png.name,
                                   "rows": [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows]}
-        log(f"{s.name}: {len(rows)} variants over {d - c} frames in {time.perf_counter() - t0:.1f} s")
-        log(table_markdown(s.name, rows, frames, label))
+        log(f"{name}: {len(rows)} variants over {d - c} frames in {time.perf_counter() - t0:.1f} s")
+        log(table_markdown(name, rows, frames, label))
     text = notes(rows_by_bag, learned_src, o.empirical_o, o.empirical_q)
     md.append(text)
     atomic_write_text(out / "ablation.md", "\n".join(md))
