@@ -356,3 +356,5 @@ def test_a_negative_oxts_offset_is_refused(tmp_path):
 
     with pytest.raises(ConversionError, match="--oxts-offset -5: must be >= 0"):
         load_source(ConversionOptions(output=tmp_path / "b", odometry=tmp_path, oxts_offset=-5))
+    with pytest.raises(ConversionError, match="--gyro-var -1.0: a variance must be >= 0"):
+        load_source(ConversionOptions(output=tmp_path / "b", odometry=tmp_path, gyro_var=-1.0))

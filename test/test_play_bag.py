@@ -179,8 +179,11 @@ def test_bad_input_exit_2(tmp_path):
     assert proc.returncode == 2 and "missing: bag not found" in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_a_bad_namespace_or_clock_topic_is_exit_2(small_bag):
-    """rclpy's name check raised out of the player (a traceback, exit 1)."""
+def test_a_bad_namespace_clock_topic_or_rate_is_exit_2(small_bag):
+    """rclpy's name check raised out of the player (a traceback, exit 1); --rate nan played flat out."""
+    proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--rate", "nan"], env=_env(), capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 2 and "--rate and --start must be >= 0" in proc.stderr  # NaN played flat out
     for argv in (["--namespace", "bad ns"], ["--clock-topic", "bad topic"]):
         proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--rate", "0", "--linger", "0", "-q", *argv],
                               env=_env(), capture_output=True, text=True, timeout=60)

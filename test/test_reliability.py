@@ -590,6 +590,9 @@ def test_a_refused_speed_sample_changes_nothing():
     with pytest.raises(OutOfOrderError):
         odo.add_speed(T0 + 9.0, 5.0, 0.01, signed=False)
     assert odo._speed_unsigned is False and len(odo._speed_log) == 1
+    with pytest.raises(ValueError, match="beyond any car"):  # 1e300 m/s ran the compensation to inf
+        odo.add_speed(T0 + 11.0, 1e300, 0.01)
+    assert len(odo._speed_log) == 1
 
 
 def test_a_frame_before_the_imu_is_dropped_whichever_arrives_first():

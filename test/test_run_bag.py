@@ -715,7 +715,11 @@ def test_the_commands_refuse_what_would_lose_files_or_mislead(synthetic_bag, tmp
         (map_cmd.main, [str(path), "--out", str(tmp_path / "m.png"), "--params", SYNTH_PARAMS], "give the map's YAML"),
         (train.main, [str(path), "--out", str(tmp_path / "l.yaml"), "--checkpoint", str(tmp_path / "l.yaml"),
                       "--params", SYNTH_PARAMS, "-q"], "is --out itself"),
+        (train.main, [str(path), "--out", str(tmp_path / "l.yaml"), "--device", "foo", "--params", SYNTH_PARAMS, "-q"],
+         "not a torch device"),
+        (run.main, [str(path), "--out", str(tmp_path / "a_file"), "--params", SYNTH_PARAMS, "-q"], "is a file"),
     )
+    (tmp_path / "a_file").write_text("not a folder\n")
     for main, argv, message in cases:
         assert main(argv) == 2
         err = capsys.readouterr().err

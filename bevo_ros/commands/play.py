@@ -10,6 +10,7 @@ volatile), keep-last with a deep queue (--qos-depth) so a subscriber that keeps 
 from __future__ import annotations
 
 import argparse
+import math
 import importlib
 import os
 import sys
@@ -213,7 +214,7 @@ def play(player: Player, args, start_ns: int | None) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.rate < 0 or args.qos_depth < 1 or args.start < 0:
+    if not (args.rate >= 0 and args.start >= 0) or args.qos_depth < 1 or not math.isfinite(args.start):  # NaN too
         print(f"{prog_name('play_bag')}: error: --rate and --start must be >= 0, --qos-depth >= 1", file=sys.stderr)
         return 2
     try:

@@ -55,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if Path(args.out).exists() and not Path(args.out).is_dir():  # before the whole run, not after it
+        raise ValueError(f"--out {args.out} is a file: give the output directory")
     config, flat = load_config(args.params)
     rig = RigSettings.from_params(flat, str(args.params))
     if args.speed_topic is not None:

@@ -179,6 +179,12 @@ def _train(args: argparse.Namespace) -> int:
             raise ValueError(f"{what} {path} is a directory: give the learned-parameters YAML file to write")
     if checkpoint.resolve() == out.resolve():  # the learned file would overwrite the checkpoint at the end
         raise ValueError(f"--checkpoint {checkpoint} is --out itself: give the checkpoint another file")
+    import torch
+
+    try:  # a device torch cannot name failed only after the bags were read
+        torch.device(args.device)
+    except RuntimeError:
+        raise ValueError(f"--device {args.device!r}: not a torch device (cpu, cuda, cuda:N)") from None
     if args.lr is not None and not (args.lr > 0 and math.isfinite(args.lr)):
         raise ValueError(f"--lr {args.lr}: must be > 0")
     options = TrainOptions(

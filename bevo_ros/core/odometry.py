@@ -132,6 +132,10 @@ class InvalidInputError(ValueError):
     exception out of the engine is a bug, not bad input."""
 
 
+# m/s: an outside speed beyond this is no car's (add_speed refuses it; 540 km/h)
+MAX_SPEED = 150.0
+
+
 class OutOfOrderError(InvalidInputError):
     """A message's stamp is not after the previous one of its kind."""
 
@@ -601,6 +605,8 @@ class BevoOdometry:
         right after one, the correlation's reading once clear of zero, :meth:`_fused_motion`)."""
         if not (math.isfinite(stamp) and math.isfinite(speed) and math.isfinite(variance) and variance > 0):
             raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
+        if abs(speed) > MAX_SPEED:  # a corrupt message: 1e300 m/s overflowed the compensation to inf
+            raise ValueError(f"speed {speed!r} m/s is beyond any car's ({MAX_SPEED:g} m/s)")
         if self._ext_speed is not None and stamp <= self._ext_speed[0]:  # refused before it changes anything
             raise OutOfOrderError("speed", stamp, self._ext_speed[0])
         if not signed:  # the speed crosses zero where the sign changes: no jump in the DUKF's dv/dt

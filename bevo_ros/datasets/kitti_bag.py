@@ -382,6 +382,9 @@ def load_source(opts: ConversionOptions) -> Source:
     """The odometry sequence (``opts.odometry``) or raw drive (``opts.raw``) to convert."""
     if (opts.odometry is None) == (opts.raw is None):
         raise ConversionError("give exactly one of an odometry root (with a sequence) or a raw drive")
+    for name in ("gyro_var", "accel_var"):  # a negative covariance in every IMU message
+        if not getattr(opts, name) >= 0:
+            raise ConversionError(f"--{name.replace('_', '-')} {getattr(opts, name)}: a variance must be >= 0")
     if opts.oxts_offset is not None and opts.oxts_offset < 0:  # a negative slice left no OXTS record (IndexError)
         raise ConversionError(f"--oxts-offset {opts.oxts_offset}: must be >= 0 (the OXTS record of the first image)")
     return odometry_source(opts) if opts.odometry is not None else raw_source(opts)

@@ -199,15 +199,15 @@ BLIND_SHARE = 0.8  # of the frames since the last report (a drive's first frame 
 
 def odometry_state(values: dict[str, str], inputs: dict[str, SensorState], calibrated: bool,
                    new_drops: int, new_frames: int = 0, new_blind: int = 0) -> SensorState:
-    """The odometry's status: WARN while uncalibrated, ERROR when an input is silent, WARN on new
+    """The odometry's status: ERROR when an input is silent, WARN while uncalibrated, WARN on new
     drops, images without odometry, most new frames blind (``new_blind`` of the ``new_frames``
     published since the last report had :data:`BLIND_FRAME_EVENTS`, at least :data:`BLIND_SHARE`: a
     covered, black or textureless camera, dead reckoning) or a late input, else OK."""
     worst = max((st.level for st in inputs.values()), default=OK)
+    if worst == ERROR:  # a silent input is the worse news, calibrated or not
+        return SensorState(ERROR, "; ".join(st.message for st in inputs.values() if st.level == ERROR), values)
     if not calibrated:
         return SensorState(WARN, "waiting for CameraInfo", values)
-    if worst == ERROR:
-        return SensorState(ERROR, "; ".join(st.message for st in inputs.values() if st.level == ERROR), values)
     if new_drops > 0:
         return SensorState(WARN, f"{new_drops} input(s) dropped", values)
     if float(values["image_rate_hz"]) > 0 and float(values["odometry_rate_hz"]) == 0:

@@ -530,6 +530,9 @@ class EngineFeed:
             self.report.drop("speed_duplicate" if exc.jump == 0 else "speed_out_of_order",
                              f"speed stamp {t:.9f} is not after the previous speed stamp {exc.last:.9f}")
             return None
+        except ValueError as exc:  # the engine's plausibility check (beyond any car's speed)
+            self.report.drop("speed_invalid", f"speed at {t:.6f}: {exc}")
+            return None
         self._journal("speed", t, (speed, variance, signed))
         return []
 
