@@ -91,6 +91,13 @@ def test_an_untrusted_accelerometer_teaches_nothing():
     for _ in range(50):  # the vehicle-acceleration variance over TRUST_RATIO x Q: that axis learns nothing
         f.step(0.1, (3e-6, 3e-6), (0.2, 0.2), (1e-2, 1e-2), (5e-2, 0.0), (0.01, 0.01))
     assert f.xy[1] == 0.0 and f.xy[0] != 0.0  # pitch (y) untrusted, roll (x) trusted
+    # An untrusted sample teaches the bias nothing, but the DUKF corrected its angle with it all the
+    # same: the book takes that correction (Joseph form, bias gain 0); it was left untouched before.
+    k = 0.05
+    untrusted = update_axis(axis, innovation=0.2, measurement_var=0.05, angle_gain=k, learn=False)
+    assert untrusted.bias == axis.bias and untrusted.p_bb == axis.p_bb
+    assert untrusted.p_aa == pytest.approx((1 - k) ** 2 * axis.p_aa + k * k * 0.05)
+    assert untrusted.p_ab == pytest.approx((1 - k) * axis.p_ab)
 
 
 def test_the_measurement_counts_once_per_correlation_time():

@@ -71,18 +71,23 @@ def predict_axis(axis: BiasAxis, dt: float, process_density: float, walk_density
     return BiasAxis(axis.bias, p_aa, axis.p_ab - dt * axis.p_bb, axis.p_bb + walk_density * dt)
 
 
-def update_axis(axis: BiasAxis, innovation: float, measurement_var: float, angle_gain: float) -> BiasAxis:
+def update_axis(axis: BiasAxis, innovation: float, measurement_var: float, angle_gain: float,
+                learn: bool = True) -> BiasAxis:
     """The accelerometer's angle less the predicted one (rad), with its variance (rad^2).
 
     ``angle_gain``: the gain the angle was actually corrected with (the DUKF's). The bias's gain ``p_ab / S`` is optimal whatever the angle's; the covariance is
     the Joseph form for that pair of gains. An innovation above zero says the angle integrated from
     the rates came out low: the rate less the bias was too small, the bias too large (``p_ab < 0``
-    after a predict makes the gain negative). An infinite variance: nothing learnt.
+    after a predict makes the gain negative). ``learn`` False (a sample not trusted to teach the
+    bias): the bias's gain is 0, but the DUKF corrected its angle all the same, so the book still
+    takes that correction's share of the measurement's error (before 2026-12-06 such a sample left the
+    book untouched: its angle variance and the angle-bias covariance no longer the DUKF's). An
+    infinite variance: nothing learnt, nothing corrected.
     """
     if not math.isfinite(measurement_var):
         return axis
     s = axis.p_aa + measurement_var
-    k_a, k_b = angle_gain, axis.p_ab / s
+    k_a, k_b = angle_gain, (axis.p_ab / s if learn else 0.0)
     p_aa = (1.0 - k_a) ** 2 * axis.p_aa + k_a * k_a * measurement_var
     p_ab = (1.0 - k_a) * (axis.p_ab - k_b * axis.p_aa) + k_a * k_b * measurement_var
     p_bb = axis.p_bb - k_b * axis.p_ab
@@ -141,7 +146,7 @@ class GyroBiasFilter:
             return
         walk_density = self.walk**2
         per = max(1.0, MEASUREMENT_CORRELATION_TIME / dt) if dt > 0 else 1.0
-        self._axes = [update_axis(predict_axis(a, dt, o, walk_density), nu, math.inf if e > TRUST_RATIO * q else (q + e) * per, k)
+        self._axes = [update_axis(predict_axis(a, dt, o, walk_density), nu, (q + e) * per, k, learn=e <= TRUST_RATIO * q)
                       for a, o, nu, q, e, k in zip(self._axes, process_density, innovation, measurement_var, extra_var,
                                                    angle_gain)]
 
