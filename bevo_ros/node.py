@@ -143,7 +143,9 @@ class BevoNode(Node):
                                      lambda msg, info: take_speed(msg, info), in_qos(s.imu_qos_depth))
         # Steady-clock timers: they tick with or without /clock (use_sim_time).
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(min(0.05, s.image_wait / 2), self._guard("flush_timer", self._on_flush_timer), clock=steady)
+        self._steady = steady
+        self._flush_timer = self.create_timer(min(0.05, s.image_wait / 2), self._guard("flush_timer", self._on_flush_timer),
+                                              clock=steady)
         self.create_timer(s.diagnostics_period, self._guard("diagnostics", self._publish_diagnostics), clock=steady)
         self._path_restart_at: float | None = None  # a waiting set_pose's stamp: the path restarts there
         self._diag_drops = 0  # drops_total at the last /diagnostics
@@ -293,6 +295,13 @@ class BevoNode(Node):
             setattr(self.settings, p.name, value)
             if p.name == "publish_tf":
                 self.outputs.set_publish_tf(value)
+                if value and self.outputs.tf_backend in ("none", "disabled"):  # said at start only before
+                    self.get_logger().warning("publish_tf: no TF message type (tf2_ros or tf2_msgs) in this "
+                                              "installation: odom -> base_link is not broadcast")
+            elif p.name == "image_wait":  # the flush timer checks at half the wait (at most 50 ms)
+                self.destroy_timer(self._flush_timer)
+                self._flush_timer = self.create_timer(min(0.05, value / 2),
+                                                      self._guard("flush_timer", self._on_flush_timer), clock=self._steady)
             elif p.name == "path_max_length":
                 self.outputs.set_path_length(value)
             elif p.name == "max_pending_images" and self.engine is not None:

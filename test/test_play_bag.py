@@ -184,6 +184,9 @@ def test_a_bad_namespace_clock_topic_or_rate_is_exit_2(small_bag):
     proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--rate", "nan"], env=_env(), capture_output=True,
                           text=True, timeout=60)
     assert proc.returncode == 2 and "--rate and --start must be >= 0" in proc.stderr  # NaN played flat out
+    proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--start", "1000"], env=_env(), capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 2 and "past the bag's end" in proc.stderr  # played nothing, exit 0
     for argv in (["--namespace", "bad ns"], ["--clock-topic", "bad topic"]):
         proc = subprocess.run([sys.executable, *PLAY, str(small_bag), "--rate", "0", "--linger", "0", "-q", *argv],
                               env=_env(), capture_output=True, text=True, timeout=60)

@@ -742,8 +742,9 @@ def test_diagnostics_warn_when_the_images_move_nothing(harness):
 
 def test_live_jump_threshold_and_deprecated_names(harness):
     """max_time_jump_back is live: the /clock jump handler kept the start's threshold (a 1.2 s step
-    back reset the odometry after the parameter had been raised to 5 s). The deprecated camera.height
-    could be set and deleted at run time, doing nothing: read-only now."""
+    back reset the odometry after the parameter had been raised to 5 s); so is image_wait, whose flush
+    timer kept the start's period. The deprecated camera.height could be set and deleted at run time,
+    doing nothing: read-only now."""
     from rclpy.parameter import Parameter
     from rosgraph_msgs.msg import Clock
 
@@ -753,6 +754,8 @@ def test_live_jump_threshold_and_deprecated_names(harness):
     h = harness(use_sim_time=True, max_time_jump_back=0.5)
     assert h.node.set_parameters([Parameter("max_time_jump_back", value=5.0)])[0].successful
     assert not h.node.set_parameters([Parameter("camera.height", value=3.0)])[0].successful
+    assert h.node.set_parameters([Parameter("image_wait", value=0.02)])[0].successful
+    assert h.node._flush_timer.timer_period_ns == 10_000_000  # half the wait (it kept the start's 50 ms)
     clock_pub = h.tester.create_publisher(Clock, "/clock", 10)
     assert spin_until(h.executor, lambda: clock_pub.get_subscription_count() > 0, 5)
     msgs = drive_messages(drive)

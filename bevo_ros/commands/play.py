@@ -235,7 +235,10 @@ def main(argv: list[str] | None = None) -> int:
                 del topics[t]
         if not any(count for t, (_, count) in bag.bag_topics(args.bag).items() if t in topics):
             raise UserError(f"{args.bag}: no messages to play")
-        first_ns, _ = bag.bag_time_range(args.bag)
+        first_ns, last_ns = bag.bag_time_range(args.bag)
+        if args.start > (last_ns - first_ns) * 1e-9:  # it played nothing, exit 0
+            raise UserError(f"--start {args.start:g} s is past the bag's end ({(last_ns - first_ns) * 1e-9:.3f} s "
+                            "after its first message)")
         recorded = bag.topic_qos(args.bag)
         if args.wait_params:
             args.wait_topics = [*(args.wait_topics or []), *_wait_topics_from_params(args.wait_params, args.namespace)]
