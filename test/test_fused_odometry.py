@@ -398,9 +398,11 @@ def test_attitude_is_interpolated_to_the_frame_stamp(camera):
     for label, stamps in (("exact", d.imu_stamps), ("jittered", jittered)):
         odo = engine(camera, "fused")
         steps = feed_engine(odo, stamps, d.gyro, d.accel, d.frame_stamps, lambda k: images[k], trailing=True)
+        # a frame stamped before the first IMU sample (jittered 10 ms late) has no attitude: dropped
+        first = int(np.searchsorted(d.frame_stamps, steps[0].stamp))
+        assert first == int(np.sum(d.frame_stamps < stamps[0])) and len(steps) == len(d.frame_stamps) - first
         est = np.array([s.motion for s in steps[1:]])
-        assert len(est) == len(d.relative_motion)
-        rmse[label] = float(np.sqrt(np.mean((est[:, 0] - d.relative_motion[:, 0]) ** 2)))
+        rmse[label] = float(np.sqrt(np.mean((est[:, 0] - d.relative_motion[first:, 0]) ** 2)))
     print(f"\nforward RMSE: IMU stamps exact {rmse['exact'] * 100:.2f} cm, jittered {rmse['jittered'] * 100:.2f} cm")
     assert rmse["jittered"] < 1.6 * rmse["exact"] and rmse["jittered"] < 0.09
 
@@ -731,7 +733,7 @@ def test_replay_reproduces_the_engine(camera):
     assert np.abs(m.numpy() - np.array([s.motion for s in steps[1:]])).max() < 1e-9
 
     config = BevoConfig()
-    config.odometry.gate, config.odometry.min_quality, config.odometry.rotation_gate = 0.5, 0.3, 1e-4
+    config.odometry.gate, config.odometry.min_quality, config.odometry.rotation_gate = 1.0, 0.5, 1e-4  # tight (gate >= 1)
     odo = build_odometry(config, FUSED, camera=camera)
     steps = feed(odo, d, images)
     c = odo.counters
