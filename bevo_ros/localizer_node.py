@@ -46,6 +46,15 @@ NODE_NAME = "bevo_localizer"
 EXIT_CONFIG_ERROR = 2
 
 
+def _yaw(q) -> float | None:
+    """The yaw of a geometry_msgs/Quaternion, normalised first (``z: 1, w: 1`` is 90 deg, not 116.6);
+    None for a zero or non-finite one (an orientation left out)."""
+    n = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
+    if not (math.isfinite(n) and n > 1e-9):
+        return None
+    return rpy_from_quaternion(q.x / n, q.y / n, q.z / n, q.w / n)[2]
+
+
 @dataclass
 class LocalizerSettings:
     map_file: str = ""
@@ -287,7 +296,11 @@ class BevoLocalizerNode(Node):
                                       f"'{self.settings.map_frame}': ignored")
             return
         p, o = msg.pose.pose.position, msg.pose.pose.orientation
-        yaw = rpy_from_quaternion(o.x, o.y, o.z, o.w)[2]
+        yaw = _yaw(o)
+        if yaw is None:  # no orientation (all zero) or NaN: no pose, not yaw 0
+            self.drops["initialpose_invalid"] += 1
+            self.get_logger().warning(f"/initialpose ignored: orientation {[o.x, o.y, o.z, o.w]} is no rotation")
+            return
         cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
         floor = np.diag([0.25**2, 0.25**2, math.radians(2.0) ** 2])  # RViz sends 0.25 m / 15 deg; never zero
         cov = np.maximum(cov, 0.0) * (np.eye(3) > 0) + floor if not np.all(np.linalg.eigvalsh(cov) > 0) else cov
@@ -310,9 +323,7 @@ class BevoLocalizerNode(Node):
         if img.shape[0] != S or img.shape[1] < S:
             self.drops["bev_wrong_size"] += 1
             return
-        img = np.asarray(img[:, :S], dtype=np.float32)
-        if img.max() > 1.0 + 1e-6:
-            img = img / 255.0
+        img = np.asarray(img[:, :S], dtype=np.float32) / 255.0  # mono8 always (a dark one was taken as 0..1)
         self._bevs[stamp_to_ns(msg.header.stamp)] = (img, (img > 0).astype(np.float32))
         while len(self._bevs) > 50:
             self._bevs.popitem(last=False)
@@ -335,7 +346,8 @@ class BevoLocalizerNode(Node):
         stamp = stamp_to_sec(msg.header.stamp)
         self._odom_frame = msg.header.frame_id or "odom"
         p, o = msg.pose.pose.position, msg.pose.pose.orientation
-        pose = np.array([p.x, p.y, rpy_from_quaternion(o.x, o.y, o.z, o.w)[2]])
+        yaw = _yaw(o)
+        pose = np.array([p.x, p.y, math.nan if yaw is None else yaw])
         if not np.isfinite(pose).all():
             self.drops["odometry_not_finite"] += 1
             return
@@ -441,7 +453,6 @@ class BevoLocalizerNode(Node):
 
     def diagnostics_values(self) -> dict[str, str]:
         c = self.localizer.counters
-        st = self._last_step
         q = np.asarray(self._quality)
         pt = np.asarray(self._proc_time)
         v = {
@@ -449,7 +460,9 @@ class BevoLocalizerNode(Node):
             "map_measurements": str(c.measurements), "accepted": str(c.accepted),
             "rejected_low_quality": str(c.rejected_quality), "rejected_gate": str(c.rejected_gate),
             "skipped_outside_map": str(c.skipped_no_map), "consecutive_rejections": str(c.consecutive_rejections),
-            "match_quality_last": f"{st.quality:.3f}" if st is not None and st.measured else "n/a",
+            "consecutive_outside_map": str(c.consecutive_outside),
+            # the last map match's (most steps make none: the newest step's read n/a 3 times in 4)
+            "match_quality_last": f"{self._quality[-1]:.3f}" if self._quality else "n/a",
             "match_quality_median": f"{np.median(q):.3f}" if q.size else "n/a",
             "odometry_scale": f"{self.localizer.filter.state[3]:.4f}" if self.localizer.filter.initialised else "n/a",
             "processing_ms_p50": f"{np.median(pt) * 1e3:.2f}" if pt.size else "n/a",
@@ -474,6 +487,10 @@ class BevoLocalizerNode(Node):
         elif state == "lost":
             status.level = DiagnosticStatus.ERROR
             status.message = f"lost: {values['consecutive_rejections']} map matches rejected in a row"
+        elif state == "outside_map":
+            status.level = DiagnosticStatus.WARN
+            status.message = (f"outside the map: the last {values['consecutive_outside_map']} updates found too little "
+                              "map under the mosaic (the pose is the odometry's, its covariance growing)")
         else:
             status.level, status.message = DiagnosticStatus.WARN, state
         status.values = [KeyValue(key=k, value=val) for k, val in values.items()]

@@ -258,3 +258,42 @@ def test_params_file_lists_every_parameter():
     listed = set(doc["bevo_localizer"]["ros__parameters"])
     declared = {f.name for f in dataclasses.fields(LocalizerSettings)}
     assert listed == declared and set(DESCRIPTIONS) == declared
+
+
+def test_localizer_inputs_found_by_review(context, tmp_path):
+    """Found by a read-only review (2026-12-06): /initialpose's yaw was read from the quaternion as
+    given (``z: 1, w: 1``, 90 deg, read 116.6) and an orientation left out (all zero) was yaw 0; a
+    dark BEV (grey levels 0..1) was kept 255x brighter than any other; match_quality_last read n/a
+    whenever the newest step made no match (3 steps in 4)."""
+    import torch
+
+    from bevo_ros.core.aerial_map import AerialMap
+    from bevo_ros.io.ros_conversions import sec_to_stamp
+    from bevo_ros.localizer_node import BevoLocalizerNode
+
+    path = save_map(AerialMap(torch.rand(1, 200, 200), 0.25, (0.0, 0.0, 0.0)), tmp_path / "small.yaml")
+    n = BevoLocalizerNode(context=context, node_name="loc_review",
+                          parameter_overrides=[Parameter("map_file", value=str(path))])
+    try:
+        def initialpose(qz: float, qw: float) -> None:
+            m = PoseWithCovarianceStamped()
+            m.header.frame_id = "map"
+            m.pose.pose.position.x, m.pose.pose.position.y = 10.0, 20.0
+            m.pose.pose.orientation.z, m.pose.pose.orientation.w = qz, qw
+            n._on_initialpose(m)
+
+        initialpose(1.0, 1.0)
+        assert math.degrees(n.localizer.filter.x[2]) == pytest.approx(90.0)
+        initialpose(0.0, 0.0)
+        assert n.drops["initialpose_invalid"] == 1 and n.counts["initialpose"] == 1
+        for k, top in enumerate((2, 1)):
+            img = np.zeros((n.spec.size, n.spec.size), np.uint8)
+            img[50:, :] = 1
+            img[0, 0] = top
+            n._on_bev(gray_to_image_msg(img, Header(stamp=sec_to_stamp(1.0 + k))))
+            bev, _ = list(n._bevs.values())[-1]
+            assert bev[60, 5] == pytest.approx(1.0 / 255.0), top
+        n._quality.append(0.42)  # a match two steps ago; the newest step made none
+        assert n.diagnostics_values()["match_quality_last"] == "0.420"
+    finally:
+        n.destroy_node()

@@ -321,3 +321,78 @@ def test_measurement_is_batched(short_drive):
         one = measure(mos_l[k], cov_l[k], grey, pred_l[k][None], cfg)
         assert torch.allclose(both.correction[k], one.correction[0], atol=2e-3)  # float32 FFTs
         assert torch.allclose(both.covariance[k], one.covariance[0], rtol=2e-2, atol=1e-6)
+
+
+# ------------------------------------------------------------------ found by a read-only review (2026-12-06)
+def test_a_long_corridor_map_resamples_to_its_exact_pixel_size():
+    """AerialMap.resampled rounded each axis on its own and took the width's pixel size for both: a
+    30 m x 2 km map (bevo map of a straight drive) resampled 0.1 -> 0.25 m/px (the localizer's) put a
+    feature 1950 m up 6.5 m off. Now exactly the new pixel size, the lower-left corner kept."""
+    import torch
+
+    from bevo_ros.core.aerial_map import AerialMap
+
+    W, H = 301, 20000
+    img = torch.zeros(1, H, W)
+    xy = torch.tensor([[15.05, 1950.0]])
+    col, row = AerialMap(img, 0.1, (0.0, 0.0, 0.0)).pixel_coordinates(xy)[0].round().long().tolist()
+    img[0, row - 5:row + 6, col - 5:col + 6] = 1.0
+    s = AerialMap(img, 0.1, (0.0, 0.0, 0.0)).resampled(0.25)
+    assert s.resolution == 0.25 and (s.width, s.height) == (120, 8000)
+    values, _ = s.sample(xy[None, None])
+    assert float(values) > 0.9  # the feature where it is (0.0 there before)
+    rows, cols = torch.nonzero(s.image[0] > 0.5, as_tuple=True)
+    w = s.image[0][rows, cols]
+    centre = s.world_coordinates(torch.stack([(cols * w).sum() / w.sum(), (rows * w).sum() / w.sum()])[None])[0]
+    assert torch.allclose(centre, xy[0], atol=0.15)
+
+
+def test_status_follows_the_current_initialisation_and_the_map_under_it():
+    """The status was 'tracking' right after a new initial pose or a reset (the accepted count of the
+    earlier one), and stayed 'tracking' driving off the map however large the covariance grew: now
+    'initialising' until a match confirms the new pose, 'outside_map' after lost_after updates in a
+    row with too little map."""
+    import torch
+
+    from bevo_ros.core.aerial_map import AerialMap
+    from bevo_ros.core.geometry import BevSpec
+    from bevo_ros.core.map_localization import LocalizerConfig, MapLocalizer
+
+    loc = MapLocalizer(AerialMap(torch.rand(1, 400, 400), 0.25, (0.0, 0.0, 0.0)), BevSpec(), LocalizerConfig())
+    loc.set_initial_pose([95.0, 50.0, 0.0], np.diag([1.0, 1.0, 0.01]))
+    loc.counters.accepted = loc.counters.accepted_since_init = 10  # it had been tracking
+    assert loc.status == "tracking"
+    loc.set_initial_pose([50.0, 50.0, 0.0], np.diag([1.0, 1.0, 0.01]))
+    assert loc.status == "initialising" and loc.counters.accepted == 10
+    loc.counters.accepted_since_init = 3
+    rng = np.random.default_rng(0)
+    pose = np.array([0.0, 0.0, 0.0])
+    loc.pose_odom = pose.copy()
+    loc.filter.state[:3] = [95.0, 50.0, 0.0]
+    for _ in range(200):  # east, off the 100 m map after ~5 m
+        pose = pose + np.array([1.0, 0.0, 0.0])
+        s = loc.step(pose, [1.0, 0.0, 0.0], np.diag([1e-3, 1e-3, 1e-6]), rng.random((100, 100)).astype(np.float32))
+    assert s.status == "outside_map" and loc.counters.consecutive_outside >= 5 and loc.counters.skipped_no_map > 20
+    loc.reset()
+    loc.set_initial_pose([50.0, 50.0, 0.0], np.eye(3))
+    assert loc.status == "initialising"
+
+
+def test_map_images_that_would_load_wrong_are_refused(tmp_path):
+    """A float image holding 0..255 loaded unscaled (and negate made it negative); negate: yes raised
+    a bare ValueError. Both a ConfigError naming the file now."""
+    import cv2
+    import torch
+
+    from bevo_ros.config import ConfigError
+    from bevo_ros.core.aerial_map import AerialMap
+    from bevo_ros.io.maps import load_map, save_map
+
+    cv2.imwrite(str(tmp_path / "f.tiff"), np.full((20, 30), 200.0, np.float32))
+    (tmp_path / "f.yaml").write_text("image: f.tiff\nresolution: 0.25\norigin: [0.0, 0.0, 0.0]\n")
+    with pytest.raises(ConfigError, match="outside \\[0, 1\\]"):
+        load_map(tmp_path / "f.yaml")
+    path = save_map(AerialMap(torch.rand(1, 20, 30), 0.25, (0.0, 0.0, 0.0)), tmp_path / "m.yaml")
+    path.write_text(path.read_text().replace("negate: 0", "negate: yes_please"))
+    with pytest.raises(ConfigError, match="negate must be 0 or 1"):
+        load_map(path)

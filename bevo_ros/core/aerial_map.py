@@ -80,17 +80,33 @@ class AerialMap:
         return AerialMap(self.image.to(device=device, dtype=dtype), self.resolution, self.origin, valid)
 
     def resampled(self, resolution: float) -> "AerialMap":
-        """The map at a coarser ``resolution`` (area average, anti-aliased); finer or equal
-        resolutions return the map itself (upsampling adds nothing)."""
+        """The map at a coarser ``resolution`` exactly (anti-aliased: a box average of ~the factor,
+        then bilinear at the new pixel centres); finer or equal resolutions return the map itself
+        (upsampling adds nothing). The lower-left corner stays where it was; the image keeps the
+        whole new pixels that fit (a partial strip at the top and right is left out). Before
+        2026-12-06 each axis was rounded to its own size and the width's pixel size taken for both:
+        a 2 km corridor map resampled 0.1 -> 0.25 m/px put a feature 1950 m up 6.5 m off."""
         factor = resolution / self.resolution
         if factor <= 1.0 + 1e-6:
             return self
-        H, W = round(self.height / factor), round(self.width / factor)
-        img = F.interpolate(self.image[None], size=(H, W), mode="area")[0]
-        valid = None if self.valid is None else (F.interpolate(self.valid[None], size=(H, W), mode="area")[0] > 0.999)
-        # The lower-left corner stays where it was; the pixel size becomes exactly extent / size.
-        return AerialMap(img, self.width * self.resolution / W, self.origin,
-                         None if valid is None else valid.to(img.dtype))
+        H, W = max(1, math.floor(self.height / factor + 1e-9)), max(1, math.floor(self.width / factor + 1e-9))
+        k = max(1, int(round(factor)))
+        k += 1 - k % 2  # odd: centred
+        blur = lambda x: F.avg_pool2d(x[None], k, stride=1, padding=k // 2, count_include_pad=False)[0]  # noqa: E731
+        dtype, device = self.image.dtype, self.image.device
+        # new pixel (row i, col j) centre, in the old image's pixel coordinates (rows down from its top)
+        col = (torch.arange(W, dtype=torch.float64, device=device) + 0.5) * factor - 0.5
+        row = self.height - (H - torch.arange(H, dtype=torch.float64, device=device) - 0.5) * factor - 0.5
+        grid = torch.stack([((2.0 * col + 1.0) / self.width - 1.0)[None, :].expand(H, W),
+                            ((2.0 * row + 1.0) / self.height - 1.0)[:, None].expand(H, W)], dim=-1)
+        grid = grid[None].to(dtype)
+
+        def resample(x: Tensor) -> Tensor:
+            return F.grid_sample(blur(x)[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0]
+
+        img = resample(self.image)
+        valid = None if self.valid is None else (resample(self.valid) > 0.999).to(img.dtype)
+        return AerialMap(img, float(resolution), self.origin, valid)
 
     def pixel_coordinates(self, xy: Tensor) -> Tensor:
         """Map-frame points ``(..., 2)`` -> continuous ``(col, row)`` pixel coordinates ``(..., 2)``

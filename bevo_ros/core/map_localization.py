@@ -474,6 +474,8 @@ class LocalizerCounters:
     rejected_gate: int = 0
     skipped_no_map: int = 0
     consecutive_rejections: int = 0
+    accepted_since_init: int = 0  # since the last initial pose or reset: "tracking" needs one
+    consecutive_outside: int = 0  # updates in a row with too little map under the mosaic
 
 
 @dataclass
@@ -524,7 +526,10 @@ class MapLocalizer:
             return "uninitialised"
         if self.counters.consecutive_rejections >= self.config.lost_after:
             return "lost"
-        return "tracking" if self.counters.accepted else "initialising"
+        if self.counters.consecutive_outside >= self.config.lost_after:  # dead reckoning off the map
+            return "outside_map"
+        # the matches since the last (re)initialisation: a new initial pose is no tracking until one confirms it
+        return "tracking" if self.counters.accepted_since_init else "initialising"
 
     def reset(self) -> None:
         """Forget the pose and the mosaic (the odometry was reset)."""
@@ -532,12 +537,14 @@ class MapLocalizer:
         self.mosaic.reset()
         self.pose_odom = None
         self._since_update = 0.0
-        self.counters.consecutive_rejections = 0
+        self.counters.consecutive_rejections = self.counters.consecutive_outside = 0
+        self.counters.accepted_since_init = 0
 
     def set_initial_pose(self, pose_map, cov) -> None:
         """``/initialpose``: the base's map pose ``(x, y, yaw)`` and its ``(3, 3)`` covariance."""
         self.filter.initialise(pose_map, cov)
-        self.counters.consecutive_rejections = 0
+        self.counters.consecutive_rejections = self.counters.consecutive_outside = 0
+        self.counters.accepted_since_init = 0
         self._since_update = self.config.update_distance  # measure as soon as the mosaic allows
 
     def map_to_odom(self) -> np.ndarray | None:
@@ -629,8 +636,10 @@ class MapLocalizer:
         self.last_overlap = overlap
         if overlap < self.config.min_overlap:
             self.counters.skipped_no_map += 1
+            self.counters.consecutive_outside += 1
             out.reason = "outside_map"
             return
+        self.counters.consecutive_outside = 0
         with torch.no_grad():
             meas = measure(mos, cov, self.map, pred_t, cfg)
         self.last_measurement = meas
@@ -658,6 +667,7 @@ class MapLocalizer:
         out.d2 = d2
         if accepted:
             self.counters.accepted += 1
+            self.counters.accepted_since_init += 1
             self.counters.consecutive_rejections = 0
             out.accepted = True
         else:

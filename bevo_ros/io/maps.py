@@ -56,8 +56,14 @@ def load_map(path: str | os.PathLike) -> AerialMap:
     raw = cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ConfigError(f"map file {path}: cannot read the image {image_path}")
-    scale = 65535.0 if raw.dtype == np.uint16 else 255.0 if raw.dtype == np.uint8 else 1.0
-    img = raw.astype(np.float32) / scale
+    if raw.dtype in (np.uint8, np.uint16):
+        img = raw.astype(np.float32) / (65535.0 if raw.dtype == np.uint16 else 255.0)
+    else:  # a float (or other) image must hold [0, 1] already: a float TIFF of 0..255 loaded unscaled before
+        img = raw.astype(np.float32)
+        if not (np.isfinite(img).all() and img.min() >= 0.0 and img.max() <= 1.0):
+            raise ConfigError(f"map file {path}: the {raw.dtype} image {image_path} holds values outside [0, 1] "
+                              f"({float(np.nanmin(img)):g} .. {float(np.nanmax(img)):g}): write it as an 8- or "
+                              "16-bit PNG")
     valid = None
     if img.ndim == 2:
         chans = img[None]
@@ -66,7 +72,10 @@ def load_map(path: str | os.PathLike) -> AerialMap:
         chans = img[..., 0][None] if img.shape[2] == 2 else img[..., 2::-1].transpose(2, 0, 1)
     else:
         chans = img[..., 2::-1].transpose(2, 0, 1)  # BGR -> RGB
-    if int(doc.get("negate", 0) or 0):
+    negate = doc.get("negate", 0)
+    if negate not in (0, 1, None) or isinstance(negate, float) and negate not in (0.0, 1.0):  # map_server's 0 / 1
+        raise ConfigError(f"map file {path}: negate must be 0 or 1, got {negate!r}")
+    if negate:
         chans = 1.0 - chans
     if chans.shape[0] == 3 and np.allclose(chans[0], chans[1]) and np.allclose(chans[1], chans[2]):
         chans = chans[:1]
