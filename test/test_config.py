@@ -110,7 +110,12 @@ def test_learned_params_round_trip_is_human_readable_and_atomic(tmp_path):
     (lambda d: d.update(vehicle_filter={"jerk_density": True}), r"'vehicle_filter.jerk_density' = True must be"),
     (lambda d: d.update(vehicle_filter={"jerk_density": -1.0}), r"'vehicle_filter.jerk_density' = -1.0 must be"),
     (lambda d: d.update(vehicle_filter={"jerk_densty": 1.0}), r"unknown 'vehicle_filter.jerk_densty'"),
-    (lambda d: d.update(vehicle_filter={"jerk_density": 0.0}), r"'vehicle_filter.jerk_density' = 0.0 must be .*> 0$"),
+    (lambda d: d.update(vehicle_filter={"jerk_density": 0.0}), r"'vehicle_filter.jerk_density' = 0.0 must be .*> 0, at"),
+    # sizes that break the engine (a read-only review, 2026-12-06): slip_std 1e300 overflowed, a suspension
+    # gradient of 1e3 put the BEVs off the image, O / Q beyond any IMU's
+    (lambda d: d.update(vehicle_filter={"slip_std": 1e300}), r"'vehicle_filter.slip_std' = 1e\+300 must be .*at most"),
+    (lambda d: d["suspension_gradients"].update(pitch=1000.0), r"'suspension_gradients.pitch' = 1000.0 .*at most 0.1"),
+    (lambda d: d["process_noise_density"].update(pitch=1e9), r"'process_noise_density.pitch' = 1000000000.0 .*at most"),
     (lambda d: d.update(vehicle_filter={"imu_accel_density": -1.0}), r"imu_accel_density' = -1.0 must be .*>= 0 \(0 = off\)"),
 ])
 def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, message):

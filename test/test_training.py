@@ -24,7 +24,7 @@ from helpers.drives import make_bumpy_bag
 
 from bevo_ros.commands import train as train_command
 from bevo_ros.config import REPO_ROOT, load_config
-from bevo_ros.io.learned_params import load_learned_params
+from bevo_ros.io.learned_params import LearnedParams, load_learned_params
 from bevo_ros.core.loss import registration_kl_loss
 from bevo_ros.core.sequence import registration_targets, run_sequence
 from bevo_ros.datasets.rosbag import load_sequence
@@ -564,3 +564,41 @@ def test_validation_errors_run_the_engine_once_per_parameters_with_a_memo(monkey
     assert len(runs) == 10
     suspension_training.validation_errors(seqs, None, a, "3/4")  # no memo: run again
     assert len(runs) == 12
+
+
+# ------------------------------------------------------------------ found by a read-only review (2026-12-06)
+def test_the_fits_keep_what_they_measured(synth, tmp_path, monkeypatch):
+    """Three slips in the fits: the suspension search keyed its cache on gradients rounded to 12
+    decimals but started from the file's as they were (a start of radians(0.1) raised KeyError after
+    the whole training); the vehicle-noise fit kept the parameters one Adam step past the lowest NLL
+    it measured (with a large step, worse than its start); a resume with no epoch left reported the
+    initial O/Q's validation as "after"."""
+    import bevo_ros.training.suspension as suspension_training
+    from bevo_ros.training.trainer import TrainOptions, train
+    from bevo_ros.training.vehicle import fit_vehicle_noise, record_inputs
+    from bevo_ros.core.vehicle_filter import VehicleNoise
+
+    _, config, seq = synth
+
+    def fake_errors(rec, cfg, learned):  # smooth in the gradients, no engine run
+        p, r = learned.suspension_gradients
+        return np.full(20, 0.05 + abs(p - 0.003) + abs(r - 0.008))
+
+    monkeypatch.setattr(suspension_training, "translation_errors", fake_errors)
+    fit = suspension_training.fit_suspension([(None, 15)], None, LearnedParams(suspension_gradients=(
+        math.radians(0.1), 0.0087)), 8, log=lambda *_: None)
+    assert fit.train_after <= fit.train_before
+    monkeypatch.undo()
+
+    learned = load_learned_params(config.learned_params_file)
+    inputs, truth = record_inputs(seq, config, learned)
+    vf = fit_vehicle_noise([(inputs, truth)], VehicleNoise(**learned.vehicle), steps=3, lr=3.0, log=lambda *_: None)
+    assert vf.nll_after <= vf.nll_before + 1e-12  # the best measured, at worst the start
+
+    options = TrainOptions(epochs=1, steps_per_bag=2, init=(1e-2, 1e-2, 1e-2, 1e-2), patience=0, lr=0.3)
+    first = train([seq], config, options, checkpoint=tmp_path / "ck.yaml", progress=False, log=lambda *_: None)
+    again = train([seq], config, options, resume=tmp_path / "ck.yaml", progress=False, log=lambda *_: None)
+    assert first.best_epoch == 1  # (BAD-ish start: the epoch improves on it)
+    if first.best_epoch == 1:  # "after" is that epoch's validation, resumed or not
+        assert again.after.loss == pytest.approx(first.history[-1]["val_loss"], rel=1e-9)
+        assert again.after.loss != again.before.loss

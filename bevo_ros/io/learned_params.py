@@ -69,6 +69,12 @@ def save_learned_params(params: LearnedParams, path: str | os.PathLike) -> Path:
     return path
 
 
+# The largest sizes a learned file's numbers may have: far beyond any car's, short of what breaks the
+# engine (a suspension gradient of 1e3 rad/(m/s^2) put 45 of the KITTI sample's 51 BEVs off the image,
+# a slip_std of 1e300 overflowed): O and Q (rad^2/s, rad^2), the motion filter's densities and
+# standard deviations, the suspension's lean per m/s^2 (rad; 5.7 deg per m/s^2, a car leans < 1).
+LIMITS = {"variance": 1e6, "vehicle": 1e6, "suspension": 0.1}
+
 # The sections a learned-parameters file may have.
 LEARNED_SECTIONS = ("format", "process_noise_density", "measurement_noise_variance", "vehicle_filter",
                     "suspension_gradients", "gyro_bias", "info")
@@ -83,7 +89,8 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
     if doc.get("format") != LEARNED_FORMAT:
         raise ConfigError(f"learned-parameters file {path}: 'format' must be '{LEARNED_FORMAT}', got {doc.get('format')!r}")
 
-    def pair(key: str, positive: bool = True, default: tuple[float, float] | None = None) -> tuple[float, float]:
+    def pair(key: str, positive: bool = True, default: tuple[float, float] | None = None,
+             limit: float = LIMITS["variance"]) -> tuple[float, float]:
         section = doc.get(key)
         if section is None and default is not None:
             return default
@@ -95,9 +102,9 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
                 v = float(section[axis])
             except (KeyError, TypeError, ValueError):
                 raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' missing or not a number") from None
-            if not (math.isfinite(v) and (v > 0 or not positive)):
+            if not (math.isfinite(v) and (v > 0 or not positive) and abs(v) <= limit):
                 raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' = {v} must be finite"
-                                  + (" and > 0" if positive else ""))
+                                  + (" and > 0" if positive else "") + f", at most {limit:g} in size")
             out.append(v)
         return out[0], out[1]
 
@@ -123,9 +130,10 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
         except (TypeError, ValueError):
             numbers[k] = math.nan
         zero_ok = k in VehicleNoise.OFF_WHEN_ZERO
-        if not (math.isfinite(numbers[k]) and (numbers[k] >= 0 if zero_ok else numbers[k] > 0)):
+        if not (math.isfinite(numbers[k]) and (numbers[k] >= 0 if zero_ok else numbers[k] > 0)
+                and numbers[k] <= LIMITS["vehicle"]):  # slip_std 1e300 overflowed the engine
             raise ConfigError(f"learned-parameters file {path}: 'vehicle_filter.{k}' = {v!r} must be a finite number "
-                              + (">= 0 (0 = off)" if zero_ok else "> 0"))
+                              + (">= 0 (0 = off)" if zero_ok else "> 0") + f", at most {LIMITS['vehicle']:g}")
     gyro_bias = None
     if "gyro_bias" in doc:  # optional: without it the parameters' filter.gyro_bias_std / walk hold
         section = doc["gyro_bias"]
@@ -144,7 +152,8 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
             values.append(x)
         gyro_bias = (values[0], values[1])
     learned = LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info, numbers,
-                            pair("suspension_gradients", positive=False, default=(0.0, 0.0)), gyro_bias)
+                            pair("suspension_gradients", positive=False, default=(0.0, 0.0),
+                                 limit=LIMITS["suspension"]), gyro_bias)
     if "suspension_gradients" not in doc:  # said once the file is known good (a bad one is refused alone)
         warnings.warn(f"learned-parameters file {path} has no 'suspension_gradients': fused mode then models no "
                       f"suspension lean (0, 0); params/learned_default.yaml holds the defaults", UserWarning,

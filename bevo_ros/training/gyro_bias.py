@@ -42,8 +42,9 @@ class GyroBiasFit:
         biases: ``(B, 2)`` each recording's mean (x, y) rate bias over the frames used, rad/s.
         standard_errors: ``(B, 2)`` their standard errors (from the windows' scatter), rad/s.
         rms: rad/s, the biases' RMS over the recordings and both axes.
-        bound: rad/s, ``rms`` plus twice its standard error: what the bias is not above (~95 %).
-        resolved: ``rms`` is more than twice its standard error (a bias was measured, not only bounded).
+        bound: rad/s, ``rms`` plus its standard error times Student's t at 97.5 %: what the bias is
+            not above.
+        resolved: ``rms`` is above that many standard errors (a bias was measured, not only bounded).
         walk: rad/s/sqrt(s), the random walk the windows say; None where no recording had three windows.
         seconds: the time measured over, all recordings.
     """
@@ -60,8 +61,8 @@ class GyroBiasFit:
         """The prior's standard deviation the measurement says, against the one ``in_use`` (rad/s):
         the biases' RMS where resolved; 0 where the bias is bounded well below ``in_use`` (by
         :data:`AGREEMENT_FACTOR`); None where the data cannot tell."""
-        if self.resolved:
-            return self.rms
+        if self.resolved:  # less the biases' own noise, which their RMS includes
+            return math.sqrt(max(self.rms**2 - float(np.mean(self.standard_errors**2)), 0.0))
         return 0.0 if self.bound * AGREEMENT_FACTOR < in_use else None
 
 
@@ -113,10 +114,26 @@ def interval_residuals(sequence, start: int = 0, stop: int | None = None) -> tup
     return (0.5 * (ft[:-1] + ft[1:]))[covered], dt[covered], (np.diff(at, axis=0) - truth)[covered]
 
 
+def _window_mean(r: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    return r.sum(axis=0) / dt.sum()
+
+
 def fit_gyro_bias(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], window: float = WINDOW) -> GyroBiasFit:
     """The prior from :func:`interval_residuals` of one or more recordings (``parts``; each with at
-    least one interval). Raises ValueError without any interval."""
-    biases, errors, walks, seconds = [], [], [], 0.0
+    least one interval). Raises ValueError without any interval.
+
+    Per recording: the bias (the mean over its intervals) and its standard error from its full
+    windows' scatter (Student's t with their count less one degrees of freedom in the ``resolved``
+    test and the bound: 2 or 3 windows' scatter is no normal standard error, and at 2 sigma a bias-free
+    gyro read "resolved" in 11-19 % of 22-30 s runs); with one window, from the intervals' scatter. The
+    walk: consecutive full windows' means differ by ``(2/3) walk^2 W`` (a random walk's window means,
+    the Allan variance of a rate random walk) plus their noise, and a window's two halves by
+    ``(1/3) walk^2 W`` plus twice the noise of one window's mean, so ``walk^2 = (2 change - halves) / W``
+    whatever the noise's size (its scatter per interval overstated it: ground-truth attitude noise
+    cancels between intervals, and a 0.03 deg OXTS-class attitude drove the walk to 0)."""
+    from scipy.stats import t as student_t
+
+    biases, errors, dofs, changes, halves, seconds = [], [], [], [], [], 0.0
     for t, dt, r in parts:
         if len(dt) == 0:
             continue
@@ -124,25 +141,30 @@ def fit_gyro_bias(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], window
         seconds += total
         biases.append(r.sum(axis=0) / total)
         k = np.floor((t - t[0]) / window).astype(int)
-        full = [i for i in range(int(k.max()) + 1) if dt[k == i].sum() >= 0.8 * window]
-        means = np.array([r[k == i].sum(axis=0) / dt[k == i].sum() for i in full]).reshape(-1, 2)
+        full = [i for i in range(int(k.max()) + 1) if dt[k == i].sum() >= 0.8 * window and (k == i).sum() >= 2]
+        means = np.array([_window_mean(r[k == i], dt[k == i]) for i in full]).reshape(-1, 2)
         if len(means) >= 2:
             errors.append(means.std(axis=0, ddof=1) / math.sqrt(len(means)))
+            dofs.append(len(means) - 1)
         else:  # one window: the intervals' own scatter, as if independent
             errors.append((r / dt[:, None]).std(axis=0) / math.sqrt(len(dt)))
-        if len(means) >= 3:
-            # consecutive windows differ by the walk over a window plus both windows' noise, the noise
-            # of one window from its intervals' scatter about its mean
-            noise = np.mean([((r[k == i] / dt[k == i, None]).var(axis=0) / max(int((k == i).sum()), 1))
-                             for i in full], axis=0)
-            change = np.mean(np.diff(means, axis=0) ** 2, axis=0)
-            walks.append(np.maximum(change - 2.0 * noise, 0.0) / window)
+            dofs.append(max(len(dt) - 1, 1))
+        for a, b in zip(full[:-1], full[1:]):
+            if b == a + 1:  # consecutive windows only
+                changes.append((_window_mean(r[k == b], dt[k == b]) - _window_mean(r[k == a], dt[k == a])) ** 2)
+        for i in full:
+            ri, di = r[k == i], dt[k == i]
+            h = len(di) // 2
+            halves.append((_window_mean(ri[h:], di[h:]) - _window_mean(ri[:h], di[:h])) ** 2)
     if not biases:
         raise ValueError("no frame interval with IMU and ground truth to measure the gyro's bias on")
     b, se = np.array(biases), np.array(errors)
     rms, rms_se = float(np.sqrt(np.mean(b**2))), float(np.sqrt(np.mean(se**2)))
-    walk = float(np.sqrt(np.mean(walks))) if walks else None
-    return GyroBiasFit(b, se, rms, rms + 2.0 * rms_se, rms > 2.0 * rms_se, walk, seconds)
+    quantile = float(student_t.ppf(0.975, min(dofs)))
+    walk = None
+    if len(changes) >= 2:
+        walk = float(np.sqrt(max(float(np.mean(2.0 * np.mean(changes, axis=0) - np.mean(halves, axis=0))), 0.0) / window))
+    return GyroBiasFit(b, se, rms, rms + quantile * rms_se, rms > quantile * rms_se, walk, seconds)
 
 
 def fit_gyro_bias_on_sequences(learned, seqs, config, split: str = "3/4", memo: dict | None = None) -> GyroBiasFit:

@@ -202,7 +202,8 @@ def fit_suspension(parts, config, learned, evals_per_axis: int = 8, log=print) -
             cache[key] = (_rmse(train), _rmse(val))
         return cache[key]
 
-    start = (float(learned.suspension_gradients[0]), float(learned.suspension_gradients[1]))
+    # rounded as score() keys its cache (a start of more than 12 decimals, radians(0.1), raised KeyError)
+    start = (round(float(learned.suspension_gradients[0]), 12), round(float(learned.suspension_gradients[1]), 12))
     before = score(start)
     best = start
     for axis, (lo, hi) in enumerate(SEARCH_BOUNDS):

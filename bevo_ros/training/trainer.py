@@ -783,7 +783,8 @@ def train(
     # "after" = the written (best validated) parameters on the validation parts.
     if best_epoch == 0:
         after = before
-    elif not history or best_epoch != history[-1]["epoch"] or status == "diverged":
+    # (no epoch run in this call: a resume with none left, whose "after" was never measured here)
+    elif not epoch_times or not history or best_epoch != history[-1]["epoch"] or status == "diverged":
         with torch.no_grad():
             probe = make_dukf(best_params[0], best_params[1], config.filter.motion_model, device)
             after = evaluate_parts(probe, vals, config, options, device)

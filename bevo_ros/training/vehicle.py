@@ -114,12 +114,12 @@ def fit_vehicle_noise(sequences: list[tuple[list[dict], np.ndarray]], init: Vehi
         if not torch.isfinite(nll):
             log(f"vehicle filter fit: non-finite loss at step {i}; keeping the best so far")
             break
+        if nll.item() < best[0]:  # the NLL measured is that of the parameters before this step's move
+            best = (nll.item(), params.detach().clone())
         nll.backward()
         opt.step()
         with torch.no_grad():
             params.clamp_(-40.0, 20.0)
-        if nll.item() < best[0]:
-            best = (nll.item(), params.detach().clone())
     with torch.no_grad():
         nll1, outs1 = evaluate(best[1])
     m0, m1, t = torch.cat(outs0), torch.cat(outs1), torch.cat(truths)
