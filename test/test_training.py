@@ -198,6 +198,8 @@ def test_divergence_stops_cleanly_keeping_the_last_good_values(synth, tmp_path, 
     # (test_fused_training_keeps_trained_oq_only_if_the_engine_agrees): these BAD_INIT ones it does not
     base = load_learned_params(load_config(SYNTH_PARAMS)[0].learned_params_file)
     assert learned.info["oq_kept_from"]["validation_rmse"][1] > learned.info["oq_kept_from"]["validation_rmse"][0]
+    # the file's validation_after scored the trained O/Q: said so (a review found it unmarked)
+    assert learned.info["oq_kept_from"]["validation_after_is"].startswith("the trained O/Q's")
     assert learned.process_noise_density == base.process_noise_density
     assert learned.measurement_noise_variance == base.measurement_noise_variance
     ckpt = load_checkpoint(tmp_path / "learned.yaml.ckpt.yaml")

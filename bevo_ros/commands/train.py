@@ -158,7 +158,9 @@ def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: st
         learned.process_noise_density = base.process_noise_density
         learned.measurement_noise_variance = base.measurement_noise_variance
         learned.info["oq_kept_from"] = {"reason": f"trained O/Q not clearly better in the fused engine: {why}",
-                                        "validation_rmse": [before, after]}
+                                        "validation_rmse": [before, after],
+                                        # validation_after (the KL loss's) scored the trained O/Q, not these
+                                        "validation_after_is": "the trained O/Q's, refused: not the file's"}
     else:
         learned.info["oq_engine_check"] = {"validation_rmse": [before, after]}
 
@@ -241,8 +243,10 @@ def _train(args: argparse.Namespace) -> int:
     b, a = result.before, result.after
     print(f"validation before: loss {b.loss:.4f}, RPE {b.trans_m:.4f} m / {b.yaw_deg:.4f} deg per frame"
           + (f" ({b.failed} failed pairs)" if b.failed else ""))
+    refused = "oq_kept_from" in result.learned.info  # the fused engine kept the learned file's O/Q
     print(f"validation after:  loss {a.loss:.4f}, RPE {a.trans_m:.4f} m / {a.yaw_deg:.4f} deg per frame"
-          + (f" ({a.failed} failed pairs)" if a.failed else "") + f" (best epoch {result.best_epoch})")
+          + (f" ({a.failed} failed pairs)" if a.failed else "") + f" (best epoch {result.best_epoch})"
+          + ("; those are the trained O/Q's, refused: the file holds the learned file's" if refused else ""))
     spe = result.seconds_per_epoch  # NaN when no epoch ran
     per_epoch = f", {spe:.1f} s/epoch" if math.isfinite(spe) else ""
     print(f"final variances: O = [{o[0]:.4g}, {o[1]:.4g}] rad^2/s, Q = [{q[0]:.4g}, {q[1]:.4g}] rad^2 "
