@@ -118,6 +118,17 @@ class Harness:
         spin_until(self.executor, lambda: len(self.odom) >= self.node.counts["odometry_out"], timeout)
         self.executor.spin_once(timeout_sec=0.02)
 
+    def set_clock(self, stamp) -> None:
+        """Publish ``stamp`` on /clock (use_sim_time) and spin until the node's clock reads it."""
+        from rosgraph_msgs.msg import Clock
+
+        if getattr(self, "_clock_pub", None) is None:
+            self._clock_pub = self.tester.create_publisher(Clock, "/clock", 10)
+            assert spin_until(self.executor, lambda: self._clock_pub.get_subscription_count() > 0, 5)
+        self._clock_pub.publish(Clock(clock=stamp))
+        target = stamp_to_sec(stamp)
+        assert spin_until(self.executor, lambda: abs(self.node.get_clock().now().nanoseconds * 1e-9 - target) < 1e-6, 5)
+
     def logged(self, reason: str) -> list[str]:
         return [text for key, text in self.node.log_history if key == reason]
 
@@ -832,18 +843,9 @@ def test_a_late_rig_whose_replay_fails_is_taken_by_the_running_engine(harness_fa
 
 
 def test_use_sim_time_clock_jump_resets(harness_factory, drive):
-    from rosgraph_msgs.msg import Clock
-
     h = harness_factory(base_overrides(drive, use_sim_time=True, max_time_jump_back=0.5), subscribe_outputs=False)
-    clock_pub = h.tester.create_publisher(Clock, "/clock", 10)
-    assert spin_until(h.executor, lambda: clock_pub.get_subscription_count() > 0, 5)
     messages = drive_messages(drive)
-
-    def clock(stamp):
-        clock_pub.publish(Clock(clock=stamp))
-        target = stamp_to_sec(stamp)
-        assert spin_until(h.executor, lambda: abs(h.node.get_clock().now().nanoseconds * 1e-9 - target) < 1e-6, 5)
-
+    clock = h.set_clock
     clock(messages[-1][1].header.stamp)
     h.send_all(messages[:40])
     h.settle()

@@ -66,17 +66,6 @@ def test_drive_to_recording_equals_its_bag(synthetic_bag):
 
 def test_run_bag_equals_the_engine_and_evaluates(synthetic_bag, tmp_path):
     drive, path = synthetic_bag
-    # the params' topics are the bag's, as the node's (a CameraInfo on another topic was passed over)
-    from bevo_ros import pipeline
-
-    config, _ = load_config(SYNTH_PARAMS)
-    assert pipeline.run_bag(path, config, config.learned_params_file, keep_bevs=False)[1].camera_info is not None
-    from bevo_ros.config import ConfigError
-
-    with pytest.raises(ConfigError, match="no CameraInfo read"):  # synthetic.yaml has no camera.* intrinsics
-        pipeline.run_bag(path, config, config.learned_params_file, keep_bevs=False,
-                         rig=RigSettings(camera_info_topic="cam2/camera_info"))
-
     out = tmp_path / "run"
     assert run.main([str(path), "--out", str(out), "--params", SYNTH_PARAMS, "-q"]) == 0
     est = kitti.read_poses(out / "trajectory_kitti.txt")
