@@ -563,6 +563,16 @@ def gyro_bias_prior(config: BevoConfig, learned: LearnedParams) -> tuple[float, 
     return float(config.filter.gyro_bias_std), float(config.filter.gyro_bias_walk)
 
 
+def gyro_bias_prior_note(config: BevoConfig, learned: LearnedParams, learned_path) -> str | None:
+    """What bevo_node and ``bevo run`` say when the learned file's ``gyro_bias`` takes the parameters'
+    place (fused mode); None when it does not."""
+    if learned.gyro_bias is None or config.odometry.mode != "fused":
+        return None
+    return (f"the pitch and roll gyro's bias prior from {learned_path} (measured by bevo train): std "
+            f"{learned.gyro_bias[0]:.3g} rad/s, walk {learned.gyro_bias[1]:.3g} rad/s/sqrt(s), in place of "
+            f"filter.gyro_bias_std / walk ({config.filter.gyro_bias_std:g} / {config.filter.gyro_bias_walk:g})")
+
+
 def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     """The engine both the node and the offline commands (bevo_ros.pipeline) run: one construction, one behaviour."""
     from bevo_ros.core.device import resolve_device

@@ -38,21 +38,12 @@ from bevo_ros.core.map_localization import (APPEARANCES, LocalizerConfig, MapLoc
                                             se2_between)
 from bevo_ros.io.maps import load_map
 from bevo_ros.io.ros_conversions import (ImageConversionError, gray_to_image_msg, heatmap_to_mono8, image_to_gray,
-                                         planar_pose_from_msg, quaternion_from_rpy, rpy_from_quaternion, stamp_to_ns,
-                                         stamp_to_sec)
+                                         planar_pose_from_msg, quaternion_from_rpy, stamp_to_ns,
+                                         stamp_to_sec, yaw_from_quaternion_msg)
 from bevo_ros.ros.diagnostics import counter_values
 
 NODE_NAME = "bevo_localizer"
 EXIT_CONFIG_ERROR = 2
-
-
-def _yaw(q) -> float | None:
-    """The yaw of a geometry_msgs/Quaternion, normalised first (``z: 1, w: 1`` is 90 deg, not 116.6);
-    None for a zero or non-finite one (an orientation left out)."""
-    n = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
-    if not (math.isfinite(n) and n > 1e-9):
-        return None
-    return rpy_from_quaternion(q.x / n, q.y / n, q.z / n, q.w / n)[2]
 
 
 @dataclass
@@ -296,10 +287,11 @@ class BevoLocalizerNode(Node):
                                       f"'{self.settings.map_frame}': ignored")
             return
         p, o = msg.pose.pose.position, msg.pose.pose.orientation
-        yaw = _yaw(o)
-        if yaw is None:  # no orientation (all zero) or NaN: no pose, not yaw 0
+        try:  # normalised (z: 1, w: 1 read 116.6 deg); an orientation left out (all zero) is no pose, not yaw 0
+            yaw = yaw_from_quaternion_msg(o)
+        except ValueError as exc:
             self.drops["initialpose_invalid"] += 1
-            self.get_logger().warning(f"/initialpose ignored: orientation {[o.x, o.y, o.z, o.w]} is no rotation")
+            self.get_logger().warning(f"/initialpose ignored: {exc}")
             return
         cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
         floor = np.diag([0.25**2, 0.25**2, math.radians(2.0) ** 2])  # RViz sends 0.25 m / 15 deg; never zero
@@ -346,8 +338,11 @@ class BevoLocalizerNode(Node):
         stamp = stamp_to_sec(msg.header.stamp)
         self._odom_frame = msg.header.frame_id or "odom"
         p, o = msg.pose.pose.position, msg.pose.pose.orientation
-        yaw = _yaw(o)
-        pose = np.array([p.x, p.y, math.nan if yaw is None else yaw])
+        try:
+            yaw = yaw_from_quaternion_msg(o)
+        except ValueError:
+            yaw = math.nan  # dropped below as not finite
+        pose = np.array([p.x, p.y, yaw])
         if not np.isfinite(pose).all():
             self.drops["odometry_not_finite"] += 1
             return

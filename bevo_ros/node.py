@@ -26,7 +26,7 @@ from typing import Callable
 
 from rclpy.node import Node
 
-from bevo_ros.config import ConfigError, build_odometry
+from bevo_ros.config import ConfigError, build_odometry, gyro_bias_prior_note
 from bevo_ros.core.odometry import InvalidInputError
 from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
@@ -163,12 +163,8 @@ class BevoNode(Node):
             f"extrinsics {'from /tf_static when published (' + self.static_tf.backend + ')' if self.static_tf else 'parameters'}, "
             f"BEV {self.config.bev.size}px x {self.config.bev.metres_per_pixel} m, "
             f"learned={self.learned_path}, tf={self.outputs.tf_backend}")
-        if self.learned.gyro_bias is not None and self.config.odometry.mode == "fused":  # it overrides two parameters
-            self.get_logger().info(
-                f"the pitch and roll gyro's bias prior from {self.learned_path} (measured by bevo train): std "
-                f"{self.learned.gyro_bias[0]:.3g} rad/s, walk {self.learned.gyro_bias[1]:.3g} rad/s/sqrt(s), in place of "
-                f"filter.gyro_bias_std / walk ({self.config.filter.gyro_bias_std:g} / "
-                f"{self.config.filter.gyro_bias_walk:g})")
+        if (note := gyro_bias_prior_note(self.config, self.learned, self.learned_path)) is not None:
+            self.get_logger().info(note)  # it overrides two parameters
 
     def summary(self) -> str:
         """The totals ros_process logs on SIGINT (with images still waiting, never silently lost)."""

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bevo_ros.config import BevoConfig, build_odometry
+from bevo_ros.config import BevoConfig, build_odometry, gyro_bias_prior_note
 from bevo_ros.core.aerial_map import AerialMap
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.mosaic import mosaic_to_map
@@ -65,11 +65,8 @@ def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, 
     calib = calibration_for_recording(rec, config, rig)
     learned = load_learned_params(learned_path)
     odo = build_odometry(config, learned, camera=camera_for_recording(rec, config, rig, calib))
-    if learned.gyro_bias is not None and config.odometry.mode == "fused":  # it overrides the parameters: say so
-        print(f"{prog}: the pitch and roll gyro's bias prior from {learned_path} (measured by bevo train): std "
-              f"{learned.gyro_bias[0]:.3g} rad/s, walk {learned.gyro_bias[1]:.3g} rad/s/sqrt(s), in place of "
-              f"filter.gyro_bias_std / walk ({config.filter.gyro_bias_std:g} / {config.filter.gyro_bias_walk:g})",
-              file=sys.stderr)
+    if (note := gyro_bias_prior_note(config, learned, learned_path)) is not None:  # it overrides two parameters
+        print(f"{prog}: {note}", file=sys.stderr)
     if progress or source != PARAMETERS_EXTRINSICS or calib.maps is not None:
         print(f"{prog}: camera calibration from {calib.describe()}; extrinsics from {source}: camera at "
               f"{np.round(T_base_cam[:3, 3], 3).tolist()} m in {rig.base_frame}", file=sys.stderr)

@@ -213,17 +213,23 @@ def rpy_from_quaternion(x: float, y: float, z: float, w: float) -> tuple[float, 
     return roll, pitch, yaw
 
 
-def planar_pose_from_msg(msg: Any) -> tuple[float, float, float, float, list[list[float]]]:
-    """geometry_msgs/PoseWithCovarianceStamped -> ``(x, y, z, yaw, (3, 3) covariance of (x, y, yaw))``,
-    the quaternion taken at its direction (any norm). ValueError for a position that is not finite or a
-    quaternion that is no rotation (zero, not finite)."""
-    p, q, cov = msg.pose.pose.position, msg.pose.pose.orientation, msg.pose.covariance
+def yaw_from_quaternion_msg(q: Any) -> float:
+    """A geometry_msgs/Quaternion's yaw, taken at its direction (any norm: ``z: 1, w: 1`` is 90 deg).
+    ValueError for a quaternion that is no rotation (zero, not finite: an orientation left out)."""
     norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
     if not (math.isfinite(norm) and norm > 1e-9):
         raise ValueError(f"orientation is no rotation ({q.x}, {q.y}, {q.z}, {q.w})")
+    return rpy_from_quaternion(q.x / norm, q.y / norm, q.z / norm, q.w / norm)[2]
+
+
+def planar_pose_from_msg(msg: Any) -> tuple[float, float, float, float, list[list[float]]]:
+    """geometry_msgs/PoseWithCovarianceStamped -> ``(x, y, z, yaw, (3, 3) covariance of (x, y, yaw))``,
+    the quaternion taken at its direction (:func:`yaw_from_quaternion_msg`). ValueError for a position
+    that is not finite or a quaternion that is no rotation (zero, not finite)."""
+    p, q, cov = msg.pose.pose.position, msg.pose.pose.orientation, msg.pose.covariance
+    yaw = yaw_from_quaternion_msg(q)
     if not all(math.isfinite(v) for v in (p.x, p.y, p.z)):
         raise ValueError(f"position is not finite ({p.x}, {p.y}, {p.z})")
-    yaw = rpy_from_quaternion(q.x / norm, q.y / norm, q.z / norm, q.w / norm)[2]
     planar = [[float(cov[6 * r + c]) for c in (0, 1, 5)] for r in (0, 1, 5)]  # the 6x6's x, y, yaw rows
     return float(p.x), float(p.y), float(p.z), yaw, planar
 

@@ -8,10 +8,10 @@ with ground truth measures them: over each frame interval the gyro's x / y integ
 truth's body rotation (the rotation vector of ``inv(P_k) P_k+1``) is the bias times the interval,
 plus noise. Per bag the mean over its training frames is its bias, with a standard error from
 its :data:`WINDOW` s windows' scatter; the prior's ``std`` is their RMS over the bags and both axes
-where that exceeds twice its standard error, else the bias is not resolved and the data only bound
-it (the shared OXTS drives read 0.002-0.008 deg/s: not resolved; 12 s of a 10 Hz MEMS gyro cannot
-tell 0.1 deg/s from nothing). ``walk`` comes from the change between consecutive windows less what
-their noise explains (``None`` with fewer than three windows).
+(less its own noise) where that is resolved (:func:`fit_gyro_bias`), else the data only bound it
+(the shared OXTS drives read 0.002-0.008 deg/s: not resolved; 12 s of a 10 Hz MEMS gyro cannot tell
+0.1 deg/s from nothing). ``walk`` comes from consecutive windows and each window's halves (``None``
+with fewer than two pairs of consecutive windows).
 
 Like the other fused-mode fits, ``bevo train`` keeps the measured prior only if the engine reads the
 validation frames clearly better with it (:func:`~bevo_ros.training.suspension.engine_judgement`),
@@ -45,7 +45,8 @@ class GyroBiasFit:
         bound: rad/s, ``rms`` plus its standard error times Student's t at 97.5 %: what the bias is
             not above.
         resolved: ``rms`` is above that many standard errors (a bias was measured, not only bounded).
-        walk: rad/s/sqrt(s), the random walk the windows say; None where no recording had three windows.
+        walk: rad/s/sqrt(s), the random walk the windows say; None with fewer than two pairs of
+            consecutive full windows.
         seconds: the time measured over, all recordings.
     """
 
@@ -59,7 +60,7 @@ class GyroBiasFit:
 
     def prior_std(self, in_use: float) -> float | None:
         """The prior's standard deviation the measurement says, against the one ``in_use`` (rad/s):
-        the biases' RMS where resolved; 0 where the bias is bounded well below ``in_use`` (by
+        the biases' RMS less their own noise where resolved; 0 where the bias is bounded well below ``in_use`` (by
         :data:`AGREEMENT_FACTOR`); None where the data cannot tell."""
         if self.resolved:  # less the biases' own noise, which their RMS includes
             return math.sqrt(max(self.rms**2 - float(np.mean(self.standard_errors**2)), 0.0))
@@ -137,21 +138,19 @@ def fit_gyro_bias(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]], window
     for t, dt, r in parts:
         if len(dt) == 0:
             continue
-        total = float(dt.sum())
-        seconds += total
-        biases.append(r.sum(axis=0) / total)
+        seconds += float(dt.sum())
+        biases.append(_window_mean(r, dt))
         k = np.floor((t - t[0]) / window).astype(int)
         full = [i for i in range(int(k.max()) + 1) if dt[k == i].sum() >= 0.8 * window and (k == i).sum() >= 2]
-        means = np.array([_window_mean(r[k == i], dt[k == i]) for i in full]).reshape(-1, 2)
+        by_window = {i: _window_mean(r[k == i], dt[k == i]) for i in full}
+        means = np.array(list(by_window.values())).reshape(-1, 2)
         if len(means) >= 2:
             errors.append(means.std(axis=0, ddof=1) / math.sqrt(len(means)))
             dofs.append(len(means) - 1)
         else:  # one window: the intervals' own scatter, as if independent
             errors.append((r / dt[:, None]).std(axis=0) / math.sqrt(len(dt)))
             dofs.append(max(len(dt) - 1, 1))
-        for a, b in zip(full[:-1], full[1:]):
-            if b == a + 1:  # consecutive windows only
-                changes.append((_window_mean(r[k == b], dt[k == b]) - _window_mean(r[k == a], dt[k == a])) ** 2)
+        changes += [(by_window[i + 1] - by_window[i]) ** 2 for i in full if i + 1 in by_window]  # consecutive only
         for i in full:
             ri, di = r[k == i], dt[k == i]
             h = len(di) // 2
