@@ -25,7 +25,7 @@ setup(
     maintainer_email="bevo-maintainers@bevo-ros.org",
     description="BEVO: BEV-based visual-inertial odometry with a differentiable UKF and phase correlation.",
     license="BSD-3-Clause",
-    tests_require=["pytest"],
+    extras_require={"test": ["pytest"]},  # tests_require is gone from setuptools >= 72
     entry_points={
         "console_scripts": [
             "bevo = bevo_ros.cli:main",  # the one command: bevo convert|play|run|train|evaluate|... (bevo_ros.cli)

@@ -1,6 +1,6 @@
 """``bevo_node``: the rclpy wiring around :class:`bevo_ros.core.odometry.BevoOdometry`.
 
-    ros2 run bevo_ros bevo_node --ros-args --params-file params/kitti.yaml
+    ros2 run bevo_ros bevo_node --ros-args --params-file $(ros2 pkg prefix --share bevo_ros)/params/kitti.yaml
 
 Subscribes (relative topic names) to IMU, images (raw or compressed) and CameraInfo, and reads
 the rig from /tf_static; runs the DUKF on every IMU message and BEV + phase correlation on every

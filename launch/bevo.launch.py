@@ -30,7 +30,9 @@ from launch_ros.substitutions import ExecutableInPackage
 PACKAGE = "bevo_ros"
 # The topics rviz/bevo.rviz shows (absolute there, as RViz stores them): remapped to relative names so that
 # RViz, pushed into the launch's namespace, shows that namespace's node.
-RVIZ_TOPICS = ("/bevo/odometry", "/bevo/path", "/bevo/bev_image", "/ground_truth/odometry", "/camera/image_rect")
+# "2D Pose Estimate" (/initialpose) likewise reaches the namespace's bevo_localizer.
+RVIZ_TOPICS = ("/bevo/odometry", "/bevo/path", "/bevo/bev_image", "/ground_truth/odometry", "/camera/image_rect",
+               "/initialpose")
 
 
 def generate_launch_description():
@@ -53,10 +55,12 @@ def generate_launch_description():
     return LaunchDescription([
         DeclareLaunchArgument("params_file", default_value=os.path.join(share, "params", "kitti.yaml"),
                               description="bevo_node parameters file"),
+        # bag before use_sim_time: an argument's default is evaluated where it is declared, and
+        # use_sim_time's reads bag (declared after it, every launch without bag:= failed)
+        DeclareLaunchArgument("bag", default_value="", description="rosbag2 to replay (empty: live sensors)"),
         DeclareLaunchArgument("use_sim_time", default_value=PythonExpression(["'true' if '", bag, "' else 'false'"]),
                               description="follow /clock (true by default when a bag is replayed)"),
         DeclareLaunchArgument("namespace", default_value="", description="namespace of the node and its topics"),
-        DeclareLaunchArgument("bag", default_value="", description="rosbag2 to replay (empty: live sensors)"),
         DeclareLaunchArgument("rate", default_value="1.0", description="bag replay speed factor"),
         DeclareLaunchArgument("rviz", default_value="false", description="start RViz"),
         DeclareLaunchArgument("localizer", default_value="false",
@@ -74,7 +78,8 @@ def generate_launch_description():
             output="screen",
             emulate_tty=True,
             parameters=[os.path.join(share, "params", "bevo_localizer.yaml"),
-                        {"map_file": map_file, "use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
+                        {"map_file": ParameterValue(map_file, value_type=str),
+                         "use_sim_time": ParameterValue(use_sim_time, value_type=bool)}],
             condition=IfCondition(localizer),
         ),
         ExecuteProcess(

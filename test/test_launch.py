@@ -165,9 +165,23 @@ def test_launch_file_names_only_what_exists(description):
     rviz = [n for n in nodes if n.kwargs["package"] == "rviz2"][0]
     assert Path(rviz.kwargs["arguments"][1]) == RVIZ
     assert rviz.kwargs["namespace"].args == ("namespace",)
-    shown = {d["Topic"]["Value"] for d in yaml.safe_load(RVIZ.read_text())["Visualization Manager"]["Displays"]
-             if "Topic" in d}
+    manager = yaml.safe_load(RVIZ.read_text())["Visualization Manager"]
+    shown = {d["Topic"]["Value"] for d in manager["Displays"] + manager["Tools"] if "Topic" in d}
+    assert "/initialpose" in shown  # "2D Pose Estimate", for bevo_localizer
     assert dict(rviz.kwargs["remappings"]) == {t: t.lstrip("/") for t in shown}
+
+
+def test_launch_argument_defaults_read_only_arguments_declared_before_them(description):
+    """launch evaluates a DeclareLaunchArgument's default where it is declared: a default that reads
+    an argument declared later fails (SubstitutionFailure) whenever that argument is not given."""
+    declared: set[str] = set()
+    for action in description.args[0]:
+        if type(action).__name__ != "DeclareLaunchArgument":
+            continue
+        reads = {c.args[0] for c in _walk(action.kwargs.get("default_value")) if type(c).__name__ == "LaunchConfiguration"}
+        assert reads <= declared, f"{action.args[0]}'s default reads {reads - declared}, declared after it"
+        declared.add(action.args[0])
+    assert {"bag", "use_sim_time"} <= declared
 
 
 def test_rviz_config_shows_the_node_outputs():

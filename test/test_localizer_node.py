@@ -255,7 +255,7 @@ def test_params_file_lists_every_parameter():
     from bevo_ros.localizer_node import DESCRIPTIONS, LocalizerSettings
 
     doc = yaml.safe_load((Path(__file__).resolve().parents[1] / "params" / "bevo_localizer.yaml").read_text())
-    listed = set(doc["bevo_localizer"]["ros__parameters"])
+    listed = set(doc["/**"]["ros__parameters"])  # "/**": a plain node-name key misses a namespaced node
     declared = {f.name for f in dataclasses.fields(LocalizerSettings)}
     assert listed == declared and set(DESCRIPTIONS) == declared
 

@@ -231,6 +231,35 @@ def test_learned_params_file_resolves_beside_the_params_file_that_set_it(context
         rclpy.shutdown(context=ctx)
 
 
+def test_params_file_node_keys_match_as_rclpy_applies_them(tmp_path):
+    """Which sections of a params file reach a node, against rclpy itself: a plain ``name:`` key is
+    ``/name`` (not ``/car1/name``), ``*`` one token, ``/**`` every node. The learned file's folder
+    is looked up through the same matching, so it must not take a section rclpy never applied."""
+    import yaml
+
+    from bevo_ros.ros.parameters import _node_sections
+
+    doc = {"plain_node": {"ros__parameters": {"a": 1}}, "/*/plain_node": {"ros__parameters": {"b": 2}},
+           "/car1/plain_node": {"ros__parameters": {"c": 3}}, "/**": {"ros__parameters": {"d": 4}},
+           "/a/*/plain_node": {"ros__parameters": {"e": 5}}, "/**/plain_node": {"ros__parameters": {"f": 6}}}
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    ctx = rclpy.context.Context()
+    rclpy.init(args=["--ros-args", "--params-file", str(path)], context=ctx, domain_id=DOMAIN_ID)
+    try:
+        for ns in ("", "car1", "a/b", "a/b/c"):
+            node = rclpy.node.Node("plain_node", namespace=ns, context=ctx,
+                                   automatically_declare_parameters_from_overrides=True)
+            try:
+                applied = {n for n in node._parameters if n in "abcdef"}
+                ours = {k for section in _node_sections(doc, node.get_fully_qualified_name()) for k in section}
+                assert ours == applied, (ns, ours, applied)
+            finally:
+                node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
 # ------------------------------------------------------------------------------ calibration
 def _camera_info(camera) -> CameraInfo:
     K = camera.K.double().numpy()

@@ -4,7 +4,7 @@ change live; plus which ``--params-file`` set a parameter (relative paths resolv
 """
 from __future__ import annotations
 
-import fnmatch
+import re
 import math
 from pathlib import Path
 from typing import Any
@@ -98,21 +98,27 @@ def params_files_from_args(argv: list[str]) -> list[str]:
 
 def _node_sections(doc: Any, fq_name: str) -> list[dict]:
     """The ``ros__parameters`` mappings of ``doc`` that apply to the node ``fq_name`` (e.g.
-    ``/car1/bevo_node``), in rcl's matching: the name with or without the leading slash, or a
-    pattern with ``*`` / ``**`` (``/**`` = every node)."""
+    ``/car1/bevo_node``), as rcl matches them: a key is a fully qualified name (a missing leading
+    slash added: a plain ``bevo_node:`` is ``/bevo_node``, not ``/car1/bevo_node``), with the
+    wildcards ``*`` (one name token) and ``**`` (any number of them; ``/**`` = every node)."""
     out = []
     if not isinstance(doc, dict):
         return out
-    name = fq_name.rsplit("/", 1)[-1]
     for key, section in doc.items():
         if not isinstance(section, dict) or not isinstance(section.get("ros__parameters"), dict):
             continue
         k = str(key)
-        k = k if k.startswith("/") else "/" + k
-        # rcl's wildcards: '*' one token, '**' any number (fnmatch's '*' spans '/': close enough here)
-        if k == fq_name or k == "/" + name or fnmatch.fnmatchcase(fq_name, k.replace("**", "*")):
+        if _node_key_pattern(k if k.startswith("/") else "/" + k).fullmatch(fq_name):
             out.append(section["ros__parameters"])
     return out
+
+
+def _node_key_pattern(key: str) -> "re.Pattern[str]":
+    """A params file's node key as a regex over fully qualified names: ``/**`` any number of
+    ``/token`` (none included), ``*`` one token's characters."""
+    parts = re.split(r"(/\*\*|\*)", key)
+    regex = "".join("(?:/[^/]+)*" if p == "/**" else "[^/]*" if p == "*" else re.escape(p) for p in parts)
+    return re.compile(regex)
 
 
 def _sets(section: dict, name: str) -> bool:
