@@ -170,14 +170,20 @@ def camera_trajectory(base: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:
 
 
 def write_outputs(out: Path, steps: list[OdometryStep], rec: bag.BagContents, T_base_cam: np.ndarray,
-                  prog: str = "run_bag") -> list[Path]:
+                  prog: str = "run_bag", base_frame: str = "base_link") -> list[Path]:
     """The run's files in ``out``: the trajectory (KITTI camera poses, TUM), the attitude CSV and the
     bag's ground truth at the frames (``gt_kitti.txt``) where it has one stamped at the images; where
     it has none (or one at other stamps: said on stderr, the run's files still written) an earlier
-    run's ``gt_kitti.txt`` is removed, as ``bevo evaluate`` would score this trajectory against it."""
+    run's ``gt_kitti.txt`` is removed, as ``bevo evaluate`` would score this trajectory against it.
+    The ground truth must be ``base_frame``'s poses (its messages' child frame): another frame's (a
+    camera's, a GNSS antenna's) is not composed through the camera as if it were the base's."""
     stamps = np.array([s.stamp for s in steps])
     gt_cam = None
-    if rec.gt_poses is not None:  # before any file is written: a refusal here left a folder half new, half old
+    child = rec.gt_child_frame_id.lstrip("/")
+    if rec.gt_poses is not None and child and child != base_frame.lstrip("/"):
+        print(f"{prog}: warning: no gt_kitti.txt written: the bag's ground truth is the pose of '{child}', not of "
+              f"the base frame '{base_frame}' (its child_frame_id; base_frame in the parameters)", file=sys.stderr)
+    elif rec.gt_poses is not None:  # before any file is written: a refusal here left a folder half new, half old
         try:
             gt_cam = camera_trajectory(gt_at(stamps, rec.gt_stamps, rec.gt_poses), T_base_cam)
         except ValueError as exc:

@@ -255,23 +255,46 @@ def test_existing_output_and_failed_overwrite_keep_the_old_bag(layout, tmp_path,
     assert bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 3
 
 
-def test_raw_layout(layout, kitti_root, tmp_path, capsys):
-    """A raw ``<date>/<drive>_sync`` directory (built from the sample: image_00 + timestamps)."""
+def _raw_drive(layout: Path, kitti_root: Path, frames: int = 5) -> Path:
+    """A raw ``<date>/<drive>_sync`` directory built from the sample: ``frames`` images in image_00, as many
+    OXTS records (synced data pairs them one to one), camera stamps 5 ms after the OXTS ones."""
     drive = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync"
     cam = drive / "image_00"
     (cam / "data").mkdir(parents=True)
-    for i in range(5):
-        os.symlink(layout / "odometry" / "sequences" / "06" / "image_0" / f"{i:06d}.png", cam / "data" / f"{i:010d}.png")
-    # Synced raw data pairs OXTS and images one to one: keep 5 OXTS records.
+    for i in range(frames):
+        os.symlink(kitti_root / "odometry" / "sequences" / "06" / "image_0" / f"{i:06d}.png", cam / "data" / f"{i:010d}.png")
     oxts = drive / "oxts"
     lines = (oxts / "timestamps.txt").read_text().splitlines()
-    (oxts / "timestamps.txt").write_text("\n".join(lines[:5]) + "\n")
-    for p in sorted((oxts / "data").iterdir())[5:]:
+    (oxts / "timestamps.txt").write_text("\n".join(lines[:frames]) + "\n")
+    for p in sorted((oxts / "data").iterdir())[frames:]:
         p.unlink()
-    # Camera stamps 5 ms after the OXTS ones.
     stamps = kitti.read_timestamps_ns(oxts / "timestamps.txt") + 5_000_000
     (cam / "timestamps.txt").write_text("".join(
         f"2011-09-30 12:08:{(s // 10**9) % 60:02d}.{s % 10**9:09d}\n" for s in stamps))
+    return drive
+
+
+def _day_calibration(layout: Path, into: Path) -> None:
+    """2011_09_30's own raw calibration in ``into``: 2011_09_26's chain with the sample's rectified
+    camera (calib.txt's P0, 1226x370)."""
+    for name in ("calib_imu_to_velo.txt", "calib_velo_to_cam.txt"):
+        shutil.copy(layout / "raw" / "2011_09_26" / name, into / name)
+    p0 = kitti.read_odometry_calib(layout / "odometry" / "sequences" / "06" / "calib.txt")["P0"].ravel()
+    lines = []
+    for line in (layout / "raw" / "2011_09_26" / "calib_cam_to_cam.txt").read_text().splitlines():
+        if line.startswith("S_rect_00:"):
+            line = "S_rect_00: 1.226000e+03 3.700000e+02"
+        elif line.startswith("P_rect_00:"):
+            line = "P_rect_00: " + " ".join(f"{v:.6e}" for v in p0)
+        lines.append(line)
+    (into / "calib_cam_to_cam.txt").write_text("\n".join(lines) + "\n")
+
+
+def test_raw_layout(layout, kitti_root, tmp_path, capsys):
+    """A raw ``<date>/<drive>_sync`` directory (built from the sample: image_00 + timestamps)."""
+    drive = _raw_drive(layout, kitti_root)
+    cam = drive / "image_00"
+    stamps = kitti.read_timestamps_ns(cam / "timestamps.txt")
     # The camera matrix of a raw drive is its own day's: the layout has only 2011_09_26's calibration,
     # which the odometry layout borrows for the extrinsics but a raw drive may not (another day's P_rect
     # mis-scales it by percents: 17.6 % drift on the sample).
@@ -281,19 +304,9 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     # Given explicitly, 2011_09_26's files are refused on their rectified size (1242x375 for 1226x370 images).
     _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "o26", "--raw-calib", layout / "raw" / "2011_09_26"],
                   "S_rect_00 is 1242x375 but the images are 1226x370")
-    # The day's own calibration: 2011_09_26's chain with the sample's rectified camera (calib.txt's P0).
+    # The day's own calibration.
     day = layout / "raw" / "2011_09_30"
-    for name in ("calib_imu_to_velo.txt", "calib_velo_to_cam.txt"):
-        shutil.copy(layout / "raw" / "2011_09_26" / name, day / name)
-    p0 = kitti.read_odometry_calib(layout / "odometry" / "sequences" / "06" / "calib.txt")["P0"].ravel()
-    lines = []
-    for line in (layout / "raw" / "2011_09_26" / "calib_cam_to_cam.txt").read_text().splitlines():
-        if line.startswith("S_rect_00:"):
-            line = "S_rect_00: 1.226000e+03 3.700000e+02"
-        elif line.startswith("P_rect_00:"):
-            line = "P_rect_00: " + " ".join(f"{v:.6e}" for v in p0)
-        lines.append(line)
-    (day / "calib_cam_to_cam.txt").write_text("\n".join(lines) + "\n")
+    _day_calibration(layout, day)
     out = tmp_path / "raw_bag"
     rc = kitti_to_bag.main(["--raw", str(drive), "-o", str(out), "--poses",
                             str(layout / "odometry" / "poses" / "06.txt")])
@@ -358,3 +371,100 @@ def test_a_negative_oxts_offset_is_refused(tmp_path):
         load_source(ConversionOptions(output=tmp_path / "b", odometry=tmp_path, oxts_offset=-5))
     with pytest.raises(ConversionError, match="--gyro-var -1.0: a variance must be >= 0"):
         load_source(ConversionOptions(output=tmp_path / "b", odometry=tmp_path, gyro_var=-1.0))
+
+
+def test_raw_drive_past_its_sequence_converts_the_frames_with_ground_truth(layout, kitti_root, tmp_path, capsys):
+    """A raw drive runs past its odometry sequence (0020: 1104 records, 1101 poses; 0028's poses start at
+    frame 1100): converted whole, frames without a pose left bevo run with no gt_kitti.txt at all. By
+    default the frames the poses cover; poses that cover none of the frames asked for are refused."""
+    drive = _raw_drive(layout, kitti_root, frames=8)
+    _day_calibration(layout, layout / "raw" / "2011_09_30")
+    poses = tmp_path / "poses.txt"
+    poses.write_text("".join((layout / "odometry" / "poses" / "06.txt").read_text().splitlines(True)[:6]))
+    out = tmp_path / "o"
+    assert kitti_to_bag.main(["--raw", str(drive), "-o", str(out), "--poses", str(poses)]) == 0
+    assert "frames 0..5 of raw drive" in capsys.readouterr().err
+    rec = bag.read_recording(out)
+    assert len(rec.frame_stamps_ns) == 6 and rec.gt_poses.shape == (6, 4, 4)
+    # asked for explicitly, the frames past the poses are converted (their ground truth left out)
+    assert convert("--raw", drive, "-o", tmp_path / "all", "--poses", poses, "--count", "8") == 0
+    rec = bag.read_recording(tmp_path / "all")
+    assert len(rec.frame_stamps_ns) == 8 and rec.gt_poses.shape == (6, 4, 4)
+    _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "none", "--poses", poses, "--first", "6"],
+                  "covers frames 0-5", "none of the frames 6..7")
+    _expect_error(capsys, ["--raw", drive, "-o", tmp_path / "none", "--poses", poses, "--oxts-offset", "9"],
+                  "first pose is frame 9", "8 frames")
+
+
+def test_a_calibration_in_the_drives_folder_is_its_days_own(layout, kitti_root, tmp_path, capsys):
+    """KITTI's layout names the day's folder by its date; the day's files inside the drive's own folder
+    (or the folder holding it, under another name) are that day's too, not refused as another day's."""
+    drive = _raw_drive(layout, kitti_root)
+    _day_calibration(layout, drive)
+    assert kitti_to_bag.main(["--raw", str(drive), "-o", str(tmp_path / "o"), "-q"]) == 0
+    assert kitti_to_bag.main(["--raw", str(drive), "-o", str(tmp_path / "o2"), "-q", "--raw-calib", str(drive)]) == 0
+    assert "another day" not in capsys.readouterr().err
+    assert bag.read_recording(tmp_path / "o").camera_info.k[0] == pytest.approx(707.0912)
+
+
+def test_other_cameras_ground_truth_is_camera_0s_poses(layout, kitti_root, tmp_path):
+    """poses/NN.txt are camera 0's: converted for camera 1, the base's ground truth must be the same
+    (through camera 1's extrinsics it moved by the lever arm between the cameras, 1.07 m over 06)."""
+    seq = layout / "odometry" / "sequences" / "06"
+    (seq / "image_1").mkdir()
+    for i in range(5):
+        os.symlink(kitti_root / "odometry" / "sequences" / "06" / "image_0" / f"{i:06d}.png", seq / "image_1" / f"{i:06d}.png")
+    for cam in (0, 1):
+        assert convert("--odometry", layout / "odometry", "-o", tmp_path / f"c{cam}", "--camera", cam) == 0
+    gt0, gt1 = (bag.read_recording(tmp_path / f"c{cam}").gt_poses for cam in (0, 1))
+    assert np.abs(gt0[-1][:3, 3]).max() > 4.0 and np.allclose(gt0, gt1, atol=1e-9)
+    tf0, tf1 = (bag.read_recording(tmp_path / f"c{cam}") for cam in (0, 1))
+    assert tf0.camera_info.p[3] == 0.0 and tf1.camera_info.p[3] != 0.0  # the bags are each camera's
+
+
+def test_a_partial_download_with_the_whole_times_txt(layout, tmp_path):
+    """The odometry zips hold the sequence's whole times.txt: the first n images take its first n times."""
+    seq = layout / "odometry" / "sequences" / "06"
+    (seq / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(1101)))
+    assert convert("--odometry", layout / "odometry", "-o", tmp_path / "o") == 0
+    assert np.all(np.diff(bag.read_recording(tmp_path / "o").frame_stamps_ns) == 100_000_000)
+
+
+def test_an_oxts_stamp_out_of_order_leaves_that_record_out(layout, tmp_path, capsys):
+    """One OXTS stamp at or before the record before it refused the whole drive, even a record outside
+    the frames converted: now that record alone is left out of the IMU topics, and said."""
+    oxts = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts"
+    lines = (oxts / "timestamps.txt").read_text().splitlines(True)
+    lines[3] = lines[2]  # record 3 repeats record 2's stamp
+    lines[900] = lines[899]  # far outside the 5 frames
+    (oxts / "timestamps.txt").write_text("".join(lines))
+    seq = layout / "odometry" / "sequences" / "06"
+    (seq / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(5)))
+    out = tmp_path / "o"
+    assert kitti_to_bag.main(["--odometry", str(layout / "odometry"), "-o", str(out), "--quiet"]) == 0
+    assert "1 OXTS record(s) 3 stamped at or before an earlier record" in capsys.readouterr().err
+    rec = bag.read_recording(out)
+    stamps = kitti.read_timestamps_ns(oxts / "timestamps.txt", increasing=False)
+    assert np.array_equal(rec.imu_stamps_ns, stamps[[0, 1, 2, 4]]) and len(rec.frame_stamps_ns) == 5
+    assert np.all(np.diff(rec.imu_stamps_ns) > 0)
+
+
+def test_interpolated_records_are_named_by_the_drives_record_numbers(layout, tmp_path, capsys):
+    """Records are the drive's oxts/data file numbers, not the frames of a sequence that starts later."""
+    assert kitti_to_bag.main(["--odometry", str(layout / "odometry"), "-o", str(tmp_path / "o"),
+                              "--oxts-offset", "3"]) == 0
+    assert "3 OXTS record(s) 4-6 are KITTI's linear interpolation" in capsys.readouterr().err  # frames 1-3
+
+
+def test_overwrite_replaces_only_a_bag(layout, tmp_path, capsys):
+    """--overwrite under a mistyped -o deleted a folder of the user's data."""
+    mine = tmp_path / "mydata"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
+    _expect_error(capsys, ["--odometry", layout / "odometry", "-o", mine, "--overwrite", "--count", "2"],
+                  "not a rosbag2 folder")
+    assert (mine / "notes.txt").read_text() == "precious" and _no_partial(mine)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert convert("--odometry", layout / "odometry", "-o", empty, "--overwrite", "--count", "2") == 0
+    assert bag.bag_topics(empty)[bag.IMAGE_TOPIC][1] == 2

@@ -359,6 +359,40 @@ def test_run_bag_names_wrong_topics_and_frames_and_leaves_no_stale_ground_truth(
     written = pipeline.write_outputs(out, steps, rec, np.eye(4), prog="bevo run")
     assert "bevo run: warning: no gt_kitti.txt written" in capsys.readouterr().err
     assert not (out / "gt_kitti.txt").exists() and len(written) == 3 and all(p.is_file() for p in written)
+    # Ground truth for the first frames only (a raw drive past its sequence): said as such (it read "not
+    # stamped at the image stamps"), with what to do.
+    gt_stamps = rec.gt_stamps_ns - 50_000_000
+    rec.gt_poses, rec.gt_stamps_ns = gt_poses[:10], gt_stamps[:10]
+    pipeline.write_outputs(out, steps, rec, np.eye(4), prog="bevo run")
+    err = capsys.readouterr().err
+    assert f"covers only 10 of the {len(steps)} frames (frames 0..9" in err and "--first" in err, err
+    # Ground truth of another frame than the base (a camera's, an antenna's) composed through the camera
+    # as the base's read 137 % drift: not written, said.
+    rec.gt_poses, rec.gt_stamps_ns = gt_poses, gt_stamps
+    rec.gt_child_frame_id = "camera_optical_frame"
+    pipeline.write_outputs(out, steps, rec, np.eye(4), prog="bevo run")
+    assert "the bag's ground truth is the pose of 'camera_optical_frame', not of the base frame 'base_link'" in \
+        capsys.readouterr().err and not (out / "gt_kitti.txt").exists()
+    rec.gt_child_frame_id = "base_link"
+    pipeline.write_outputs(out, steps, rec, np.eye(4))
+    assert (out / "gt_kitti.txt").is_file()
+
+
+def test_run_warns_of_images_refused_before_the_engine(tmp_path, synthetic_bag, capsys):
+    """Images the pipeline drops before the engine counts them (a wrong size) left the trajectory short
+    without the warning that it has fewer rows than the bag's images."""
+    _, base_path = synthetic_bag
+    images = iter(range(10**6))
+
+    def crop_three(img):
+        return np.ascontiguousarray(img[:-4, :-4]) if 10 <= next(images) < 13 else img
+
+    cropped = _copy_bag(base_path, tmp_path / "cropped", bag.IMAGE_TOPIC, image=crop_three)
+    n = len(bag.read_recording(cropped, load_images=False).frame_stamps_ns)
+    assert run.main([str(cropped), "--out", str(tmp_path / "o"), "--params", SYNTH_PARAMS, "-q"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: 3 of {n} frames gave no odometry" in err, err
+    assert len((tmp_path / "o" / "trajectory_kitti.txt").read_text().splitlines()) == n - 3
 
 
 def test_train_and_calibrate_refuse_bad_arguments_before_working(synthetic_bag, tmp_path, capsys):

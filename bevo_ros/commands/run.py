@@ -81,7 +81,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.bag}: only {len(steps)} frame(s) produced odometry (imu {c.imu}, images {c.images}, "
                          f"dropped without IMU {c.dropped_no_imu}, invalid BEV {c.dropped_invalid_bev})")
     T_base_cam, _ = extrinsics_for_recording(rec, config, rig)  # the extrinsics the engine used (float64)
-    paths = write_outputs(Path(args.out), steps, rec, T_base_cam, prog=prog_name("run_bag"))
+    paths = write_outputs(Path(args.out), steps, rec, T_base_cam, prog=prog_name("run_bag"), base_frame=rig.base_frame)
     c = odo.counters
     print(f"{prog_name('run_bag')}: {len(steps)} frames in {elapsed:.1f} s ({len(steps) / elapsed:.1f} frames/s), "
           f"mode {config.odometry.mode}; imu {c.imu}, images {c.images}, gaps {c.imu_gaps}, "
@@ -91,8 +91,11 @@ def _run(args: argparse.Namespace) -> int:
           f"peak off the highest (second motion in view, direction of travel) {c.gated_peak}; "
           f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}")
     print("wrote " + ", ".join(str(p) for p in paths))
-    if len(steps) < c.images:  # the trajectory has a row per frame with odometry, not per image of the bag
-        print(f"{prog_name('run_bag')}: warning: {c.images - len(steps)} of {c.images} frames gave no odometry (see the counts above): "
+    # The trajectory has a row per frame with odometry, not per image of the bag: the bag's images from
+    # --first-frame on, those refused before the engine counted them (a wrong size, a repeated stamp) included.
+    images = len(rec.frame_stamps_ns) - args.first_frame
+    if len(steps) < images:
+        print(f"{prog_name('run_bag')}: warning: {images - len(steps)} of {images} frames gave no odometry (see the counts above): "
               f"trajectory_kitti.txt has {len(steps)} rows; evaluate against gt_kitti.txt (the same frames), "
               f"not a sequence's poses file counted from its first frame", file=sys.stderr)
     return 0

@@ -115,10 +115,12 @@ def parse_timestamp_ns(text: str, path: PathLike = "<string>", lineno: int = 0) 
     return seconds * 1_000_000_000 + int(frac)
 
 
-def read_timestamps_ns(path: PathLike) -> np.ndarray:
+def read_timestamps_ns(path: PathLike, increasing: bool = True) -> np.ndarray:
     """A KITTI raw ``timestamps.txt`` -> ``(N,)`` int64 nanoseconds since the epoch.
 
     Blank lines are rejected: in raw data they mark dropped frames, which cannot be aligned.
+    ``increasing``: stamps must be strictly increasing (else ValueError naming the line); False
+    leaves that to the caller (an OXTS stamp out of order is one bad record, not a bad file).
     """
     path = _require_file(path, "timestamps file")
     stamps = []
@@ -135,7 +137,7 @@ def read_timestamps_ns(path: PathLike) -> np.ndarray:
         raise ValueError(f"{path}: no timestamps")
     out = np.asarray(stamps, dtype=np.int64)
     bad = np.nonzero(np.diff(out) <= 0)[0]
-    if bad.size:
+    if bad.size and increasing:
         raise ValueError(f"{path}:{bad[0] + 2}: timestamps not strictly increasing")
     return out
 
@@ -201,6 +203,15 @@ class OxtsData:
         return OxtsData(self.stamps_ns[start:stop].copy(), self.data[start:stop].copy(), self.directory)
 
 
+def out_of_order(stamps_ns: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: stamps not after every stamp before them (a duplicate, or a clock that stepped
+    back): such a record cannot be placed in time, while its neighbours are fine."""
+    stamps_ns = np.asarray(stamps_ns)
+    if len(stamps_ns) < 2:
+        return np.zeros(len(stamps_ns), dtype=bool)
+    return np.concatenate([[False], stamps_ns[1:] <= np.maximum.accumulate(stamps_ns)[:-1]])
+
+
 def interpolated_oxts(oxts: OxtsData, rtol: float = 1e-9) -> np.ndarray:
     """``(N,)`` bool: the records KITTI's synchronisation filled in where the unit's packets were
     lost, by linear interpolation between the real records on either side. Such a record's six
@@ -227,15 +238,16 @@ def linear_fill(samples: np.ndarray, rtol: float = 1e-9) -> np.ndarray:
     return out
 
 
-def read_oxts(oxts_dir: PathLike) -> OxtsData:
-    """Read a raw ``<drive>_sync/oxts`` directory (``timestamps.txt`` + ``data/*.txt``).
+def read_oxts(oxts_dir: PathLike, increasing: bool = True) -> OxtsData:
+    """Read a raw ``<drive>_sync/oxts`` directory (``timestamps.txt`` + ``data/*.txt``);
+    ``increasing``: as :func:`read_timestamps_ns` (False: :func:`out_of_order` finds the records).
 
     Raises:
         FileNotFoundError: missing directory or files.
         ValueError: unparseable line (file and line named), count mismatch.
     """
     oxts_dir = _require_dir(oxts_dir, "OXTS")
-    stamps_ns = read_timestamps_ns(oxts_dir / "timestamps.txt")
+    stamps_ns = read_timestamps_ns(oxts_dir / "timestamps.txt", increasing)
     data_dir = _require_dir(oxts_dir / "data", "OXTS data")
     files = sorted(p for p in data_dir.iterdir() if p.suffix == ".txt")
     for i, p in enumerate(files):  # record i is timestamps.txt's line i: a gap would shift every later one

@@ -65,9 +65,11 @@ class Source:
     oxts: kitti.OxtsData  # len F
     P: np.ndarray  # (3, 4) projection of the rectified camera
     camera: int
-    poses: np.ndarray | None  # (F, 4, 4) T_world_cam; NaN rows where no ground truth
-    T_base_cam: np.ndarray | None  # (4, 4)
+    poses: np.ndarray | None  # (F, 4, 4) T_world_cam0 (KITTI's poses are camera 0's); NaN rows where no ground truth
+    T_base_cam: np.ndarray | None  # (4, 4) the converted camera's extrinsics (/tf_static)
     description: str
+    T_base_cam0: np.ndarray | None = None  # (4, 4) camera 0's: the poses' frame (None: T_base_cam's)
+    record_offset: int = 0  # the raw OXTS record of frame 0 (an odometry sequence's start in its drive)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -107,7 +109,7 @@ def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str, intrinsics: b
         d = Path(opts.raw_calib)
         if not d.is_dir():
             raise ConversionError(f"{d}: --raw-calib directory not found")
-        if date and d.name != date:  # said even with --quiet: the scale of everything hangs on it
+        if date and not _days_own(d, near, date):  # said even with --quiet: the scale of everything hangs on it
             print(f"warning: the raw calibration in {d} is for another day than this {date} drive "
                   + ("(its camera matrix too)" if intrinsics else "(its extrinsics)"), file=sys.stderr)
         return d
@@ -115,7 +117,7 @@ def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str, intrinsics: b
     files = "calib_imu_to_velo.txt, calib_velo_to_cam.txt, calib_cam_to_cam.txt"
     if found is None:
         raise ConversionError(f"no raw calibration ({files}) found near {near}; give --raw-calib DIR")
-    if date and found.name != date:
+    if date and not _days_own(found, near, date):
         if intrinsics:
             raise ConversionError(
                 f"no raw calibration of {date} ({files}, all three) near {near}: found {found.name}'s, but a raw "
@@ -126,6 +128,13 @@ def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str, intrinsics: b
             print(f"note: using the raw calibration in {found} for a {date} drive (extrinsics only: the same rig; "
                   f"the camera matrix comes from calib.txt)", file=sys.stderr)
     return found
+
+
+def _days_own(calib_dir: Path, near: Path, date: str) -> bool:
+    """A calibration folder is the drive's own day's when named as the day (KITTI's ``RAW/<day>/``) or
+    when it is the drive's folder or the folder holding it, whatever their names."""
+    near = Path(near).resolve()
+    return calib_dir.name == date or Path(calib_dir).resolve() in (near, near.parent)
 
 
 def _drive_date(drive_dir: Path) -> str:
@@ -173,7 +182,7 @@ def odometry_source(opts: ConversionOptions) -> Source:
     if opts.oxts_offset is not None:
         start = opts.oxts_offset
     oxts_dir = _find_oxts(opts, date, drive, root)
-    oxts = kitti.read_oxts(oxts_dir)
+    oxts = kitti.read_oxts(oxts_dir, increasing=False)  # a record out of order is judged where converted
     n = len(images)
     last = start + n - 1
     if end is not None and last > end:
@@ -187,8 +196,9 @@ def odometry_source(opts: ConversionOptions) -> Source:
     times_txt = seq_dir / "times.txt"
     if times_txt.is_file():
         times = kitti.read_times(times_txt)
-        if len(times) != n:
+        if len(times) < n:
             raise ConversionError(f"{times_txt}: {len(times)} times but {n} images in {seq_dir / f'image_{opts.camera}'}")
+        times = times[:n]  # a partial download (the first n images) comes with the sequence's whole times.txt
         # times.txt counts from the sequence start: put it on the OXTS clock of frame 0.
         stamps = oxts.stamps_ns[0] + np.round((times - times[0]) * 1e9).astype(np.int64)
     else:
@@ -204,16 +214,18 @@ def odometry_source(opts: ConversionOptions) -> Source:
     elif opts.poses:
         raise ConversionError(f"{poses_txt}: --poses file not found")
     calib_date = date or oxts_dir.parent.parent.name
+    T_base_cam0 = None
     if poses is not None or kitti.find_raw_calib_dir(oxts_dir.parent, calib_date) is not None or opts.raw_calib:
-        # the rig's extrinsics: ground truth in the base frame, and /tf_static
-        T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(
-            _raw_calib_dir(opts, oxts_dir.parent, calib_date), opts.camera))
+        # the rig's extrinsics: ground truth in the base frame (the poses are camera 0's), and /tf_static
+        calib_dir = _raw_calib_dir(opts, oxts_dir.parent, calib_date)
+        T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(calib_dir, opts.camera))
+        T_base_cam0 = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(calib_dir, 0))
     elif not opts.quiet:  # no ground truth to put in the base frame: the bag goes without the rig
         print(f"note: no raw calibration found near {oxts_dir.parent} (--raw-calib DIR): the bag has no /tf_static, "
               f"and bevo run / bevo_node take the camera's extrinsics from their parameters (camera.base_T_camera)",
               file=sys.stderr)
     return Source(images, stamps, oxts, calib[key], opts.camera, poses, T_base_cam,
-                  f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})")
+                  f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})", T_base_cam0, start)
 
 
 def raw_source(opts: ConversionOptions) -> Source:
@@ -232,7 +244,7 @@ def raw_source(opts: ConversionOptions) -> Source:
         raise ConversionError(f"{cam_dir / 'timestamps.txt'}: {len(stamps)} timestamps but {len(images)} images in "
                         f"{cam_dir / 'data'}")
     oxts_dir = Path(opts.oxts) if opts.oxts else drive_dir / "oxts"
-    oxts = kitti.read_oxts(oxts_dir)
+    oxts = kitti.read_oxts(oxts_dir, increasing=False)  # a record out of order is judged where converted
     if len(oxts) != len(images):
         raise ConversionError(f"{oxts_dir}: {len(oxts)} OXTS records but {len(images)} images in {cam_dir / 'data'} "
                         "(synced data pairs them one to one)")
@@ -245,6 +257,7 @@ def raw_source(opts: ConversionOptions) -> Source:
         raise ConversionError(f"{cam_calib_path}: no valid '{key}:' line")
     _check_rectified_size(cam_calib, f"S_rect_{opts.camera:02d}", cam_calib_path, images[0])
     T_base_cam = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(calib_dir, opts.camera))
+    T_base_cam0 = kitti.invert_rigid(kitti.imu_to_camera_extrinsics(calib_dir, 0))  # the poses' camera
 
     poses = None
     if opts.poses:
@@ -253,11 +266,14 @@ def raw_source(opts: ConversionOptions) -> Source:
         offset = opts.oxts_offset
         if offset is None:
             offset = next((s for d, s, _ in kitti.ODOMETRY_TO_RAW.values() if d == drive), 0)
+        if not 0 <= offset < len(images):
+            raise ConversionError(f"{opts.poses}: its first pose is frame {offset} (--oxts-offset or the devkit's table "
+                                  f"for {drive}), but the drive has {len(images)} frames")
         poses = np.full((len(images), 4, 4), np.nan)
         lo, hi = offset, min(len(images), offset + len(all_poses))
         poses[lo:hi] = all_poses[: hi - lo]
     return Source(images, stamps, oxts, cam_calib[key].reshape(3, 4), opts.camera, poses,
-                  T_base_cam, f"raw drive {drive_dir.name}")
+                  T_base_cam, f"raw drive {drive_dir.name}", T_base_cam0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -301,6 +317,19 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     stop = n if opts.count is None else min(n, first + opts.count)
     if opts.count is not None and opts.count < 1:
         raise ConversionError("--count must be >= 1")
+    if src.poses is not None:
+        have = np.flatnonzero(np.isfinite(src.poses).all(axis=(1, 2)))
+        if not len(have) or have[-1] < first or have[0] >= stop:
+            raise ConversionError(f"the ground truth (--poses) covers frames {_ranges(have) or 'none'} of "
+                                  f"{src.description}, none of the frames {first}..{stop - 1} converted")
+        if first == 0 and opts.count is None and (have[0] > 0 or have[-1] < n - 1):
+            # A raw drive runs past its odometry sequence (0020: 1104 frames, 1101 poses; 0028's poses
+            # start at frame 1100): by default the frames the ground truth covers, so that every frame
+            # the odometry gives is scored (bevo run writes gt_kitti.txt only for a full cover).
+            first, stop = int(have[0]), int(have[-1]) + 1
+            if not opts.quiet:
+                print(f"{prog_name('kitti_to_bag')}: note: frames {first}..{stop - 1} of {src.description}, those with "
+                      f"ground truth (--first/--count convert others)", file=sys.stderr)
     colour = src.camera >= 2
     K = src.P[:, :3]
 
@@ -312,7 +341,7 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
             # odom = the base frame at the first frame with ground truth: the GT starts at identity
             # like the estimate does.
             gt = np.full_like(sel, np.nan)
-            gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam)
+            gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam if src.T_base_cam0 is None else src.T_base_cam0)
 
     # Records KITTI's synchronisation interpolated over lost packets are no measurement, but the
     # line between the real rates on either side is the best bridge an IMU-only engine has (a gap
@@ -322,16 +351,26 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     if len(found) and not opts.quiet:
         where = (f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})" if opts.leave_out_interpolated_imu
                  else f"written to {opts.imu_topic} as they are (--leave-out-interpolated-imu leaves them out)")
-        print(f"{prog_name('kitti_to_bag')}: {len(found)} OXTS record(s) {_ranges(found)} are KITTI's linear "
+        print(f"{prog_name('kitti_to_bag')}: {len(found)} OXTS record(s) {_ranges(found + src.record_offset)} are KITTI's linear "
               f"interpolation over lost packets (all six IMU channels exactly on the line through their "
               f"neighbours): {where}",
               file=sys.stderr)
+
+    # An OXTS record stamped at or before an earlier one cannot be placed in time: left out (both IMU
+    # topics), said; the drive's others are written (a whole drive refused for one stamp before).
+    disordered = np.zeros(n, dtype=bool)
+    disordered[first:stop] = kitti.out_of_order(src.oxts.stamps_ns[first:stop])
+    if disordered.any():
+        print(f"{prog_name('kitti_to_bag')}: warning: {int(disordered.sum())} OXTS record(s) "
+              f"{_ranges(np.flatnonzero(disordered) + src.record_offset)} stamped at or before an earlier record "
+              f"(oxts/timestamps.txt): left out of {opts.imu_topic} and {opts.gt_imu_topic}", file=sys.stderr)
 
     # Every message as (stamp, rank, kind, index): same-stamp ties keep the IMU before the image,
     # so a consumer has the IMU sample of a frame when the frame arrives.
     events = []
     for i in range(first, stop):
-        events.append((int(src.oxts.stamps_ns[i]), 0, "imu", i))
+        if not disordered[i]:
+            events.append((int(src.oxts.stamps_ns[i]), 0, "imu", i))
         events.append((int(src.frame_stamps_ns[i]), 2, "image", i))
     events.sort()
 

@@ -345,8 +345,14 @@ def gt_at(stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray) -> np
     idx = np.clip(np.searchsorted(gt_stamps, stamps), 1, len(gt_stamps) - 1)
     left_closer = np.abs(gt_stamps[idx - 1] - stamps) <= np.abs(gt_stamps[idx] - stamps)
     idx = np.where(left_closer, idx - 1, idx)
-    if np.max(np.abs(gt_stamps[idx] - stamps)) > 5e-3:
-        raise ValueError("ground truth is not stamped at the image stamps (more than 5 ms apart)")
+    off = np.abs(gt_stamps[idx] - stamps) > 5e-3
+    if off.any():
+        if off.all():
+            raise ValueError("ground truth is not stamped at the image stamps (more than 5 ms apart)")
+        have = np.flatnonzero(~off)
+        raise ValueError(f"ground truth covers only {len(have)} of the {len(stamps)} frames (frames {have[0]}..{have[-1]} "
+                         f"of this run have one at their stamps): convert or run only those frames (e.g. bevo convert "
+                         f"--first/--count, bevo run --first-frame) to score them")
     return gt_poses[idx]
 
 

@@ -362,6 +362,14 @@ def remove_stale_partials(path: PathLike, keep: Path | None = None) -> list[Path
     return removed
 
 
+def _replaceable(path: Path) -> bool:
+    """An existing output that ``--overwrite`` may replace: a rosbag2 folder (its ``metadata.yaml``) or
+    an empty folder; never a file or a folder of something else (a user's data under a mistyped -o)."""
+    if not path.is_dir() or path.is_symlink():
+        return False
+    return (path / "metadata.yaml").is_file() or not any(path.iterdir())
+
+
 class BagWriter:
     """Atomic rosbag2 writer (context manager).
 
@@ -389,6 +397,9 @@ class BagWriter:
         self._plugin = _storage_plugin(storage)
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path}: output bag exists (use --overwrite to replace it)")
+        if self.path.exists() and not _replaceable(self.path):  # --overwrite replaces a bag, not any folder
+            raise FileExistsError(f"{self.path}: exists and is not a rosbag2 folder (no metadata.yaml); --overwrite "
+                                  f"replaces only a bag: not replacing it")
         if self.path.parent.exists() and not self.path.parent.is_dir():
             raise FileNotFoundError(f"{self.path.parent}: not a directory (the output bag's parent)")
         self.counts: dict[str, int] = {}
@@ -443,8 +454,8 @@ class BagWriter:
         assert self._tmpdir is not None
         new = self._tmpdir / self.path.name
         if self.path.exists():
-            if not self.overwrite:
-                raise FileExistsError(f"{self.path}: output bag appeared while writing; not replacing it")
+            if not self.overwrite or not _replaceable(self.path):
+                raise FileExistsError(f"{self.path}: output appeared while writing (or is no bag); not replacing it")
             trash = self._tmpdir / (self.path.name + ".old")
             os.replace(self.path, trash)  # same filesystem: two renames, never a half bag at path
         os.replace(new, self.path)
