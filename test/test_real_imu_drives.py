@@ -17,8 +17,8 @@ from bevo_ros.core.pose import integrate_motions
 from bevo_ros.datasets.kitti import OXTS_FIELDS, OxtsData, read_oxts
 from bevo_ros.datasets.rosbag import feed_engine
 from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive, render_frame
-from bevo_ros.datasets.synthetic.oxts_drive import (EARTH_RADIUS, _camera_clock, _hermite, drive_from_oxts,
-                                                    oxts_positions)
+from bevo_ros.datasets.kitti import EARTH_RADIUS, oxts_positions
+from bevo_ros.datasets.synthetic.oxts_drive import _camera_clock, _hermite, drive_from_oxts
 from bevo_ros.io.learned_params import load_learned_params
 
 FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")

@@ -10,7 +10,9 @@ Topics (names are options):
                           base_link -> imu_link (identity: KITTI's base is the OXTS IMU) and
                           base_link -> camera_optical_frame (the raw calibration chain)
   /ground_truth/odometry  nav_msgs/Odometry of base_link (the IMU) in odom (= base at the first
-                          written frame), from poses/NN.txt through the IMU->camera calibration
+                          written frame), from poses/NN.txt through the IMU->camera calibration;
+                          a raw drive without --poses: the OXTS unit's GPS/INS poses at the image
+                          stamps (--no-oxts-ground-truth leaves it out)
   /ground_truth/imu       sensor_msgs/Imu carrying the OXTS unit's own roll/pitch/yaw
 """
 from __future__ import annotations
@@ -44,6 +46,7 @@ examples:
   bevo convert --odometry ../shared/data/kitti/odometry --sequence 06 -o seq06_bag
   bevo convert --odometry DATASET --sequence 06 --first 0 --count 20 --storage mcap -o short
   bevo convert --raw RAW/2011_10_03/2011_10_03_drive_0042_sync --poses DATASET/poses/01.txt -o drive42_bag
+  bevo convert --raw RAW/2011_09_26/2011_09_26_drive_0009_sync -o drive09_bag   # ground truth: the OXTS's poses
   bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0027_sync/oxts --first 0 --count 160 -o real_imu_bag
   bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0020_sync/oxts --vertical-curves -o drive20_hills_bag
 """
@@ -79,7 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "raw/ beside or above the odometry root)")
     p.add_argument("--raw-calib", metavar="DIR", help="directory with calib_{imu_to_velo,velo_to_cam,cam_to_cam}.txt "
                    "(default: searched from the drive upwards, preferring the drive's date)")
-    p.add_argument("--poses", metavar="FILE", help="ground-truth camera poses (default: <odometry>/poses/NN.txt)")
+    p.add_argument("--poses", metavar="FILE", help="ground-truth camera poses (default: <odometry>/poses/NN.txt; a raw "
+                   "drive: the OXTS unit's GPS/INS poses at the image stamps, as the devkit's convertOxtsToPose)")
+    p.add_argument("--no-oxts-ground-truth", dest="oxts_ground_truth", action="store_false",
+                   help="a raw drive without --poses: no ground truth (default: the OXTS unit's GPS/INS poses)")
     p.add_argument("--imu-topic", default=bag.IMU_TOPIC)
     p.add_argument("--image-topic", default=bag.IMAGE_TOPIC)
     p.add_argument("--camera-info-topic", default=bag.CAMERA_INFO_TOPIC)

@@ -54,6 +54,7 @@ class ConversionOptions:
     accel_var: float = 1e-2
     quiet: bool = False
     leave_out_interpolated_imu: bool = False
+    oxts_ground_truth: bool = True  # a raw drive without poses: the OXTS unit's GPS/INS poses
 
 
 @dataclass
@@ -272,6 +273,14 @@ def raw_source(opts: ConversionOptions) -> Source:
         poses = np.full((len(images), 4, 4), np.nan)
         lo, hi = offset, min(len(images), offset + len(all_poses))
         poses[lo:hi] = all_poses[: hi - lo]
+    elif opts.oxts_ground_truth:
+        # Most raw drives have no odometry sequence: the unit's own GPS/INS poses, at the images' stamps
+        # (camera 0's poses, as an odometry sequence's are)
+        poses = kitti.oxts_poses(oxts, stamps) @ T_base_cam0
+        if not opts.quiet:
+            print(f"{prog_name('kitti_to_bag')}: note: ground truth from the OXTS unit's GPS/INS poses at the image "
+                  f"stamps (the devkit's convertOxtsToPose; --poses for an odometry sequence's, --no-oxts-ground-truth "
+                  f"for none)", file=sys.stderr)
     return Source(images, stamps, oxts, cam_calib[key].reshape(3, 4), opts.camera, poses,
                   T_base_cam, f"raw drive {drive_dir.name}", T_base_cam0)
 

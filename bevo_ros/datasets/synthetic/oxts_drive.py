@@ -34,27 +34,14 @@ import math
 import numpy as np
 
 from bevo_ros.core.geometry import CameraModel
-from bevo_ros.datasets.kitti import OxtsData
+from bevo_ros.datasets.kitti import OxtsData, oxts_positions
 from bevo_ros.datasets.synthetic.drive import LazyImages, SyntheticDrive
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
 from bevo_ros.datasets.synthetic.motion import _rx, _ry, _rz
 from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
 
-__all__ = ["drive_from_oxts", "oxts_positions"]
-
-EARTH_RADIUS = 6378137.0  # m, the KITTI devkit's Mercator sphere
-
-
-def oxts_positions(lat_deg: np.ndarray, lon_deg: np.ndarray) -> np.ndarray:
-    """East / north metres from the first record (Mercator scaled at the first latitude, as the
-    KITTI devkit's ``convertOxtsToPose``). ``(N,)``, ``(N,)`` -> ``(N, 2)``."""
-    scale = math.cos(math.radians(float(lat_deg[0])))
-    x = scale * EARTH_RADIUS * np.radians(lon_deg)
-    y = scale * EARTH_RADIUS * np.log(np.tan(np.radians(90.0 + np.asarray(lat_deg)) / 2.0))
-    xy = np.stack([x, y], -1)
-    return xy - xy[0]
-
+__all__ = ["drive_from_oxts"]
 
 def _gaussian_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
     """Zero-phase Gaussian of ``sigma`` samples, edges padded with the end values. ``(N,)`` -> ``(N,)``."""
