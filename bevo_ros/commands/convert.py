@@ -29,7 +29,8 @@ EPILOG = """\
 notes:
   KITTI's synced OXTS stream is only 10 Hz, so /imu/data is 10 Hz here (one IMU message per
   frame, stamped with the OXTS time); the unsynced 100 Hz OXTS data is not used.
-  Frame times: odometry times.txt when present (offset to the OXTS clock), otherwise the OXTS
+  Frame times: odometry times.txt when present (placed on the OXTS clock by the records' median
+  offset: a synced record is the packet nearest the trigger, ms away), otherwise the OXTS
   timestamps; raw layout: image_0X/timestamps.txt.
   Odometry sequence NN maps to its raw drive with the devkit table (00..10); the OXTS directory
   is looked up in --raw-root, or given with --oxts.

@@ -200,8 +200,11 @@ def odometry_source(opts: ConversionOptions) -> Source:
         if len(times) < n:
             raise ConversionError(f"{times_txt}: {len(times)} times but {n} images in {seq_dir / f'image_{opts.camera}'}")
         times = times[:n]  # a partial download (the first n images) comes with the sequence's whole times.txt
-        # times.txt counts from the sequence start: put it on the OXTS clock of frame 0.
-        stamps = oxts.stamps_ns[0] + np.round((times - times[0]) * 1e9).astype(np.int64)
+        # times.txt counts from the sequence start: put it on the OXTS clock where the records say it is.
+        # A synced record is the unit's packet nearest the camera's trigger, 3-13 ms RMS away (0016-0027):
+        # their median offset, not record 0's alone (which shifted every frame against the IMU by its own).
+        camera_ns = np.round((times - times[0]) * 1e9).astype(np.int64)
+        stamps = camera_ns + np.int64(np.median(oxts.stamps_ns - camera_ns))
     else:
         stamps = oxts.stamps_ns.copy()
 
