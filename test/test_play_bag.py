@@ -246,3 +246,46 @@ def test_recorded_qos_replays_tf_static_latched_and_namespace(tmp_path, listener
     finally:
         proc.send_signal(signal.SIGINT)
         proc.communicate(timeout=60)
+
+
+def test_a_sensor_recording_replays_reliably_with_the_rig_first_even_from_start(tmp_path, listener, monkeypatch):
+    """A bag recorded from best-effort sensor drivers (and /tf_static recorded volatile) was replayed as
+    recorded: the node's reliable replay inputs matched nothing (0 frames), its transient-local /tf_static
+    listener nothing either; with --start the latched /tf_static (stamped at the bag's start) was never
+    played. Now every topic is offered reliable, /tf_static latched, and the latched messages up to the
+    start go out (acknowledged) before the clock and the data."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rosbags.interfaces import QosReliability
+    from tf2_msgs.msg import TFMessage
+
+    def as_recorded_from_sensors(latched: bool = False, depth: int = 10):  # best effort, and /tf_static volatile
+        return real_offered_qos(False, depth)._replace(reliability=QosReliability.BEST_EFFORT)  # a NamedTuple
+
+    real_offered_qos = bag.offered_qos
+    monkeypatch.setattr(bag, "offered_qos", as_recorded_from_sensors)
+    path = tmp_path / "sensors"
+    with bag.BagWriter(path, storage="mcap") as w:
+        w.write_tf_static(T0, [("base_link", "imu_link", np.eye(4))])
+        for i in range(N_IMU):
+            w.write_imu(T0 + i * 50_000_000, [0.0, 0.0, 0.0], [0.0, 0.0, 9.81])
+    monkeypatch.undo()
+    recorded = bag.topic_qos(path)
+    assert not recorded[bag.IMU_TOPIC].reliable and not recorded[bag.TF_STATIC_TOPIC].transient_local
+    order: list[str] = []
+    tf: list = []
+    listener.node.create_subscription(TFMessage, "/tf_static", lambda m: (tf.append(m), order.append("tf")), QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    from sensor_msgs.msg import Imu
+
+    listener.node.create_subscription(Imu, "/imu/data", lambda m: order.append("imu"),
+                                      QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+    proc = _play(str(path), "--rate", "0", "--start", "0.5", "--wait-for-subscribers", "5",
+                 "--wait-topics", "/imu/data", "-q")
+    try:
+        listener.spin_while(proc, extra=1.0)
+    finally:
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert len(listener.msgs[bag.IMU_TOPIC]) == N_IMU - 10, out  # from 0.5 s on, reliable
+    assert tf and tf[0].transforms[0].child_frame_id == "imu_link" and order[0] == "tf", order[:3]
+    assert "/tf_static: 1 msgs" in out

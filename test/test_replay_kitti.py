@@ -20,7 +20,12 @@ pytestmark = [pytest.mark.ros, pytest.mark.kitti, pytest.mark.timeout(300)]
 
 
 @pytest.mark.skipif(not (VENV_BIN / "bevo_node").exists(), reason="bevo_node not installed (make setup)")
-def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path):
+@pytest.mark.parametrize("rate", ["2.0", "0"])
+def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path, rate):
+    """At twice real time, and flat out (--rate 0: the player far ahead of the node) with shallow input
+    depths: reliable inputs are keep-all, the player held back, nothing lost (keep-last dropped the
+    oldest samples silently: 85 of 201 frames of a 20 s drive at --rate 30 with replay.yaml's 1000 / 50)."""
+    node_args = [] if rate != "0" else ["-p", "image_qos_depth:=2", "-p", "imu_qos_depth:=3"]
     bag_path = tmp_path / "kitti06"
     assert convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
                          "-o", str(bag_path), "--storage", "mcap", "-q"]) == 0
@@ -32,9 +37,9 @@ def test_kitti_bag_replayed_into_the_node_equals_run_bag(kitti_root, tmp_path):
     # up to 5 s for the IMU of their stamp, which a loaded machine can deliver late).
     params = write_params(tmp_path / "params.yaml", {
         "learned_params_file": str(REPO / "params" / "learned_default.yaml")})
-    play_args = ["--rate", "2.0", "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
+    play_args = ["--rate", rate, "--topics", "/imu/data", "/camera/image_rect", "/camera/camera_info",
                  "--wait-for-subscribers", "30"]
-    with replay_into_node(params, DOMAIN_ID, "replay_tester", bag_path, play_args) as (node, listener, play):
+    with replay_into_node(params, DOMAIN_ID, "replay_tester", bag_path, play_args, node_args) as (node, listener, play):
         odom = listener.odom
         assert listener.spin_until(lambda: play.poll() is not None and len(odom) >= 51, 120), \
             f"{len(odom)} odometry messages; play_bag rc {play.poll()}\n{node.output}"

@@ -3,9 +3,13 @@
 Messages are read with rosbags and published as their stored CDR bytes (no re-serialisation,
 so they arrive bit-exact), in bag-time order, paced by their bag times (scaled by --rate).
 /clock (rosgraph_msgs/Clock) carries the bag time for nodes run with use_sim_time:=true.
-Each topic is offered with its recorded QoS (rosbag2 metadata: a latched /tf_static is replayed
-transient local, so a node started later still gets it; topics without a record are reliable,
-volatile), keep-last with a deep queue (--qos-depth) so a subscriber that keeps up loses nothing. On a full ROS 2 install `ros2 bag play` reads the same bags.
+Every topic is offered reliable (a reliable publisher serves best-effort and reliable subscribers
+alike; a bag recorded from best-effort sensor drivers offered the node's reliable replay inputs
+nothing) and, where recorded so and always for /tf_static, transient local: a node started later
+still gets the rig. Keep-last with a deep queue (--qos-depth) so a subscriber that keeps up loses
+nothing. The latched topics' messages up to the start (the newest of each before --start) are
+published first and acknowledged before the clock and the data begin, so a node has the rig
+before its first image. On a full ROS 2 install `ros2 bag play` reads the same bags.
 """
 from __future__ import annotations
 
@@ -79,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 GLOBAL_TOPICS = ("/tf", "/tf_static", "/clock", "/rosout", "/parameter_events")
+LATCHED_TOPICS = ("/tf_static",)  # transient local whatever the bag recorded (tf2's listeners ask for it)
 
 
 def namespaced(topic: str, namespace: str) -> str:
@@ -96,12 +101,13 @@ class Player:
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
         def qos(topic: str) -> QoSProfile:
-            """The recorded offered QoS (durability, reliability); keep-last --qos-depth."""
+            """Reliable (compatible with any subscriber), the recorded durability (/tf_static latched
+            even where the bag has no record), keep-last --qos-depth."""
             rec = (recorded or {}).get(topic, bag.TopicQos())
+            latched = rec.transient_local or topic in LATCHED_TOPICS
             return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.qos_depth,
-                              reliability=ReliabilityPolicy.RELIABLE if rec.reliable else ReliabilityPolicy.BEST_EFFORT,
-                              durability=DurabilityPolicy.TRANSIENT_LOCAL if rec.transient_local
-                              else DurabilityPolicy.VOLATILE)
+                              reliability=ReliabilityPolicy.RELIABLE,
+                              durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
         self.node = node
         self.qos = {t: qos(t) for t in topics}
@@ -116,6 +122,7 @@ class Player:
                 depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE))
         self.counts = {t: 0 for t in topics}
         self.clock_count = 0
+        self.latched = [t for t, q in self.qos.items() if q.durability == DurabilityPolicy.TRANSIENT_LOCAL]
 
     def publish_clock(self, stamp_ns: int) -> None:
         if self.clock_pub is None:
@@ -188,11 +195,43 @@ def _wait_topics_from_params(params_file: str, namespace: str) -> list[str]:
     return ["/" + n.lstrip("/") for n in names]
 
 
-def play(player: Player, args, start_ns: int | None) -> None:
-    """Publish every message at its bag time (scaled by ``args.rate``), with /clock."""
+def publish_latched(player: Player, args, start_ns: int | None, first_ns: int) -> int:
+    """Before the clock and the data: each latched topic's messages up to the start (the newest of each
+    stamped before ``start_ns``, or those at the bag's first stamp without one: /tf_static), published
+    and acknowledged (bounded by ``--linger``), so that a node reads the rig before its first image
+    (published in bag order, a node's executor took an image and CameraInfo before /tf_static now and
+    then, and started on the parameters' rig). Returns the bag time up to which they were published
+    (:func:`play` leaves those out)."""
+    if not player.latched:
+        return -1
+    cutoff = start_ns - 1 if start_ns is not None else first_ns
+    newest = {}
+    for msg in bag.iter_raw_messages(args.bag, player.latched, stop_ns=cutoff + 1):
+        if start_ns is None:
+            newest.setdefault(msg.topic, []).append(msg)  # all of the first stamp
+        else:
+            newest[msg.topic] = [msg]
+    for msgs in newest.values():
+        for msg in msgs:
+            player.publishers[msg.topic].publish(msg.data)
+            player.counts[msg.topic] += 1
+    if newest:
+        from rclpy.duration import Duration
+
+        for topic in newest:
+            player.publishers[topic].wait_for_all_acked(Duration(nanoseconds=int(min(args.linger, 2.0) * 1e9)))
+        time.sleep(0.2)  # acknowledged by DDS; the subscriber's executor takes it at its next turn
+    return cutoff
+
+
+def play(player: Player, args, start_ns: int | None, latched_until: int = -1) -> None:
+    """Publish every message at its bag time (scaled by ``args.rate``), with /clock; latched topics'
+    messages up to ``latched_until`` were published already (:func:`publish_latched`)."""
     wall0 = bag0 = None
     clock_period = 1.0 / args.clock_rate if args.clock_rate > 0 else None
     for msg in bag.iter_raw_messages(args.bag, list(player.publishers), start_ns=start_ns):
+        if msg.stamp_ns <= latched_until and msg.topic in player.latched:
+            continue
         if wall0 is None:
             wall0, bag0 = time.monotonic(), msg.stamp_ns
         if args.rate > 0:
@@ -271,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.quiet:
             print(f"playing {args.bag} ({len(topics)} topics, rate {args.rate:g}, domain "
                   f"{os.environ.get('ROS_DOMAIN_ID', '0')})", file=sys.stderr)
-        play(player, args, start_ns)
+        play(player, args, start_ns, publish_latched(player, args, start_ns, first_ns))
         unacked = player.wait_for_acks(args.linger)
         if unacked:  # a subscriber that lags (or died): what it may not have received
             print(f"{prog_name('play_bag')}: not acknowledged by every subscriber after --linger {args.linger:g} s: "

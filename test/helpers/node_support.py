@@ -307,11 +307,14 @@ REPLAY_PARAMS = REPO / "params" / "replay.yaml"
 
 
 @contextlib.contextmanager
-def replay_into_node(params_file: Path, domain_id: int, name: str, bag_path: Path, play_args: list[str]):
-    """bevo_node on ``params_file`` + params/replay.yaml (the product's replay overlay), an
-    :class:`OdometryListener`, and ``bevo play BAG play_args`` started once the node is ready and its
-    odometry publisher discovered. Yields ``(node, listener, play)``; stops the node and the listener."""
-    node = NodeProcess(params_file, str(domain_id), extra_args=["--params-file", str(REPLAY_PARAMS)]).start()
+def replay_into_node(params_file: Path, domain_id: int, name: str, bag_path: Path, play_args: list[str],
+                     node_args: list[str] | None = None):
+    """bevo_node on ``params_file`` + params/replay.yaml (the product's replay overlay) + ``node_args``
+    (e.g. ``-p name:=value``), an :class:`OdometryListener`, and ``bevo play BAG play_args`` started once
+    the node is ready and its odometry publisher discovered. Yields ``(node, listener, play)``; stops
+    the node and the listener."""
+    node = NodeProcess(params_file, str(domain_id),
+                       extra_args=["--params-file", str(REPLAY_PARAMS), *(node_args or [])]).start()
     listener = OdometryListener(domain_id, name)
     try:
         assert node.wait_for("ready:", 90), f"bevo_node did not start:\n{node.output}"
