@@ -1023,3 +1023,33 @@ def test_vehicle_fit_is_judged_in_the_engine(monkeypatch, capsys):
     assert "validation per-frame translation RMSE 0.0500 -> 0.0700 m" in out, out
     assert "vehicle filter: not clearly better in the engine (worse by" in out and "keeping the previous values" in out
     assert learned.vehicle == FUSED.vehicle and "vehicle_filter_fit" not in learned.info
+
+
+def test_a_fast_camera_thinned_and_an_imu_clock_offset_taken_off(camera):
+    """Other rigs: ``odometry.min_frame_interval`` processes a 30 Hz camera's frames as its every third
+    (the same poses as feeding only those; the rest counted as skipped, no odometry), and
+    ``odometry.imu_time_offset`` puts an IMU whose clock runs 12 ms ahead back on the images' clock
+    (the same poses as the aligned stamps; uncorrected they differ)."""
+    d = preset_drive("urban", seed=3, duration=3.0, render="lazy", camera=camera, imu_rate=90.0, frame_rate=30.0)
+    images = [d.image(k) for k in range(len(d.frame_stamps))]
+
+    def run(min_interval=0.0, offset=0.0, imu_shift=0.0, frames=slice(None)):
+        config = BevoConfig()
+        config.odometry.min_frame_interval, config.odometry.imu_time_offset = min_interval, offset
+        odo = build_odometry(config, FUSED, camera=camera)
+        idx = np.arange(len(d.frame_stamps))[frames]
+        steps = feed_engine(odo, d.imu_stamps + imu_shift, d.gyro, d.accel, d.frame_stamps[idx],
+                            lambda k: images[idx[k]], trailing=True)
+        return np.array([s.position for s in steps]), np.array([s.stamp for s in steps]), odo.counters
+
+    thinned, stamps, counters = run(min_interval=0.09)
+    every_third, third_stamps, _ = run(frames=slice(None, None, 3))
+    assert np.array_equal(stamps, third_stamps) and len(stamps) == len(range(0, len(d.frame_stamps), 3))
+    assert counters.skipped_frame_rate == len(d.frame_stamps) - len(stamps)
+    np.testing.assert_allclose(thinned, every_third, atol=1e-9)
+    aligned, _, _ = run()
+    corrected, _, _ = run(offset=-0.012, imu_shift=0.012)
+    uncorrected, _, _ = run(imu_shift=0.012)  # its first frame has no IMU before it: dropped
+    np.testing.assert_allclose(corrected, aligned, atol=1e-6)
+    assert len(uncorrected) == len(aligned) - 1
+    assert np.abs((uncorrected - uncorrected[0]) - (aligned[1:] - aligned[1])).max() > 1e-3

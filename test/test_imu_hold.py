@@ -166,7 +166,8 @@ class _FrameEngine:
     """An engine stub: one frame out per image; ``fail_at`` makes that image raise (a replay that fails)."""
 
     def __init__(self, fail_at: float | None = None) -> None:
-        self.counters = SimpleNamespace(frames_out=0, standstill=0, gated_peak=0, pitch_correction_off=0)
+        self.counters = SimpleNamespace(frames_out=0, standstill=0, gated_peak=0, pitch_correction_off=0,
+                                        skipped_frame_rate=0)
         self.max_pending_images, self.pending_images, self.fail_at = 0, 0, fail_at
 
     def reset(self) -> None:  # as BevoOdometry.reset: the counters run on

@@ -89,11 +89,12 @@ def _run(args: argparse.Namespace) -> int:
           f"translation {c.rejected_translation}, rotation {c.rejected_rotation}"
           + (f", speed {c.rejected_speed} (of {rig.speed_topic})" if rig.speed_topic else "") + f"; at rest {c.standstill}; "
           f"peak off the highest (second motion in view, direction of travel) {c.gated_peak}; "
-          f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}")
+          f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}"
+          + (f"; skipped (odometry.min_frame_interval) {c.skipped_frame_rate}" if c.skipped_frame_rate else ""))
     print("wrote " + ", ".join(str(p) for p in paths))
     # The trajectory has a row per frame with odometry, not per image of the bag: the bag's images from
     # --first-frame on, those refused before the engine counted them (a wrong size, a repeated stamp) included.
-    images = len(rec.frame_stamps_ns) - args.first_frame
+    images = len(rec.frame_stamps_ns) - args.first_frame - c.skipped_frame_rate  # skipped on purpose: no fault
     if len(steps) < images:
         print(f"{prog_name('run_bag')}: warning: {images - len(steps)} of {images} frames gave no odometry (see the counts above): "
               f"trajectory_kitti.txt has {len(steps)} rows; evaluate against gt_kitti.txt (the same frames), "

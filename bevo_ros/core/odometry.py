@@ -207,6 +207,7 @@ class Counters:
     rest_bias_skipped: int = 0  # fused: rest intervals whose pitch/roll rates were too large for a gyro bias
     gated_peak: int = 0  # fused: the highest peak was off the prediction or the direction of travel, the road's taken
     pitch_correction_off: int = 0  # fused: pairs the pitch-change correction left alone (its DUKF pull or turn gate)
+    skipped_frame_rate: int = 0  # frames closer than min_frame_interval to the last processed one: not processed
 
 
 def _peak_height(reg) -> float:
@@ -258,6 +259,10 @@ class BevoOdometry:
         pitch_change_correction: fused mode: each frame's forward motion loses the shift that the
             engine's own change of the BEV pitch between its two frames (road-tilt low-pass,
             suspension model) puts into it (:meth:`_pitch_change_shift`).
+        min_frame_interval: frames stamped less than this (s) after the last processed one are
+            skipped (``counters.skipped_frame_rate``): a camera faster than the 10 Hz the per-frame
+            constants were learned at, thinned; 0 processes every frame.
+        imu_time_offset: added to every IMU stamp (s): the IMU's samples on the images' clock.
         frame_clock_window: fused mode: the motion filter's frame interval is the mean period over
             this many frames times the whole periods a stamped interval spans, so stamp jitter
             is no speed change (:class:`~bevo_ros.core.frame_clock.FrameClock`); 0: as stamped.
@@ -315,6 +320,8 @@ class BevoOdometry:
         direction_lock: bool = True,
         gyro_bias_std: float = 0.002,
         gyro_bias_walk: float = 2e-4,
+        min_frame_interval: float = 0.0,
+        imu_time_offset: float = 0.0,
     ) -> None:
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -330,6 +337,11 @@ class BevoOdometry:
         self.gyro_bias_std, self.gyro_bias_walk = float(gyro_bias_std), float(gyro_bias_walk)
         self.pitch_change_correction = bool(pitch_change_correction)
         self.direction_lock = bool(direction_lock)
+        if not (math.isfinite(min_frame_interval) and min_frame_interval >= 0 and math.isfinite(imu_time_offset)):
+            raise ValueError(f"min_frame_interval must be >= 0 and imu_time_offset finite, got {min_frame_interval!r}, "
+                             f"{imu_time_offset!r}")
+        self.min_frame_interval = float(min_frame_interval)
+        self.imu_time_offset = float(imu_time_offset)
         self._frame_clock = FrameClock(frame_clock_window)
         self.max_speed_age = 0.5  # s: an external speed older than this is not used
         self.device = torch.device(device)
@@ -551,6 +563,7 @@ class BevoOdometry:
         """
         g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
         a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
+        stamp = stamp + self.imu_time_offset  # on the images' clock
         if not (math.isfinite(stamp) and all(math.isfinite(v) for v in g + a)):
             raise ImplausibleImuError("imu_nonfinite", f"IMU sample at {stamp} has NaN/inf (gyro {g}, accel {a})")
         if (problem := imu_problem(g, a, self.imu_limits)) is not None:
@@ -845,6 +858,9 @@ class BevoOdometry:
         and counted too (it was given the oldest sample's)."""
         if not self._history or stamp < self._history[0][0]:
             self._count("dropped_no_imu", stamp, tag)
+            return []
+        if self._prev is not None and stamp - self._prev_stamp < self.min_frame_interval:
+            self.counters.skipped_frame_rate += 1  # a state, not a fault: the camera is faster than needed
             return []
         try:
             return [self._process(stamp, img, tag)]

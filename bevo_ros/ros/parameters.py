@@ -44,6 +44,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "odometry.min_quality": (0.0, 1.0), "odometry.gate": (1.0, INF), "odometry.rotation_gate": (0.0, math.pi),
     "odometry.initial_attitude_std": (1e-6, math.pi),  # the DUKF and the gyro bias state need a start variance
     "odometry.frame_clock_window": (0, 100_000), "odometry.standstill_max_speed": (0.0, 10.0),
+    "odometry.min_frame_interval": (0.0, 10.0), "odometry.imu_time_offset": (-1.0, 1.0),
 }
 
 # string parameters with a fixed set of values
