@@ -27,6 +27,7 @@ from typing import Callable
 from rclpy.node import Node
 
 from bevo_ros.config import ConfigError, build_odometry, gyro_bias_prior_note
+from bevo_ros.core.frame_clock import fast_camera_note
 from bevo_ros.core.odometry import InvalidInputError
 from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.device import resolve_device
@@ -87,6 +88,7 @@ class BevoNode(Node):
                                                                 if s.speed_topic else ())}
         self._engine_factory = engine_factory
         self._published_stamp: float | None = None  # the newest frame published since the start (or reset)
+        self._fast_camera_noted = False  # fast_camera_note said once
         self.feed = EngineFeed(s, self.config.filter.max_imu_gap, report, self._reset,
                                lambda kind, t, raw: self.rig.engine_input(kind, t, raw))
         self.intake = Intake(s, report, self.monitors, self._dispatch, self._reset)
@@ -452,6 +454,10 @@ class BevoNode(Node):
             odom = self.outputs.odometry(step, stamp)
             self.report.published(arrival, float(step.peak_quality))
             self.outputs.extras(step, odom)
+        if not self._fast_camera_noted and self.engine is not None and self.engine.counters.frames_out >= 20:
+            self._fast_camera_noted = True  # once the frame clock has a period
+            if (note := fast_camera_note(self.engine.frame_period, self.engine.min_frame_interval)) is not None:
+                self.report.log("fast_camera", note)
 
     def _publish_diagnostics(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray

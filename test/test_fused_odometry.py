@@ -1044,6 +1044,13 @@ def test_a_fast_camera_thinned_and_an_imu_clock_offset_taken_off(camera):
 
     thinned, stamps, counters = run(min_interval=0.09)
     every_third, third_stamps, _ = run(frames=slice(None, None, 3))
+    from bevo_ros.core.frame_clock import fast_camera_note
+
+    config = BevoConfig()
+    odo = build_odometry(config, FUSED, camera=camera)
+    feed_engine(odo, d.imu_stamps, d.gyro, d.accel, d.frame_stamps, lambda k: images[k], trailing=True)
+    assert "set odometry.min_frame_interval" in fast_camera_note(odo.frame_period, odo.min_frame_interval)  # 33 ms
+    assert fast_camera_note(odo.frame_period, 0.09) is None and fast_camera_note(0.104, 0.0) is None  # KITTI's
     assert np.array_equal(stamps, third_stamps) and len(stamps) == len(range(0, len(d.frame_stamps), 3))
     assert counters.skipped_frame_rate == len(d.frame_stamps) - len(stamps)
     np.testing.assert_allclose(thinned, every_third, atol=1e-9)

@@ -913,3 +913,19 @@ def test_bad_parameters_refuse_to_start_with_the_name(context, drive):
         ov = base_overrides(drive, **{key: value})
         with pytest.raises(ConfigError, match=pattern):
             BevoNode(context=context, parameter_overrides=[Parameter(k, value=v) for k, v in ov.items()])
+
+
+def test_a_fast_camera_is_told_to_thin_its_frames(harness_factory):
+    """A 30 Hz camera with every frame processed: the node says once (after 20 frames) to set
+    odometry.min_frame_interval; set, the frames are thinned (counted in /diagnostics) and nothing is said."""
+    fast = small_drive(duration=1.0, frame_rate=30.0, imu_rate=90.0)
+    for interval, said in ((0.0, True), (0.09, False)):
+        h = harness_factory(base_overrides(fast, **{"odometry.min_frame_interval": interval}), subscribe_outputs=False)
+        h.send_all(drive_messages(fast))
+        h.settle()
+        assert bool(h.logged("fast_camera")) == said, h.node.log_history
+        assert len(h.logged("fast_camera")) <= 1
+        if said:
+            assert "every 33 ms (30 Hz)" in h.logged("fast_camera")[0]
+        else:
+            assert h.node.engine.counters.skipped_frame_rate >= 15 and h.node.counts["odometry_out"] <= 12

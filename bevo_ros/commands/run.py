@@ -24,6 +24,7 @@ from pathlib import Path
 from bevo_ros.commands import DEFAULT_PARAMS  # noqa: F401 (re-exported: tests load the default parameters)
 from bevo_ros.commands import (add_params_option, add_threads_option, bag_errors, guarded, new_parser, prog_name,
                                 set_threads)
+from bevo_ros.core.frame_clock import fast_camera_note
 from bevo_ros.config import load_config, shipped_learned_for_mode
 from bevo_ros.datasets.rosbag import RigSettings, extrinsics_for_recording
 from bevo_ros.pipeline import run_bag, write_outputs
@@ -92,6 +93,8 @@ def _run(args: argparse.Namespace) -> int:
           f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}"
           + (f"; skipped (odometry.min_frame_interval) {c.skipped_frame_rate}" if c.skipped_frame_rate else ""))
     print("wrote " + ", ".join(str(p) for p in paths))
+    if (note := fast_camera_note(odo.frame_period, odo.min_frame_interval)) is not None:
+        print(f"{prog_name('run_bag')}: note: {note}", file=sys.stderr)
     # The trajectory has a row per frame with odometry, not per image of the bag: the bag's images from
     # --first-frame on, those refused before the engine counted them (a wrong size, a repeated stamp) included.
     images = len(rec.frame_stamps_ns) - args.first_frame - c.skipped_frame_rate  # skipped on purpose: no fault

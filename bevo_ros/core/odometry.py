@@ -340,7 +340,7 @@ class BevoOdometry:
         if not (math.isfinite(min_frame_interval) and min_frame_interval >= 0 and math.isfinite(imu_time_offset)):
             raise ValueError(f"min_frame_interval must be >= 0 and imu_time_offset finite, got {min_frame_interval!r}, "
                              f"{imu_time_offset!r}")
-        self.min_frame_interval = float(min_frame_interval)
+        self.min_frame_interval = float(min_frame_interval)  # fast_camera_note says when to set it
         self.imu_time_offset = float(imu_time_offset)
         self._frame_clock = FrameClock(frame_clock_window)
         self.max_speed_age = 0.5  # s: an external speed older than this is not used
@@ -515,6 +515,11 @@ class BevoOdometry:
     def pose(self) -> tuple[float, float, float]:
         """The latest frame's ``(x, y, yaw)`` in the odometry frame (m, rad), a pose set included."""
         return self._trajectory.pose
+
+    @property
+    def frame_period(self) -> float | None:
+        """The camera's mean frame period (s) by the frame clock (fused mode), None before it has one."""
+        return self._frame_clock.period
 
     @property
     def direction_of_travel(self) -> str:
