@@ -149,7 +149,7 @@ class OdometrySettings:
     # Frames stamped less than this (s) after the last processed one are skipped (counted; no
     # odometry for them): the per-frame constants were learned at 10 Hz, and a faster camera does
     # worse frame by frame than its own frames thinned to 10 Hz (synthetic, 300 Hz IMU, per 0.1 s:
-    # stop_and_go 6.96 % at 30 Hz, 4.37 % at every third frame). ~0.09 for a 20-30 Hz camera; 0
+    # stop_and_go 6.44 % at 30 Hz, 4.06 % with 0.09; README). ~0.09 for a 20-30 Hz camera; 0
     # processes every frame (KITTI's 10 Hz frames come 0.07-0.13 s apart by the OXTS clock).
     min_frame_interval: float = 0.0
     # Added to every IMU stamp to put it on the images' clock (s): an IMU whose clock runs ahead of

@@ -258,6 +258,20 @@ def test_existing_output_and_failed_overwrite_keep_the_old_bag(layout, tmp_path,
     assert bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 3
 
 
+def _steady_clock(stamps_ns: np.ndarray) -> np.ndarray:
+    """The line through ``(N,)`` stamps (ns): a triggered camera's clock, which synced OXTS records jitter about."""
+    i = np.arange(len(stamps_ns))
+    fit = np.polyfit(i, (stamps_ns - stamps_ns[0]).astype(float), 1)
+    return stamps_ns[0] + np.round(np.polyval(fit, i)).astype(np.int64)
+
+
+def _frame_motions(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(F, 4, 4)`` poses -> each frame-to-frame motion's length (m) and rotation angle (deg), ``(F-1,)`` each."""
+    m = np.linalg.inv(T[:-1]) @ T[1:]
+    cos = (np.trace(m[:, :3, :3], axis1=1, axis2=2) - 1) / 2
+    return np.linalg.norm(m[:, :3, 3], axis=1), np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
 def _raw_drive(layout: Path, kitti_root: Path, frames: int = 5, steady_camera: bool = False) -> Path:
     """A raw ``<date>/<drive>_sync`` directory built from the sample: ``frames`` images in image_00, as many
     OXTS records (synced data pairs them one to one), camera stamps 5 ms after the OXTS ones (``steady_camera``:
@@ -274,8 +288,7 @@ def _raw_drive(layout: Path, kitti_root: Path, frames: int = 5, steady_camera: b
         p.unlink()
     stamps = kitti.read_timestamps_ns(oxts / "timestamps.txt") + 5_000_000
     if steady_camera:
-        i = np.arange(frames)
-        stamps = stamps[0] + np.round(np.polyval(np.polyfit(i, (stamps - stamps[0]).astype(float), 1), i)).astype(np.int64)
+        stamps = _steady_clock(stamps)
     (cam / "timestamps.txt").write_text("".join(
         f"2011-09-30 12:08:{(s // 10**9) % 60:02d}.{s % 10**9:09d}\n" for s in stamps))
     return drive
@@ -495,10 +508,8 @@ def test_a_raw_drive_without_poses_has_the_oxts_ground_truth_at_the_image_stamps
     assert np.array_equal(ours.gt_stamps_ns, official.gt_stamps_ns) and np.allclose(ours.gt_poses[0], np.eye(4))
 
     def per_frame(a, b):  # RMS differences of the frame-to-frame motions' lengths (m) and angles (deg)
-        ma, mb = np.linalg.inv(a[:-1]) @ a[1:], np.linalg.inv(b[:-1]) @ b[1:]
-        angle = lambda m: np.degrees(np.arccos(np.clip((np.trace(m[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))  # noqa: E731
-        rms = lambda x: float(np.sqrt(np.mean(x ** 2)))  # noqa: E731
-        return rms(np.linalg.norm(ma[:, :3, 3], axis=1) - np.linalg.norm(mb[:, :3, 3], axis=1)), rms(angle(ma) - angle(mb))
+        (la, aa), (lb, ab) = _frame_motions(a), _frame_motions(b)
+        return float(np.sqrt(np.mean((la - lb) ** 2))), float(np.sqrt(np.mean((aa - ab) ** 2)))
 
     length, angle = per_frame(ours.gt_poses, official.gt_poses)
     oxts = kitti.read_oxts(drive / "oxts")
@@ -516,18 +527,10 @@ def test_oxts_poses_at_a_steady_camera_clock_are_the_odometry_ground_truths_moti
     oxts = kitti.read_oxts(kitti_root / "raw" / "2011_09_30" / f"2011_09_30_drive_{drive}_sync" / "oxts")
     poses = kitti.read_poses(kitti_root / "odometry" / "poses" / f"{sequence}.txt")
     oxts = oxts.slice(0, len(poses))
-    i = np.arange(len(poses))
-    t = (oxts.stamps_ns - oxts.stamps_ns[0]).astype(float)
-    clock = oxts.stamps_ns[0] + np.round(np.polyval(np.polyfit(i, t, 1), i)).astype(np.int64)
-
-    def lengths(T):
-        return np.linalg.norm((np.linalg.inv(T[:-1]) @ T[1:])[:, :3, 3], axis=1)
-
-    truth = lengths(poses)  # camera 0's motions: as long as the base's but for the turns' lever arm
-    turn = np.degrees(np.arccos(np.clip((np.trace((np.linalg.inv(poses[:-1]) @ poses[1:])[:, :3, :3], axis1=1, axis2=2)
-                                         - 1) / 2, -1, 1))) < 0.5
-    at_camera = np.sqrt(np.mean((lengths(kitti.oxts_poses(oxts, clock)) - truth)[turn] ** 2))
-    at_records = np.sqrt(np.mean((lengths(kitti.oxts_poses(oxts)) - truth)[turn] ** 2))
+    truth, angle = _frame_motions(poses)  # camera 0's motions: as long as the base's but for the turns' lever arm
+    straight = angle < 0.5
+    at_camera = np.sqrt(np.mean((_frame_motions(kitti.oxts_poses(oxts, _steady_clock(oxts.stamps_ns)))[0] - truth)[straight] ** 2))
+    at_records = np.sqrt(np.mean((_frame_motions(kitti.oxts_poses(oxts))[0] - truth)[straight] ** 2))
     print(f"\n{drive}: frame motions' lengths against the odometry poses: {at_camera * 100:.2f} cm at the camera's "
           f"clock, {at_records * 100:.2f} cm at the records' stamps")
     assert at_camera < 0.008 and at_records > 0.015

@@ -136,9 +136,9 @@ def read_timestamps_ns(path: PathLike, increasing: bool = True) -> np.ndarray:
     if not stamps:
         raise ValueError(f"{path}: no timestamps")
     out = np.asarray(stamps, dtype=np.int64)
-    bad = np.nonzero(np.diff(out) <= 0)[0]
+    bad = np.flatnonzero(out_of_order(out))
     if bad.size and increasing:
-        raise ValueError(f"{path}:{bad[0] + 2}: timestamps not strictly increasing")
+        raise ValueError(f"{path}:{bad[0] + 1}: timestamps not strictly increasing")
     return out
 
 
@@ -224,8 +224,8 @@ def oxts_poses(oxts: "OxtsData", stamps_ns: np.ndarray | None = None) -> np.ndar
     ``stamps_ns (N,)``: record i's pose moved to stamp i (the camera's) by its own velocity and
     rates. A synced record is the unit's packet nearest the camera's trigger, up to ~10 ms away
     (drives 0016-0027: 3-13 ms RMS from a steady camera clock): at 12 m/s that moves a frame's
-    motion by centimetres (per frame against the odometry poses of 04-07: 3.5-7.3 cm RMS at the
-    records' stamps, 1.3-2.5 cm at the camera's). -> ``(N, 4, 4)`` ``T_world_imu``, the first the identity."""
+    motion by centimetres (its length against the odometry poses of 04-07: 3.3-6.9 cm RMS at the
+    records' stamps, 0.25-0.40 cm at the camera's). -> ``(N, 4, 4)`` ``T_world_imu``, the first the identity."""
     from scipy.spatial.transform import Rotation
 
     T = np.tile(np.eye(4), (len(oxts), 1, 1))

@@ -69,7 +69,7 @@ class Source:
     poses: np.ndarray | None  # (F, 4, 4) T_world_cam0 (KITTI's poses are camera 0's); NaN rows where no ground truth
     T_base_cam: np.ndarray | None  # (4, 4) the converted camera's extrinsics (/tf_static)
     description: str
-    T_base_cam0: np.ndarray | None = None  # (4, 4) camera 0's: the poses' frame (None: T_base_cam's)
+    T_base_cam0: np.ndarray | None = None  # (4, 4) camera 0's, the poses' frame: set with T_base_cam
     record_offset: int = 0  # the raw OXTS record of frame 0 (an odometry sequence's start in its drive)
 
 
@@ -346,14 +346,14 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     K = src.P[:, :3]
 
     gt = None
-    if src.poses is not None and src.T_base_cam is not None:
+    if src.poses is not None and src.T_base_cam0 is not None:
         sel = src.poses[first:stop]
         valid = np.isfinite(sel).all(axis=(1, 2))
         if valid.any():
             # odom = the base frame at the first frame with ground truth: the GT starts at identity
             # like the estimate does.
             gt = np.full_like(sel, np.nan)
-            gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam if src.T_base_cam0 is None else src.T_base_cam0)
+            gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam0)
 
     # Records KITTI's synchronisation interpolated over lost packets are no measurement, but the
     # line between the real rates on either side is the best bridge an IMU-only engine has (a gap

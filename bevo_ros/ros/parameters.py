@@ -4,8 +4,8 @@ change live; plus which ``--params-file`` set a parameter (relative paths resolv
 """
 from __future__ import annotations
 
-import re
 import math
+import re
 from pathlib import Path
 from typing import Any
 

@@ -43,6 +43,7 @@ from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti
 
 __all__ = ["drive_from_oxts"]
 
+
 def _gaussian_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
     """Zero-phase Gaussian of ``sigma`` samples, edges padded with the end values. ``(N,)`` -> ``(N,)``."""
     half = int(math.ceil(4 * sigma))
