@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from bevo_ros.config import ConfigError
-from bevo_ros.core.aerial_map import AerialMap, local_grid
+from bevo_ros.core.aerial_map import AerialMap, local_grid, transform_points
 from bevo_ros.core.geometry import BevSpec
 from bevo_ros.core.map_localization import (LocalizerConfig, MapLocalizer, MapMatchConfig, MapPoseFilter, appearance,
                                             chi2_threshold, measure, se2_between, se2_compose, se2_inverse)
@@ -168,6 +168,71 @@ def test_measurement_gradcheck():
     J = torch.autograd.functional.jacobian(lambda p: f(p, amount), pred)[0, :, 0]
     assert torch.allclose(torch.diagonal(J), -torch.ones(3, dtype=torch.float64), atol=0.35)
     assert torch.autograd.gradcheck(f, (pred, amount), eps=1e-5, atol=2e-3, rtol=1e-2)
+
+
+@pytest.mark.parametrize("road_yaw_deg", [0.0, 30.0])
+def test_a_road_with_lane_lines_alone_claims_no_position_along_it(road_yaw_deg):
+    """A map whose only features are continuous lane lines cannot place the car along the road: the
+    correlation's peak sat where the two windows align, sharp, and a 1.5 m error along the road stayed
+    after the update with 0.15 m claimed (Mahalanobis^2 12-1112). Now the covariance is widened along
+    the direction the shared texture leaves unseen: the error is within it (and the filter's after an
+    update), while across the road the match still corrects, tightly. Textured ground is unchanged
+    (``test_measurement_recovers_a_known_pose_error``; the heterogeneous maps' factor is 1)."""
+    from bevo_ros.core.map_localization import weak_direction_widening
+
+    H, W, r = 240, 480, 0.25
+    cfg = MapMatchConfig()
+    yaw = math.radians(road_yaw_deg)  # the road's direction in the map (the car drives along it)
+    centre = np.array([60.0, 30.0])
+
+    def lane_lines(xy: torch.Tensor) -> torch.Tensor:
+        """Four smooth 0.5 m lines along the road 3.5 m apart, drawn where ``xy (..., 2)`` lie (no
+        pixel grid's jaggies, which two grids would not share)."""
+        d = -math.sin(yaw) * (xy[..., 0] - centre[0]) + math.cos(yaw) * (xy[..., 1] - centre[1])
+        return 0.35 + 0.55 * sum(torch.exp(-0.5 * ((d - o) / 0.2) ** 2) for o in (-5.25, -1.75, 1.75, 5.25))
+
+    blank = AerialMap(torch.zeros(1, H, W), r)
+    cols, rows = torch.meshgrid(torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64), indexing="xy")
+    aerial = AerialMap(lane_lines(blank.world_coordinates(torch.stack([cols, rows], -1)))[None].float(), r)
+    true = np.array([*centre, yaw])
+    points = transform_points(torch.tensor(true, dtype=torch.float64)[None], local_grid(cfg.size, r, torch.float64))
+    coverage = torch.zeros(1, 1, cfg.size, cfg.size)
+    coverage[..., cfg.size // 5: -cfg.size // 5, cfg.size // 5: -cfg.size // 5] = 1.0
+    mosaic = lane_lines(points)[:, None].float() * coverage
+    along = np.array([1.0, 0.0])  # the road's direction in the car's frame
+    gate = chi2_threshold(0.999)
+    for offset in (1.5, -3.0):
+        error = np.array([*(offset * along + 0.8 * np.array([-along[1], along[0]])), 0.0])  # along and across
+        pred = se2_compose(true, error)
+        meas = measure(mosaic, coverage, aerial, torch.tensor(pred, dtype=torch.float32)[None], cfg)
+        z = se2_compose(pred, meas.correction[0].double().numpy())
+        res = se2_between(true, z)
+        R = meas.covariance[0].double().numpy()
+        d2 = float(res @ np.linalg.solve(R, res))
+        across_res = float(res[:2] @ np.array([-along[1], along[0]]))
+        across_std = math.sqrt(float(np.array([-along[1], along[0]]) @ R[:2, :2] @ np.array([-along[1], along[0]])))
+        along_std = math.sqrt(float(along @ R[:2, :2] @ along))
+        print(f"\nroad at {road_yaw_deg:g} deg, {offset:+.1f} m along / 0.8 m across: residual along "
+              f"{float(res[:2] @ along):+.2f} m (claimed {along_std:.2f}), across {across_res:+.3f} m (claimed "
+              f"{across_std:.3f}), Mahalanobis^2 {d2:.1f} (gate {gate:.1f}), quality {float(meas.quality):.2f}")
+        assert float(meas.quality) > cfg.min_quality  # a match the localizer would take
+        assert d2 < gate, d2
+        assert abs(across_res) < 0.15 and across_std < 0.3
+        assert along_std > 3.0
+        # the filter after the update: its along-road belief stays wide, its error within it
+        # (the covariance into the map frame, as MapLocalizer does; the filter's error in the map frame)
+        J = np.eye(3)
+        J[:2, :2] = [[math.cos(pred[2]), -math.sin(pred[2])], [math.sin(pred[2]), math.cos(pred[2])]]
+        f = MapPoseFilter()
+        f.initialise(pred, np.diag([2.0**2, 2.0**2, math.radians(2.0) ** 2]))
+        accepted, _ = f.update(z, J @ R @ J.T)
+        e = f.x - true
+        assert accepted and float(e @ np.linalg.solve(f.P, e)) < gate
+    # the widening's own inputs: textured ground shares texture both ways (factor 1)
+    rng = np.random.default_rng(0)
+    tex = torch.from_numpy(rng.random((1, 1, 64, 64)).astype(np.float32))
+    factor, _ = weak_direction_widening(tex, tex, torch.ones_like(tex))
+    assert float(factor[0]) == 1.0
 
 
 # ------------------------------------------------------------------------------------------------
