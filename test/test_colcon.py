@@ -18,6 +18,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
+from helpers.env import skip_outside_ci  # noqa: E402
 from helpers.ros import domain_id_for  # noqa: E402
 
 DOMAIN_ID = str(domain_id_for(13))
@@ -39,7 +40,7 @@ def _find_executable(prefix: Path, package: str, name: str) -> Path:
 def test_colcon_build_and_ros2_run_style_start(tmp_path, monkeypatch):
     colcon = VENV_BIN / "colcon"
     if not colcon.exists():
-        pytest.skip("colcon is not installed in the venv")
+        skip_outside_ci("colcon is not installed in the venv (requirements.txt: make setup)")
     src = tmp_path / "src" / "bevo_ros"
     shutil.copytree(REPO, src, ignore=COPY_IGNORE)
     build = subprocess.run(

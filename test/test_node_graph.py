@@ -28,6 +28,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu  # noqa: E402
 
+from helpers.env import import_outside_ci  # noqa: E402
 from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(18)
@@ -328,7 +329,7 @@ def _node_on_tf_static(graph, params: dict, transforms):
 def test_tf_static_extrinsics_and_a_z_down_imu(graph, drive):
     """The params' extrinsics are wrong on purpose and the IMU is mounted z down: with the rig on
     /tf_static the node equals the offline engine fed the true extrinsics and base-frame IMU."""
-    pytest.importorskip("tf2_msgs.msg")
+    import_outside_ci("tf2_msgs.msg", "built by make setup")
     truth = overrides(drive)
     wrong = dict(truth)
     wrong["camera.base_T_camera"] = [0.0, 0.0, 1.0, 2.0, -1.0, 0.0, 0.0, 0.5, 0.0, -1.0, 0.0, 1.2, 0.0, 0.0, 0.0, 1.0]
@@ -375,7 +376,7 @@ def test_tf_static_extrinsics_keep_the_calibrated_cameras_tilt(graph, drive, ref
     running engine takes the camera and moves its DUKF start (``BevoOdometry._move_dukf_start``)."""
     journal_limit = reference == "camera_past_the_journal"
     reference = "camera" if journal_limit else reference
-    pytest.importorskip("tf2_msgs.msg")
+    import_outside_ci("tf2_msgs.msg", "built by make setup")
     from bevo_ros.core.geometry import mounting_for_extrinsics
 
     truth = overrides(drive)

@@ -73,11 +73,19 @@ def test_kitti_yaml_loads_through_rcl_into_the_node(namespace):
         torch.set_num_threads(threads)
 
 
-def test_node_reads_the_renamed_camera_height_with_a_warning(tmp_path):
-    """A params file with the old name ``camera.height`` still sets the camera's mount height."""
+def test_node_reads_the_renamed_camera_height_with_a_warning(tmp_path, monkeypatch):
+    """A params file with the old name ``camera.height`` still sets the camera's mount height, and the
+    node's log says it is deprecated and under which name."""
+    from rclpy.impl.rcutils_logger import RcutilsLogger
+
     from bevo_ros.node import BevoNode
 
     import torch
+
+    warned: list[str] = []
+    warning = RcutilsLogger.warning
+    monkeypatch.setattr(RcutilsLogger, "warning", lambda self, msg, **kw: (warned.append(str(msg)),
+                                                                          warning(self, msg, **kw))[1])
 
     old = tmp_path / "old.yaml"
     old.write_text(KITTI_PARAMS.read_text().replace("camera.mount_height: 1.65", "camera.height: 1.4"))
@@ -89,6 +97,7 @@ def test_node_reads_the_renamed_camera_height_with_a_warning(tmp_path):
         node = BevoNode(context=ctx, params_file=str(old))
         try:
             assert node.config.camera.mount_height == 1.4
+            assert any("'camera.height' is deprecated, renamed 'camera.mount_height'" in m for m in warned), warned
         finally:
             node.destroy_node()
     finally:

@@ -19,6 +19,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import Image, Imu  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from helpers.env import skip_outside_ci  # noqa: E402
 from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 DOMAIN_ID = domain_id_for(12)
@@ -26,7 +27,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(240)]
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 if not (VENV_BIN / "bevo_node").exists():
-    pytest.skip(f"{VENV_BIN / 'bevo_node'} not installed (make setup)", allow_module_level=True)
+    skip_outside_ci(f"{VENV_BIN / 'bevo_node'} not installed (make setup)")
 
 
 @pytest.fixture(scope="module")

@@ -29,6 +29,7 @@ from bevo_ros.config import BevoConfig, build_odometry, camera_model, resolve_pa
 from bevo_ros.io.learned_params import load_learned_params
 from bevo_ros.core.validation import STANDARD_GRAVITY as G  # noqa: E402
 
+from helpers.env import skip_outside_ci  # noqa: E402
 from helpers.ros import domain_id_for, ros_context  # noqa: E402
 
 T0 = 1000.0
@@ -259,10 +260,6 @@ def test_confirmed_time_jumps_reset_and_their_logs_are_throttled(harness):
 
 
 # ------------------------------------------------------------------------------ the node as a process
-if not (VENV_BIN / "bevo_node").exists():
-    pytest.skip(f"{VENV_BIN / 'bevo_node'} not installed (make setup)", allow_module_level=True)
-
-
 def adversarial_messages(rng: np.random.Generator, n: int, t: float, camera) -> list[tuple[str, object]]:
     """``n`` messages of every bad kind the issue lists, stamps around ``t`` (and far from it)."""
     from sensor_msgs.msg import Image
@@ -318,6 +315,9 @@ def adversarial_messages(rng: np.random.Generator, n: int, t: float, camera) -> 
 
 @pytest.fixture(scope="module")
 def process_context():
+    """The node as a process (its two tests only: the rest of the module needs no executable)."""
+    if not (VENV_BIN / "bevo_node").exists():
+        skip_outside_ci(f"{VENV_BIN / 'bevo_node'} not installed (make setup)")
     yield from ros_context(PROCESS_DOMAIN_ID)
 
 
@@ -623,7 +623,8 @@ def test_a_frame_before_the_imu_is_dropped_whichever_arrives_first():
 def test_a_bev_size_of_any_number_runs():
     """The motion-consistency weight averaged over 5 px blocks and needed a BEV size that is a
     multiple of 5: the node's range [8, 4096] let 8, 101 or 128 through and every frame after the
-    first raised. Partial blocks now: a 101 px BEV runs, and 100 px is as before."""
+    first raised. Partial blocks now: 8 and 101 px BEVs run (100 px, the default, is pinned to its
+    trajectories by test_pinned_behaviour.py)."""
     msgs = drive_messages(small_drive(duration=0.6))
     base = camera_overrides(small_drive(duration=0.6).camera)
     for size in (8, 101):
