@@ -192,7 +192,8 @@ def test_a_road_with_lane_lines_alone_claims_no_position_along_it(road_yaw_deg):
         return 0.35 + 0.55 * sum(torch.exp(-0.5 * ((d - o) / 0.2) ** 2) for o in (-5.25, -1.75, 1.75, 5.25))
 
     blank = AerialMap(torch.zeros(1, H, W), r)
-    cols, rows = torch.meshgrid(torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64), indexing="xy")
+    cols, rows = torch.meshgrid(torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64),
+                                indexing="xy")
     aerial = AerialMap(lane_lines(blank.world_coordinates(torch.stack([cols, rows], -1)))[None].float(), r)
     true = np.array([*centre, yaw])
     points = transform_points(torch.tensor(true, dtype=torch.float64)[None], local_grid(cfg.size, r, torch.float64))

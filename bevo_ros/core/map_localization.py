@@ -45,6 +45,7 @@ from .mosaic import MosaicBuffer, _gaussian_blur, compose_mosaic, mosaic_anchor
 from .phase_correlation import (DpcConfig, _quadratic_peak_2d, _window_2d, estimate_rotation,
                                 estimate_translation, overlap_envelope, prepare, rotate_about_centre,
                                 translation_correlation)
+from .pose import compose_se2
 
 Tensor = torch.Tensor
 
@@ -273,13 +274,6 @@ WEAK_TEXTURE_RATIO = 0.1
 WEAK_TEXTURE_MAX_WIDENING = 1e4  # variance: x 100 in standard deviation
 
 
-def se2_compose_torch(a: Tensor, b: Tensor) -> Tensor:
-    """``a (+) b`` for ``(B, 3)`` poses ``(x, y, yaw)`` (tensors; :func:`se2_compose` in numpy)."""
-    c, s = torch.cos(a[:, 2]), torch.sin(a[:, 2])
-    return torch.stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1], a[:, 2] + b[:, 2]],
-                       dim=-1)
-
-
 def _central_gradients(x: Tensor) -> tuple[Tensor, Tensor]:
     """Row and column central differences of ``(B, 1, S, S)`` (zero on the border)."""
     gr, gc = torch.zeros_like(x), torch.zeros_like(x)
@@ -307,8 +301,8 @@ def weak_direction_widening(a: Tensor, b: Tensor, mask: Tensor) -> tuple[Tensor,
     half_gap = torch.sqrt(((jrr - jcc) / 2) ** 2 + jrc**2)
     strong, weak = (jrr + jcc) / 2 + half_gap, (jrr + jcc) / 2 - half_gap
     ratio = (weak / strong.clamp_min(1e-12)).clamp(0.0, 1.0)
-    factor = torch.where(strong > 0, (WEAK_TEXTURE_RATIO / ratio.clamp_min(1e-12)).clamp(1.0, WEAK_TEXTURE_MAX_WIDENING),
-                         torch.full_like(ratio, WEAK_TEXTURE_MAX_WIDENING))
+    widened = (WEAK_TEXTURE_RATIO / ratio.clamp_min(1e-12)).clamp(1.0, WEAK_TEXTURE_MAX_WIDENING)
+    factor = torch.where(strong > 0, widened, torch.full_like(ratio, WEAK_TEXTURE_MAX_WIDENING))  # no texture: none
     # the weak eigenvector of [[jrr, jrc], [jrc, jcc]]
     theta = 0.5 * torch.atan2(2 * jrc, jrr - jcc) + math.pi / 2
     return factor, torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
@@ -366,7 +360,9 @@ def measure(mosaic: Tensor, coverage: Tensor, aerial: AerialMap, predicted: Tens
                          device=cov.device)
     cov = cov + torch.diag(floor)
     with torch.no_grad():  # a factor on the covariance, held constant (the correction's gradients are unchanged)
-        crop_at, _ = aerial.grey().crop(se2_compose_torch(predicted.to(aerial.image.dtype), correction.detach()), S, r)
+        dtype = aerial.image.dtype
+        at = compose_se2(predicted.to(dtype), correction.detach().to(dtype))  # the matched pose
+        crop_at, _ = aerial.grey().crop(at, S, r)
         a_at = appearance(crop_at.to(mosaic.dtype), crop_mask, config.appearance, sigma)
         widen = weak_direction_widening(a_mos.detach(), a_at, cov_mask)
     cov = widen_position(cov, *widen)
