@@ -200,18 +200,18 @@ def test_a_road_with_lane_lines_alone_claims_no_position_along_it(road_yaw_deg):
     coverage = torch.zeros(1, 1, cfg.size, cfg.size)
     coverage[..., cfg.size // 5: -cfg.size // 5, cfg.size // 5: -cfg.size // 5] = 1.0
     mosaic = lane_lines(points)[:, None].float() * coverage
-    along = np.array([1.0, 0.0])  # the road's direction in the car's frame
+    along, across = np.array([1.0, 0.0]), np.array([0.0, 1.0])  # the road's directions in the car's frame
     gate = chi2_threshold(0.999)
     for offset in (1.5, -3.0):
-        error = np.array([*(offset * along + 0.8 * np.array([-along[1], along[0]])), 0.0])  # along and across
+        error = np.array([*(offset * along + 0.8 * across), 0.0])
         pred = se2_compose(true, error)
         meas = measure(mosaic, coverage, aerial, torch.tensor(pred, dtype=torch.float32)[None], cfg)
         z = se2_compose(pred, meas.correction[0].double().numpy())
         res = se2_between(true, z)
         R = meas.covariance[0].double().numpy()
         d2 = float(res @ np.linalg.solve(R, res))
-        across_res = float(res[:2] @ np.array([-along[1], along[0]]))
-        across_std = math.sqrt(float(np.array([-along[1], along[0]]) @ R[:2, :2] @ np.array([-along[1], along[0]])))
+        across_res = float(res[:2] @ across)
+        across_std = math.sqrt(float(across @ R[:2, :2] @ across))
         along_std = math.sqrt(float(along @ R[:2, :2] @ along))
         print(f"\nroad at {road_yaw_deg:g} deg, {offset:+.1f} m along / 0.8 m across: residual along "
               f"{float(res[:2] @ along):+.2f} m (claimed {along_std:.2f}), across {across_res:+.3f} m (claimed "

@@ -110,7 +110,7 @@ def appearance(image: Tensor, mask: Tensor, mode: str = "lcn", sigma: float = 6.
                       device=image.device) / 8.0
     g = F.conv2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), torch.stack([kx, kx.t()])[:, None])
     mag = torch.sqrt(g.pow(2).sum(dim=1, keepdim=True) + 1e-8)
-    w = w * (-F.max_pool2d(-w, 3, stride=1, padding=1))  # the mask edge is not an image edge
+    w = _erode(w, 1)  # the mask edge is not an image edge
     _, var = _local_stats(mag, w, sigma)
     mean_sq = var + _local_stats(mag, w, sigma)[0] ** 2
     return w * mag / torch.sqrt(mean_sq + 1e-6)
@@ -191,6 +191,11 @@ def _dilate(mask: Tensor, pixels: int) -> Tensor:
     return F.max_pool2d(mask, 2 * pixels + 1, stride=1, padding=pixels)
 
 
+def _erode(mask: Tensor, pixels: int) -> Tensor:
+    """A 0/1 mask shrunk by ``pixels`` (its edge left out)."""
+    return -_dilate(-mask, pixels)
+
+
 def register_grid(prev: Tensor, curr: Tensor, mask_prev: Tensor, mask_curr: Tensor, config: DpcConfig,
                   half_range: float, step: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Rotation then translation of ``curr`` against ``prev`` (``(B, 1, S, S)``), the rotation
@@ -266,8 +271,8 @@ def _local_spread(rotation_log_prob: Tensor, translation_log_prob: Tensor, windo
 # appearances' gradients at the matched pose: texture that differs between the map and the car's
 # view averages out of it) gives the position information per direction (Cramer-Rao: the variance
 # goes as its inverse); where its weak eigenvalue is below WEAK_TEXTURE_RATIO of the strong one,
-# the variance along the weak direction is that of the strong one times their ratio over
-# WEAK_TEXTURE_RATIO, at most WEAK_TEXTURE_MAX_WIDENING. Measured: the heterogeneous synthetic maps
+# the variance along the weak direction is multiplied by WEAK_TEXTURE_RATIO over their ratio, at
+# most by WEAK_TEXTURE_MAX_WIDENING. Measured: the heterogeneous synthetic maps
 # 0.3-0.6 (unchanged), lane lines with shared asphalt texture 0.2 (recovered to 1 cm), lane lines
 # alone or with texture the map does not share <= 0.01.
 WEAK_TEXTURE_RATIO = 0.1
@@ -292,7 +297,7 @@ def weak_direction_widening(a: Tensor, b: Tensor, mask: Tensor) -> tuple[Tensor,
         (B, 2)``, that direction's unit vector in (x, y) = (row, column) of the grid (their signs do
         not matter to a covariance).
     """
-    w = mask * (-F.max_pool2d(-mask, 5, stride=1, padding=2))
+    w = _erode(mask, 2)
     (ar, ac), (br, bc) = _central_gradients(a), _central_gradients(b)
     n = w.sum(dim=(-1, -2, -3)).clamp_min(1.0)
     jrr = (w * ar * br).sum(dim=(-1, -2, -3)) / n
@@ -337,7 +342,8 @@ def measure(mosaic: Tensor, coverage: Tensor, aerial: AerialMap, predicted: Tens
     if mosaic.shape[-2:] != (S, S) or coverage.shape != mosaic.shape:
         raise ValueError(f"mosaic and coverage must be (B, 1, {S}, {S}), got {tuple(mosaic.shape)}, "
                          f"{tuple(coverage.shape)}")
-    crop, inside = aerial.grey().crop(predicted.to(aerial.image.dtype), S, r)
+    grey = aerial.grey()
+    crop, inside = grey.crop(predicted.to(aerial.image.dtype), S, r)
     crop = crop.to(mosaic.dtype)
     cov_mask = (coverage > 0.5).to(mosaic.dtype)
     crop_mask = inside.to(mosaic.dtype) * _dilate(cov_mask, int(round(config.mask_margin / r)))
@@ -362,7 +368,7 @@ def measure(mosaic: Tensor, coverage: Tensor, aerial: AerialMap, predicted: Tens
     with torch.no_grad():  # a factor on the covariance, held constant (the correction's gradients are unchanged)
         dtype = aerial.image.dtype
         at = compose_se2(predicted.to(dtype), correction.detach().to(dtype))  # the matched pose
-        crop_at, _ = aerial.grey().crop(at, S, r)
+        crop_at, _ = grey.crop(at, S, r)
         a_at = appearance(crop_at.to(mosaic.dtype), crop_mask, config.appearance, sigma)
         widen = weak_direction_widening(a_mos.detach(), a_at, cov_mask)
     cov = widen_position(cov, *widen)
