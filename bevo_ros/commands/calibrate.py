@@ -11,6 +11,12 @@ own forward speed (``--speed-topic``: wheel odometry, a CAN or GNSS speed) with 
   roll:  bisection until the summed BEV yaw matches the reference's (a roll error shears the BEV).
 
 Both use a constant attitude (no filter), so the result is the rig's, not the road's.
+
+With no reference at all, ``--from-images`` measures the pitch from the images alone: the direction
+the camera travels in between frames (their epipolar geometry, OpenCV) lies along the road, and its
+elevation is the camera's tilt to the road (bevo_ros.training.travel_direction). It is the physical
+tilt, so the scale then rests on camera.mount_height too; the roll is not observable this way and
+the params' own is kept. Use a drive of a minute or more: one frame pair scatters by ~0.4 deg.
 Prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera`. The
 fit runs through the bag's rig as bevo_node takes it (its /tf_static, else `camera.base_T_camera`);
 what it measures is the camera's tilt to the road, and the angles are printed for
@@ -29,14 +35,20 @@ from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.io.bag import read_speed
 from bevo_ros.training.mounting import calibrate, reference_from_ground_truth, reference_from_speed
+from bevo_ros.training.travel_direction import mounting_pitch_from_travel, travel_direction
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser(__doc__)
     p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry (or --speed-topic)")
     add_params_option(p)
-    p.add_argument("--frames", default="0:11", help="frame range START:STOP of the calibration drive (default 0:11)")
-    p.add_argument("--speed-topic", metavar="TOPIC",
+    p.add_argument("--frames", help="frame range START:STOP of the calibration drive (default 0:11; with "
+                   "--from-images every frame)")
+    ref = p.add_mutually_exclusive_group()
+    ref.add_argument("--from-images", action="store_true",
+                     help="no reference: the pitch from the direction of travel the images show (their epipolar "
+                          "geometry); the roll kept from --params; a drive of a minute or more, mostly forward")
+    ref.add_argument("--speed-topic", metavar="TOPIC",
                    help="the reference without ground truth: the car's speed on TOPIC (nav_msgs/Odometry, e.g. wheel "
                         "odometry, or geometry_msgs/TwistStamped / TwistWithCovarianceStamped from CAN or GNSS: the "
                         "twist's horizontal speed), driving forward; the yaw from the bag's gyro, its bias read "
@@ -53,17 +65,21 @@ def main(argv: list[str] | None = None) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     config, flat = load_config(args.params)
     seq = load_sequence(args.bag, config, require_gt=False, rig=RigSettings.from_params(flat, str(args.params)))
-    if args.speed_topic is None and seq.gt_poses is None:
+    if args.speed_topic is None and not args.from_images and seq.gt_poses is None:
         raise ValueError(f"{args.bag}: no /ground_truth/odometry to calibrate against; without one, give the "
-                         "car's speed (--speed-topic)")
+                         "car's speed (--speed-topic) or measure the pitch from the images (--from-images)")
+    frames = args.frames or (f"0:{len(seq)}" if args.from_images else "0:11")
     try:
-        start, stop = (int(v) for v in args.frames.split(":"))
+        start, stop = (int(v) for v in frames.split(":"))
     except ValueError:
-        raise ValueError(f"--frames {args.frames!r}: expected START:STOP, two frame numbers") from None
+        raise ValueError(f"--frames {frames!r}: expected START:STOP, two frame numbers") from None
     if not 0 <= start < stop - 1 < len(seq):
-        raise ValueError(f"--frames {args.frames}: need at least 2 frames within 0..{len(seq)} (STOP excluded), "
+        raise ValueError(f"--frames {frames}: need at least 2 frames within 0..{len(seq)} (STOP excluded), "
                          f"the bag has {len(seq)}")
     seq = seq.frames(start, stop)
+    params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
+    if args.from_images:
+        return _from_images(seq, frames, config, params_chain)
     if args.speed_topic:
         reference = reference_from_speed(seq, *read_speed(args.bag, args.speed_topic))
         source = f"{args.speed_topic}'s speed and the gyro's yaw" + (
@@ -75,14 +91,33 @@ def _calibrate(args: argparse.Namespace) -> int:
     pitch, roll = calibrate(seq, spec, dpc=config.dpc, reference=reference)  # ValueError: no fit (exit 2)
     # Measured through the bag's rig (its /tf_static, as the node takes it): the camera's tilt to the
     # road. Written for camera.base_T_camera, with which the params lines below go.
-    params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
     pitch, roll = mounting_for_extrinsics((pitch, roll), seq.camera.T_base_cam, params_chain)
-    print(f"calibrated on frames {args.frames} ({reference[0]:.1f} m, {math.degrees(reference[1]):+.1f} deg of yaw "
+    print(f"calibrated on frames {frames} ({reference[0]:.1f} m, {math.degrees(reference[1]):+.1f} deg of yaw "
           f"by {source}):")
     print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, "
           f"{'nose down' if pitch >= 0 else 'nose up'}")
     print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, "
           f"{'left side up' if roll >= 0 else 'left side down'}")
     # Written for camera.base_T_camera: the camera's tilt to the road is what was measured.
+    print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
+    return 0
+
+
+def _from_images(seq, frames: str, config, params_chain: np.ndarray) -> int:
+    """``--from-images``: the pitch from the direction of travel, at the params' roll."""
+    T_bag = seq.camera.T_base_cam.double().numpy()
+    # the params' roll as the bag's rig has it (the camera's tilt to the road kept)
+    roll = mounting_for_extrinsics((config.filter.mounting_pitch, config.filter.mounting_roll), params_chain, T_bag)[1]
+    direction = travel_direction(seq.images.numpy(), seq.camera.K.double().numpy())  # ValueError: too few pairs
+    pitch, azimuth = mounting_pitch_from_travel(direction, T_bag[:3, :3], roll)
+    pitch, roll = mounting_for_extrinsics((pitch, roll), T_bag, params_chain)
+    print(f"calibrated on frames {frames} from the images' direction of travel ({direction.pairs} frame pairs, "
+          f"{direction.pairs_skipped} without one): the optical axis {-math.degrees(direction.elevation):+.2f} "
+          f"+- {math.degrees(direction.elevation_sem):.2f} deg below it (+ down); its azimuth in base_frame "
+          f"{math.degrees(azimuth):+.2f} deg, left + (0 with right extrinsics)")
+    print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, "
+          f"{'nose down' if pitch >= 0 else 'nose up'}")
+    print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, kept from the params "
+          "(not observable from the direction of travel)")
     print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
     return 0

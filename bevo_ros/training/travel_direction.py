@@ -1,0 +1,102 @@
+"""The camera's tilt to the road from the images alone: the direction of travel in the camera frame.
+
+A car moves along the road, so the direction its camera translates in between two frames, which
+the frames' epipolar geometry gives up to scale, lies in the road's plane (on average over a drive:
+the body's pitching and the road's bumps average out). Its elevation below the optical axis is the
+camera's tilt to the road, with no reference for the distance: no ground truth, no speed. This is
+``bevo calibrate --from-images``. What it measures is the camera's physical tilt, so the BEV's scale
+then rests on the camera height as well (``camera.mount_height``); the distance-matching fits
+(:mod:`bevo_ros.training.mounting`) absorb a height error into the tilt instead.
+
+Per frame pair: Shi-Tomasi corners tracked by pyramidal Lucas-Kanade (kept where the backward track
+returns within 0.5 px), the essential matrix by RANSAC (5-point) and its decomposition
+(``cv2.recoverPose``): the camera's motion direction. The pairs' median is robust to the few whose
+matches lie on a moving car. The roll is not observable this way (a direction has two angles:
+elevation and azimuth); the azimuth is reported as a check on the extrinsics' yaw.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+MAX_CORNERS = 2000  # Shi-Tomasi corners per frame
+MIN_MATCHES = 30  # tracked corners for a pair's essential matrix
+MIN_FLOW_PX = 1.0  # median track length (px) below which the pair is taken as standing still
+MIN_PAIRS = 10  # pairs needed for a result
+FB_TOLERANCE_PX = 0.5  # forward-backward track error kept
+RANSAC_THRESHOLD_PX = 0.5  # epipolar distance of an inlier
+
+
+def motion_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """The camera's translation direction from ``image0`` to ``image1`` (``(H, W)`` uint8), a unit
+    ``(3,)`` vector in the first camera's optical frame (x right, y down, z forward), or None where
+    the pair does not determine it (too few tracks, too little motion, no essential matrix)."""
+    p0 = cv2.goodFeaturesToTrack(image0, MAX_CORNERS, 0.01, 8)
+    if p0 is None or len(p0) < MIN_MATCHES:
+        return None
+    lk = dict(winSize=(21, 21), maxLevel=3)
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(image0, image1, p0, None, **lk)
+    back, st_back, _ = cv2.calcOpticalFlowPyrLK(image1, image0, p1, None, **lk)
+    ok = (st[:, 0] == 1) & (st_back[:, 0] == 1) & (np.linalg.norm(back - p0, axis=2)[:, 0] < FB_TOLERANCE_PX)
+    a, b = p0[ok, 0].astype(np.float64), p1[ok, 0].astype(np.float64)
+    if len(a) < MIN_MATCHES or np.median(np.linalg.norm(b - a, axis=1)) < MIN_FLOW_PX:
+        return None
+    E, inliers = cv2.findEssentialMat(a, b, K, method=cv2.RANSAC, prob=0.999, threshold=RANSAC_THRESHOLD_PX)
+    if E is None or E.shape != (3, 3):  # none, or several stacked solutions: ambiguous
+        return None
+    good, R, t, _ = cv2.recoverPose(E, a, b, K, mask=inliers)
+    if good < MIN_MATCHES:
+        return None
+    c = -(R.T @ t).ravel()  # x1 = R x0 + t: the second camera's centre in the first's frame
+    return c / np.linalg.norm(c)
+
+
+class TravelDirection(NamedTuple):
+    """:func:`travel_direction`'s result, the pairs' medians (rad) and how many pairs gave them."""
+
+    elevation: float  # below the optical axis + (y down): the camera tilted up by that much
+    azimuth: float  # right of the optical axis +
+    elevation_sem: float  # the median's standard error (1.2533 std / sqrt(n))
+    pairs: int  # pairs used
+    pairs_skipped: int  # pairs that gave no direction (standing still, too few tracks)
+
+
+def travel_direction(images, K) -> TravelDirection:
+    """The direction of travel in the camera frame over consecutive ``images`` (``(F, H, W)`` uint8,
+    rectified, intrinsics ``K (3, 3)``). ValueError with fewer than MIN_PAIRS usable pairs."""
+    K = np.asarray(K, dtype=np.float64)
+    dirs, skipped = [], 0
+    for k in range(len(images) - 1):
+        d = motion_direction(np.ascontiguousarray(images[k]), np.ascontiguousarray(images[k + 1]), K)
+        if d is None or d[2] <= 0:  # backwards: reversing, or a degenerate decomposition
+            skipped += 1
+            continue
+        dirs.append(d)
+    if len(dirs) < MIN_PAIRS:
+        raise ValueError(f"only {len(dirs)} of {len(images) - 1} frame pairs give a direction of travel (at least "
+                         f"{MIN_PAIRS}: the car must move, forwards, past textured surroundings)")
+    d = np.array(dirs)
+    elevation = np.arctan2(d[:, 1], d[:, 2])
+    azimuth = np.arctan2(d[:, 0], d[:, 2])
+    sem = 1.2533 * float(np.std(elevation)) / math.sqrt(len(d))
+    return TravelDirection(float(np.median(elevation)), float(np.median(azimuth)), sem, len(d), skipped)
+
+
+def mounting_pitch_from_travel(direction: TravelDirection, R_base_cam, roll: float) -> tuple[float, float]:
+    """The base's pitch on the road (rad, nose down +, the ``filter.mounting_pitch`` convention) at
+    which the camera, mounted by ``R_base_cam (3, 3)``, sees the road's forward direction where the
+    images put the direction of travel, at the base's ``roll`` on the road; and the direction of
+    travel's azimuth in the base (rad, left +: zero for extrinsics whose yaw is right). The base's attitude on the road
+    R = Ry(pitch) Rx(roll) maps the road's x axis into the base as (cos p, sin p sin r, sin p cos r)."""
+    e, a = direction.elevation, direction.azimuth
+    u = np.array([math.tan(a), math.tan(e), 1.0])
+    b = np.asarray(R_base_cam, dtype=np.float64)[:3, :3] @ (u / np.linalg.norm(u))
+    pitch = math.asin(max(-1.0, min(1.0, b[2] / math.cos(roll))))
+    yaw = math.atan2(b[1] - math.sin(pitch) * math.sin(roll), b[0])
+    return pitch, yaw
+
+
+__all__ = ["TravelDirection", "motion_direction", "travel_direction", "mounting_pitch_from_travel"]
