@@ -30,7 +30,7 @@ import math
 import numpy as np
 
 from bevo_ros.commands import add_params_option, bag_errors, guarded, new_parser
-from bevo_ros.config import bev_spec, load_config
+from bevo_ros.config import bev_spec, load_config, mounting_in_use
 from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.io.bag import read_speed
@@ -40,7 +40,8 @@ from bevo_ros.training.travel_direction import mounting_pitch_from_travel, trave
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser(__doc__)
-    p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry (or --speed-topic)")
+    p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry (or --speed-topic, "
+                               "or --from-images)")
     add_params_option(p)
     p.add_argument("--frames", help="frame range START:STOP of the calibration drive (default 0:11; with "
                    "--from-images every frame)")
@@ -106,18 +107,20 @@ def _calibrate(args: argparse.Namespace) -> int:
 def _from_images(seq, frames: str, config, params_chain: np.ndarray) -> int:
     """``--from-images``: the pitch from the direction of travel, at the params' roll."""
     T_bag = seq.camera.T_base_cam.double().numpy()
-    # the params' roll as the bag's rig has it (the camera's tilt to the road kept)
-    roll = mounting_for_extrinsics((config.filter.mounting_pitch, config.filter.mounting_roll), params_chain, T_bag)[1]
+    if T_bag[0, 2] < 0.5:  # the optical axis in base_frame: within 60 deg of forward
+        raise ValueError("--from-images needs a camera looking forward (its optical axis within 60 deg of "
+                         "base_frame's x): the direction of travel is measured ahead of it")
+    roll = mounting_in_use(config, T_bag)[1]  # the roll the engine uses on the bag's rig, kept
     direction = travel_direction(seq.images.numpy(), seq.camera.K.double().numpy())  # ValueError: too few pairs
     pitch, azimuth = mounting_pitch_from_travel(direction, T_bag[:3, :3], roll)
     pitch, roll = mounting_for_extrinsics((pitch, roll), T_bag, params_chain)
     print(f"calibrated on frames {frames} from the images' direction of travel ({direction.pairs} frame pairs, "
           f"{direction.pairs_skipped} without one): the optical axis {-math.degrees(direction.elevation):+.2f} "
-          f"+- {math.degrees(direction.elevation_sem):.2f} deg below it (+ down); its azimuth in base_frame "
+          f"+- {math.degrees(direction.elevation_sem):.2f} deg below it (+ down); its azimuth from base_frame's x "
           f"{math.degrees(azimuth):+.2f} deg, left + (0 with right extrinsics)")
     print(f"    filter.mounting_pitch: {pitch:.4f}   # {math.degrees(pitch):+.2f} deg, "
           f"{'nose down' if pitch >= 0 else 'nose up'}")
-    print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, kept from the params "
+    print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, the params' "
           "(not observable from the direction of travel)")
     print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
     return 0

@@ -28,6 +28,7 @@ MIN_FLOW_PX = 1.0  # median track length (px) below which the pair is taken as s
 MIN_PAIRS = 10  # pairs needed for a result
 FB_TOLERANCE_PX = 0.5  # forward-backward track error kept
 RANSAC_THRESHOLD_PX = 0.5  # epipolar distance of an inlier
+DISTANCE_THRESHOLD = 1e4  # baselines: recoverPose's points in front of both cameras, however far
 
 
 def motion_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | None:
@@ -47,7 +48,9 @@ def motion_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> n
     E, inliers = cv2.findEssentialMat(a, b, K, method=cv2.RANSAC, prob=0.999, threshold=RANSAC_THRESHOLD_PX)
     if E is None or E.shape != (3, 3):  # none, or several stacked solutions: ambiguous
         return None
-    good, R, t, _ = cv2.recoverPose(E, a, b, K, mask=inliers)
+    # distanceThresh: points up to that many baselines away count as in front (the default 50 dropped
+    # most of a road scene's points at a slow speed or a high frame rate: 0.3 m per pair kept 41 of 325)
+    good, R, t, _, _ = cv2.recoverPose(E, a, b, K, distanceThresh=DISTANCE_THRESHOLD, mask=inliers)
     if good < MIN_MATCHES:
         return None
     c = -(R.T @ t).ravel()  # x1 = R x0 + t: the second camera's centre in the first's frame
@@ -68,6 +71,11 @@ def travel_direction(images, K) -> TravelDirection:
     """The direction of travel in the camera frame over consecutive ``images`` (``(F, H, W)`` uint8,
     rectified, intrinsics ``K (3, 3)``). ValueError with fewer than MIN_PAIRS usable pairs."""
     K = np.asarray(K, dtype=np.float64)
+    if len(images) < 2:
+        raise ValueError(f"{len(images)} images: a direction of travel needs frame pairs")
+    first = np.asarray(images[0])
+    if first.ndim != 2 or first.dtype != np.uint8:
+        raise ValueError(f"images must be grey (F, H, W) uint8, got frames {first.shape} {first.dtype}")
     dirs, skipped = [], 0
     for k in range(len(images) - 1):
         d = motion_direction(np.ascontiguousarray(images[k]), np.ascontiguousarray(images[k + 1]), K)
@@ -87,16 +95,22 @@ def travel_direction(images, K) -> TravelDirection:
 
 def mounting_pitch_from_travel(direction: TravelDirection, R_base_cam, roll: float) -> tuple[float, float]:
     """The base's pitch on the road (rad, nose down +, the ``filter.mounting_pitch`` convention) at
-    which the camera, mounted by ``R_base_cam (3, 3)``, sees the road's forward direction where the
-    images put the direction of travel, at the base's ``roll`` on the road; and the direction of
-    travel's azimuth in the base (rad, left +: zero for extrinsics whose yaw is right). The base's attitude on the road
+    which the direction of travel the images show, through the camera's extrinsics ``R_base_cam (3,
+    3)``, lies in the road's plane, at the base's ``roll`` on the road; and that direction's azimuth
+    on the road from the base's x axis (rad, left +: zero for extrinsics whose yaw is right, on a
+    straight drive; a turn's chord and the camera's offset ahead of the base add to it). The base's attitude on the road
     R = Ry(pitch) Rx(roll) maps the road's x axis into the base as (cos p, sin p sin r, sin p cos r)."""
     e, a = direction.elevation, direction.azimuth
-    u = np.array([math.tan(a), math.tan(e), 1.0])
-    b = np.asarray(R_base_cam, dtype=np.float64)[:3, :3] @ (u / np.linalg.norm(u))
-    pitch = math.asin(max(-1.0, min(1.0, b[2] / math.cos(roll))))
-    yaw = math.atan2(b[1] - math.sin(pitch) * math.sin(roll), b[0])
-    return pitch, yaw
+    b = np.asarray(R_base_cam, dtype=np.float64)[:3, :3] @ np.array([math.tan(a), math.tan(e), 1.0])
+    # The direction of travel lies in the road's plane, whatever its azimuth: normal . b = 0 with the
+    # road's normal in the base (-sin p, cos p sin r, cos p cos r).
+    sr, cr = math.sin(roll), math.cos(roll)
+    pitch = math.atan2(sr * b[1] + cr * b[2], b[0])
+    sp, cp = math.sin(pitch), math.cos(pitch)
+    # b in the road frame, Ry(p) Rx(r) b: its x and y give the azimuth
+    y_road = cr * b[1] - sr * b[2]
+    x_road = cp * b[0] + sp * (sr * b[1] + cr * b[2])
+    return pitch, math.atan2(y_road, x_road)
 
 
 __all__ = ["TravelDirection", "motion_direction", "travel_direction", "mounting_pitch_from_travel"]
