@@ -98,8 +98,8 @@ def mounting_pitch_from_travel(direction: TravelDirection, R_base_cam, roll: flo
     which the direction of travel the images show, through the camera's extrinsics ``R_base_cam (3,
     3)``, lies in the road's plane, at the base's ``roll`` on the road; and that direction's azimuth
     on the road from the base's x axis (rad, left +: zero for extrinsics whose yaw is right, on a
-    straight drive; a turn's chord and the camera's offset ahead of the base add to it). The base's attitude on the road
-    R = Ry(pitch) Rx(roll) maps the road's x axis into the base as (cos p, sin p sin r, sin p cos r)."""
+    straight drive; a turn's chord and the camera's offset ahead of the base add to it). The base's
+    attitude on the road is R = Ry(pitch) Rx(roll), as in ``core.geometry.camera_pose_on_road``."""
     e, a = direction.elevation, direction.azimuth
     b = np.asarray(R_base_cam, dtype=np.float64)[:3, :3] @ np.array([math.tan(a), math.tan(e), 1.0])
     # The direction of travel lies in the road's plane, whatever its azimuth: normal . b = 0 with the
