@@ -1,4 +1,5 @@
-"""``bevo calibrate``: the rig's static attitude on the road (filter.mounting_pitch / mounting_roll).
+"""``bevo calibrate``: the rig's static attitude on the road (filter.mounting_pitch / mounting_roll), or
+the IMU's clock against the camera's (odometry.imu_time_offset).
 
 The BEV's metric scale hangs on the camera's pitch relative to the road (~25 % per degree at
 KITTI's geometry) and a roll error biases every yaw estimate. The road-tilt low-pass removes
@@ -17,7 +18,12 @@ the camera travels in between frames (their epipolar geometry, OpenCV) lies alon
 elevation is the camera's tilt to the road (bevo_ros.training.travel_direction). It is the physical
 tilt, so the scale then rests on camera.mount_height too; the roll is not observable this way and
 the params' own is kept. Use a drive of a minute or more: one frame pair scatters by ~0.4 deg.
-Prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera`. The
+``--imu-time-offset`` measures, instead of the mounting, the IMU's clock against the camera's
+(``odometry.imu_time_offset``, searched within +-1 s): the offset at which the gyro's rotation between
+frames matches the rotation the images show (their epipolar geometry; bevo_ros.training.time_offset). It
+needs a drive through bends or over bumps (the rate's change times the offset is what it sees) and
+prints one params line.
+Otherwise it prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera`. The
 fit runs through the bag's rig as bevo_node takes it (its /tf_static, else `camera.base_T_camera`);
 what it measures is the camera's tilt to the road, and the angles are printed for
 `camera.base_T_camera`, the extrinsics the params file pairs them with.
@@ -35,20 +41,25 @@ from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.io.bag import read_speed
 from bevo_ros.training.mounting import calibrate, reference_from_ground_truth, reference_from_speed
+from bevo_ros.training.time_offset import image_rotations, imu_time_offset
 from bevo_ros.training.travel_direction import mounting_pitch_from_travel, travel_direction
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser(__doc__)
     p.add_argument("bag", help="rosbag2 with images, IMU, CameraInfo and /ground_truth/odometry (or --speed-topic, "
-                               "or --from-images)")
+                               "or --from-images, or --imu-time-offset: images and IMU only)")
     add_params_option(p)
     p.add_argument("--frames", help="frame range START:STOP of the calibration drive (default 0:11; with "
-                   "--from-images every frame)")
+                   "--from-images or --imu-time-offset every frame)")
     ref = p.add_mutually_exclusive_group()
     ref.add_argument("--from-images", action="store_true",
                      help="no reference: the pitch from the direction of travel the images show (their epipolar "
                           "geometry); the roll kept from --params; a drive of a minute or more, mostly forward")
+    ref.add_argument("--imu-time-offset", action="store_true",
+                     help="instead of the mounting: the offset to add to the IMU's stamps to put them on the images' "
+                          "clock (odometry.imu_time_offset, within +-1 s), from the gyro's rotation between "
+                          "frames against the images'; a drive through bends or over bumps")
     ref.add_argument("--speed-topic", metavar="TOPIC",
                    help="the reference without ground truth: the car's speed on TOPIC (nav_msgs/Odometry, e.g. wheel "
                         "odometry, or geometry_msgs/TwistStamped / TwistWithCovarianceStamped from CAN or GNSS: the "
@@ -66,10 +77,11 @@ def main(argv: list[str] | None = None) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     config, flat = load_config(args.params)
     seq = load_sequence(args.bag, config, require_gt=False, rig=RigSettings.from_params(flat, str(args.params)))
-    if args.speed_topic is None and not args.from_images and seq.gt_poses is None:
+    whole = args.from_images or args.imu_time_offset  # image-only measurements: every frame by default
+    if args.speed_topic is None and not whole and seq.gt_poses is None:
         raise ValueError(f"{args.bag}: no /ground_truth/odometry to calibrate against; without one, give the "
                          "car's speed (--speed-topic) or measure the pitch from the images (--from-images)")
-    frames = args.frames or (f"0:{len(seq)}" if args.from_images else "0:11")
+    frames = args.frames or (f"0:{len(seq)}" if whole else "0:11")
     try:
         start, stop = (int(v) for v in frames.split(":"))
     except ValueError:
@@ -77,10 +89,13 @@ def _calibrate(args: argparse.Namespace) -> int:
     if not 0 <= start < stop - 1 < len(seq):
         raise ValueError(f"--frames {frames}: need at least 2 frames within 0..{len(seq)} (STOP excluded), "
                          f"the bag has {len(seq)}")
+    imu = seq.imu_stamps.numpy(), seq.gyro.numpy()  # the whole recording's: IMU past the last frame too
     seq = seq.frames(start, stop)
     params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
     if args.from_images:
         return _from_images(seq, frames, config, params_chain)
+    if args.imu_time_offset:
+        return _imu_time_offset(seq, frames, config, *imu)
     if args.speed_topic:
         reference = reference_from_speed(seq, *read_speed(args.bag, args.speed_topic))
         source = f"{args.speed_topic}'s speed and the gyro's yaw" + (
@@ -123,4 +138,19 @@ def _from_images(seq, frames: str, config, params_chain: np.ndarray) -> int:
     print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, the params' "
           "(not observable from the direction of travel)")
     print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
+    return 0
+
+
+def _imu_time_offset(seq, frames: str, config, imu_stamps: np.ndarray, gyro: np.ndarray) -> int:
+    """``--imu-time-offset``: the IMU's clock against the images' from the rotations between frames."""
+    index, rotations = image_rotations(seq.images.numpy(), seq.camera.K.double().numpy())
+    result = imu_time_offset(seq.frame_stamps.numpy(), index, rotations, imu_stamps, gyro,
+                             seq.camera.T_base_cam.double().numpy()[:3, :3], config.filter.gyro_sampling)  # ValueError
+    print(f"calibrated on frames {frames} from the rotations between frames ({result.pairs} frame pairs kept, "
+          f"{result.pairs_skipped} without a rotation, without IMU around them or trimmed): the gyro matches the images "
+          f"to {math.degrees(result.residual):.3f} deg per axis and pair at")
+    now = config.odometry.imu_time_offset
+    apart = (result.offset - now) / result.standard_error
+    print(f"    odometry.imu_time_offset: {result.offset:.4f}   # s, +- {result.standard_error * 1e3:.1f} ms "
+          f"(the params' {now:.4f}: {'off by' if abs(apart) > 2 else 'within'} {abs(apart):.1f} standard errors)")
     return 0

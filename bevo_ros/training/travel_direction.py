@@ -31,10 +31,11 @@ RANSAC_THRESHOLD_PX = 0.5  # epipolar distance of an inlier
 DISTANCE_THRESHOLD = 1e4  # baselines: recoverPose's points in front of both cameras, however far
 
 
-def motion_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | None:
-    """The camera's translation direction from ``image0`` to ``image1`` (``(H, W)`` uint8), a unit
-    ``(3,)`` vector in the first camera's optical frame (x right, y down, z forward), or None where
-    the pair does not determine it (too few tracks, too little motion, no essential matrix)."""
+def relative_pose(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The camera's motion from ``image0`` to ``image1`` (``(H, W)`` uint8): ``R (3, 3)`` with ``x1 = R x0 + t``
+    for a point's optical-frame coordinates, and the unit ``(3,)`` direction of the second camera's centre in
+    the first camera's optical frame (x right, y down, z forward); None where the pair does not determine it
+    (too few tracks, too little motion, no essential matrix)."""
     p0 = cv2.goodFeaturesToTrack(image0, MAX_CORNERS, 0.01, 8)
     if p0 is None or len(p0) < MIN_MATCHES:
         return None
@@ -54,7 +55,13 @@ def motion_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> n
     if good < MIN_MATCHES:
         return None
     c = -(R.T @ t).ravel()  # x1 = R x0 + t: the second camera's centre in the first's frame
-    return c / np.linalg.norm(c)
+    return R, c / np.linalg.norm(c)
+
+
+def motion_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """The camera's translation direction from ``image0`` to ``image1`` (:func:`relative_pose`'s), or None."""
+    pose = relative_pose(image0, image1, K)
+    return None if pose is None else pose[1]
 
 
 class TravelDirection(NamedTuple):
@@ -113,4 +120,4 @@ def mounting_pitch_from_travel(direction: TravelDirection, R_base_cam, roll: flo
     return pitch, math.atan2(y_road, x_road)
 
 
-__all__ = ["TravelDirection", "motion_direction", "travel_direction", "mounting_pitch_from_travel"]
+__all__ = ["TravelDirection", "relative_pose", "motion_direction", "travel_direction", "mounting_pitch_from_travel"]
