@@ -117,13 +117,20 @@ def test_learned_params_round_trip_is_human_readable_and_atomic(tmp_path):
     (lambda d: d["suspension_gradients"].update(pitch=1000.0), r"'suspension_gradients.pitch' = 1000.0 .*at most 0.1"),
     (lambda d: d["process_noise_density"].update(pitch=1e9), r"'process_noise_density.pitch' = 1000000000.0 .*at most"),
     (lambda d: d.update(vehicle_filter={"imu_accel_density": -1.0}), r"imu_accel_density' = -1.0 must be .*>= 0 \(0 = off\)"),
+    # YAML that reads as numbers it is not (a read-only review, 2026-12-07): a bool, an integer too large for
+    # a float; unknown keys of mixed types
+    (lambda d: d["process_noise_density"].update(pitch=True), r"'process_noise_density.pitch' missing or not a number"),
+    (lambda d: d["measurement_noise_variance"].update(roll=10**400), r"'measurement_noise_variance.roll' missing or not"),
+    (lambda d: d.update(vehicle_filter={"jerk_density": 10**400}), r"'vehicle_filter.jerk_density' = 1000.* must be"),
+    (lambda d: d.update(gyro_bias={"std": 10**400, "walk": 0.0}), r"'gyro_bias.std' = 1000.* must be"),
+    (lambda d: d.update({1: "a", "x": "b"}), r"unknown section\(s\) '1', 'x'"),
 ])
 def test_malformed_learned_params_name_the_file_and_problem(tmp_path, mutate, message):
     path = tmp_path / "learned.yaml"
     save_learned_params(LearnedParams(), path)
     doc = yaml.safe_load(path.read_text())
     mutate(doc)
-    path.write_text(yaml.safe_dump(doc).replace("'.nan'", ".nan"))
+    path.write_text(yaml.safe_dump(doc, sort_keys=False).replace("'.nan'", ".nan"))
     with pytest.raises(ConfigError, match=message) as err:
         load_learned_params(path)
     assert str(path) in str(err.value)
@@ -150,13 +157,16 @@ def test_learned_numbers_written_as_yaml_reads_them(tmp_path):
     assert loaded.vehicle["jerk_density"] == 1e-3 and loaded.measurement_noise_variance[0] == 5e-2
 
 
-def test_a_learned_file_without_suspension_gradients_says_what_fused_mode_gets(tmp_path):
+def test_a_learned_file_without_suspension_gradients_says_what_fused_mode_gets(tmp_path):  # or with it empty
     path = tmp_path / "learned.yaml"
     save_learned_params(LearnedParams(), path)
     doc = yaml.safe_load(path.read_text())
     doc.pop("suspension_gradients")
     path.write_text(yaml.safe_dump(doc))
     with pytest.warns(UserWarning, match="no 'suspension_gradients': fused mode then models no suspension lean"):
+        assert load_learned_params(path).suspension_gradients == (0.0, 0.0)
+    path.write_text(yaml.safe_dump(doc) + "suspension_gradients:\n")  # the section's name, nothing under it
+    with pytest.warns(UserWarning, match="no 'suspension_gradients'"):
         assert load_learned_params(path).suspension_gradients == (0.0, 0.0)
 
 

@@ -76,6 +76,13 @@ def test_map_yaml_round_trip_grey_colour_and_mask(tmp_path):
     (tmp_path / "bad3.yaml").write_text("image: g.png\n")
     with pytest.raises(ConfigError, match="missing resolution, origin"):
         load_map(tmp_path / "bad3.yaml")
+    # YAML that reads as numbers it is not (a read-only review): a bool, a string iterated character by
+    # character, an integer too large for a float
+    for n, (resolution, origin) in enumerate((("true", "[0, 0, 0]"), ("0.2", "'000'"), ("1" + "0" * 400, "[0, 0, 0]"),
+                                              ("0.2", "[0, false, 0]"))):
+        (tmp_path / f"odd{n}.yaml").write_text(f"image: g.png\nresolution: {resolution}\norigin: {origin}\n")
+        with pytest.raises(ConfigError, match="resolution must be a number and origin"):
+            load_map(tmp_path / f"odd{n}.yaml")
 
 
 # ------------------------------------------------------------------------------------------------

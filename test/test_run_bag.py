@@ -883,3 +883,43 @@ def test_the_commands_refuse_what_would_lose_files_or_mislead(synthetic_bag, tmp
     assert calibrate_cmd.main([str(path), "--params", SYNTH_PARAMS, "--frames", "0:11"]) == 2
     err = capsys.readouterr().err
     assert "error: pitch: no attitude" in err and "Traceback" not in err, err
+
+
+def test_a_bags_unusable_messages_are_left_out_with_a_warning(tmp_path):
+    """``read_recording`` (training, calibration, evaluation, the rig for ``bevo run``): IMU samples that
+    are not finite or whose header stamp is not after an earlier one (a duplicate, a message recorded
+    late), and ground-truth poses and attitudes without a rotation (a zero quaternion), are left out with
+    one warning per topic that counts them, as bevo_node drops such messages, instead of NaN samples,
+    NaN poses or stamps out of order reaching the filter's training and the ground truth's lookup."""
+    types = bag.typestore().types
+    zero = types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0)
+    path = tmp_path / "odd"
+    with bag.BagWriter(path) as w:
+        for k in range(10):
+            t = 1.0 + 0.1 * k
+            w.write_imu(t, (0.0, 0.0, 0.01 * k), (0.0, 0.0, 9.81))
+            w.write_odometry(t, np.eye(4))
+            w.write_imu_attitude(t, 0.01, 0.02, 0.0)
+        w.write(bag.IMU_TOPIC, bag.IMU_MSG, bag.imu_message(1.35, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81), "imu_link"), 2.0)
+        w.write(bag.IMU_TOPIC, bag.IMU_MSG, bag.imu_message(1.9, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81), "imu_link"), 2.0)
+        w.write_imu(2.1, (math.nan, 0.0, 0.0), (0.0, 0.0, 9.81))
+        w.write_imu(2.2, (0.0, 0.0, 0.1), (0.0, 0.0, 9.81))
+        odom = bag.odometry_message(2.1, np.eye(4), "odom", "base_link")
+        odom.pose.pose.orientation = zero
+        w.write(bag.GT_ODOMETRY_TOPIC, bag.ODOMETRY_MSG, odom, 2.1)
+        att = bag.imu_message(2.1, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81), "imu_link", orientation=(0.0, 0.0, 0.0, 1.0))
+        att.orientation = zero
+        w.write(bag.GT_IMU_TOPIC, bag.IMU_MSG, att, 2.1)
+    with pytest.warns(UserWarning) as caught:
+        rec = bag.read_recording(path, required=("imu",))
+    said = [str(w.message) for w in caught]
+    assert any(f"{bag.IMU_TOPIC}: 3 of 14 messages left out (1 with values not finite or no rotation, 2 with a stamp "
+               "not after an earlier one; the first is message 10)" in s for s in said), said
+    assert any(f"{bag.GT_ODOMETRY_TOPIC}: 1 of 11 messages left out (1 with values not finite" in s for s in said), said
+    assert any(f"{bag.GT_IMU_TOPIC}: 1 of 11 messages left out" in s for s in said), said
+    assert np.all(np.diff(rec.imu_stamps_ns) > 0) and len(rec.imu_stamps_ns) == 11 == len(rec.imu_frame_ids)
+    assert np.all(np.isfinite(rec.gyro)) and rec.imu_stamps[-1] == pytest.approx(2.2)
+    assert len(rec.gt_poses) == 10 and np.all(np.isfinite(rec.gt_poses))
+    assert len(rec.gt_pitch) == 10 and rec.gt_pitch == pytest.approx(0.02)
+    with pytest.raises(ValueError, match="no rotation"):
+        bag.matrix_from_quaternion((0.0, 0.0, 0.0, 0.0))

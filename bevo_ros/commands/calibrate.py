@@ -18,11 +18,13 @@ the camera travels in between frames (their epipolar geometry, OpenCV) lies alon
 elevation is the camera's tilt to the road (bevo_ros.training.travel_direction). It is the physical
 tilt, so the scale then rests on camera.mount_height too; the roll is not observable this way and
 the params' own is kept. Use a drive of a minute or more: one frame pair scatters by ~0.4 deg.
+
 ``--imu-time-offset`` measures, instead of the mounting, the IMU's clock against the camera's
 (``odometry.imu_time_offset``, searched within +-1 s): the offset at which the gyro's rotation between
 frames matches the rotation the images show (their epipolar geometry; bevo_ros.training.time_offset). It
 needs a drive through bends or over bumps (the rate's change times the offset is what it sees) and
 prints one params line.
+
 Otherwise it prints the YAML lines for params/*.yaml: the two angles and `filter.mounting_reference: camera`. The
 fit runs through the bag's rig as bevo_node takes it (its /tf_static, else `camera.base_T_camera`);
 what it measures is the camera's tilt to the road, and the angles are printed for

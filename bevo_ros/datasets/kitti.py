@@ -24,7 +24,7 @@ from typing import Iterable
 
 import numpy as np
 
-from bevo_ros.io.ros_conversions import ns_to_seconds
+from bevo_ros.io.ros_conversions import ns_to_seconds, out_of_order  # noqa: F401 - kitti.out_of_order
 
 PathLike = str | Path
 
@@ -239,15 +239,6 @@ def oxts_poses(oxts: "OxtsData", stamps_ns: np.ndarray | None = None) -> np.ndar
         rotation = rotation * Rotation.from_rotvec(oxts.gyro * dt[:, None])  # body rates
     T[:, :3, :3] = rotation.as_matrix()
     return np.linalg.inv(T[0]) @ T
-
-
-def out_of_order(stamps_ns: np.ndarray) -> np.ndarray:
-    """``(N,)`` bool: stamps not after every stamp before them (a duplicate, or a clock that stepped
-    back): such a record cannot be placed in time, while its neighbours are fine."""
-    stamps_ns = np.asarray(stamps_ns)
-    if len(stamps_ns) < 2:
-        return np.zeros(len(stamps_ns), dtype=bool)
-    return np.concatenate([[False], stamps_ns[1:] <= np.maximum.accumulate(stamps_ns)[:-1]])
 
 
 def interpolated_oxts(oxts: OxtsData, rtol: float = 1e-9) -> np.ndarray:

@@ -13,6 +13,7 @@ The bag (receive) time of every message equals its header stamp.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
@@ -25,7 +26,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from bevo_ros.io.ros_conversions import ns_to_seconds, quaternion_from_rpy, stamp_to_ns  # noqa: F401 - one place
+from bevo_ros.io.ros_conversions import ns_to_seconds, out_of_order, quaternion_from_rpy, stamp_to_ns  # noqa: F401 - one place
 from bevo_ros.io.static_tf import StaticTree
 
 PathLike = str | Path
@@ -105,8 +106,13 @@ def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_quaternion(q: Sequence[float]) -> np.ndarray:
-    """Quaternion ``(x, y, z, w)`` (normalised here) -> rotation ``(3, 3)``."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    """Quaternion ``(x, y, z, w)`` (normalised here) -> rotation ``(3, 3)``. ValueError for a zero or
+    non-finite one (no rotation)."""
+    q = np.asarray(q, dtype=np.float64)
+    norm = float(np.linalg.norm(q))
+    if not (math.isfinite(norm) and norm > 1e-9):
+        raise ValueError(f"quaternion {tuple(q.tolist())} is no rotation (zero or not finite)")
+    x, y, z, w = q / norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
@@ -782,9 +788,11 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
             rec.camera_info, rec.camera_info_topic = msg, topic
         elif topic == gt_odometry_topic:
             p = msg.pose.pose
-            T = np.eye(4)
-            T[:3, :3] = matrix_from_quaternion((p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
-            T[:3, 3] = (p.position.x, p.position.y, p.position.z)
+            T = np.full((4, 4), np.nan)  # a pose without a rotation: left out below
+            with contextlib.suppress(ValueError):
+                T[:3, :3] = matrix_from_quaternion((p.orientation.x, p.orientation.y, p.orientation.z,
+                                                    p.orientation.w))
+            T[:3, 3], T[3] = (p.position.x, p.position.y, p.position.z), (0.0, 0.0, 0.0, 1.0)
             gt_t.append(stamp_to_ns(msg.header.stamp))
             gt_T.append(T)
             rec.gt_frame_id, rec.gt_child_frame_id = msg.header.frame_id, msg.child_frame_id
@@ -797,18 +805,48 @@ def read_recording(bag_path: PathLike, imu_topic: str = IMU_TOPIC, image_topic: 
                 continue  # no attitude in this message
             q = msg.orientation
             att_t.append(stamp_to_ns(msg.header.stamp))
-            att.append(rpy_from_matrix(matrix_from_quaternion((q.x, q.y, q.z, q.w))))
+            try:
+                att.append(rpy_from_matrix(matrix_from_quaternion((q.x, q.y, q.z, q.w))))
+            except ValueError:
+                att.append((math.nan, math.nan, math.nan))  # left out below
 
-    rec.imu_stamps_ns = np.asarray(imu_t, dtype=np.int64)
-    rec.gyro = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
-    rec.accel = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
-    rec.frame_stamps_ns = np.asarray(frame_t, dtype=np.int64)
+    gyro_a, accel_a = (np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in (gyro, accel))
+    keep = _usable(path, imu_topic, imu_t, np.isfinite(gyro_a).all(1) & np.isfinite(accel_a).all(1))
+    rec.imu_stamps_ns, rec.gyro, rec.accel = np.asarray(imu_t, dtype=np.int64)[keep], gyro_a[keep], accel_a[keep]
+    rec.imu_frame_ids = [f for f, k in zip(rec.imu_frame_ids, keep) if k]
+    keep = _usable(path, image_topic, frame_t)
+    rec.frame_stamps_ns = np.asarray(frame_t, dtype=np.int64)[keep]
     if load_images:
-        rec.images = np.stack(images) if images else np.zeros((0, 0, 0), np.uint8)
+        rec.images = np.stack([im for im, k in zip(images, keep) if k]) if keep.any() else np.zeros((0, 0, 0), np.uint8)
     if gt_T:
-        rec.gt_stamps_ns, rec.gt_poses = np.asarray(gt_t, np.int64), np.stack(gt_T)
+        poses = np.stack(gt_T)
+        keep = _usable(path, gt_odometry_topic, gt_t, np.isfinite(poses).all(axis=(1, 2)))
+        if keep.any():
+            rec.gt_stamps_ns, rec.gt_poses = np.asarray(gt_t, np.int64)[keep], poses[keep]
     if att:
         a = np.asarray(att, dtype=np.float64)
-        rec.gt_att_stamps_ns = np.asarray(att_t, np.int64)
-        rec.gt_roll, rec.gt_pitch, rec.gt_yaw = a[:, 0], a[:, 1], a[:, 2]
+        keep = _usable(path, gt_imu_topic, att_t, np.isfinite(a).all(1))
+        if keep.any():
+            a = a[keep]
+            rec.gt_att_stamps_ns = np.asarray(att_t, np.int64)[keep]
+            rec.gt_roll, rec.gt_pitch, rec.gt_yaw = a[:, 0], a[:, 1], a[:, 2]
     return rec
+
+
+def _usable(path: Path, topic: str, stamps_ns: list[int], valid: np.ndarray | None = None) -> np.ndarray:
+    """``(N,)`` bool: the messages of ``topic`` to keep. Left out, with one warning that counts them:
+    those whose values are not ``valid`` (not finite, a zero quaternion) and those whose header stamp
+    is not after every earlier kept one (a duplicate, or a clock that stepped back: bevo_node drops
+    such a message too, counted in /diagnostics, so offline runs and training see what it sees)."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    keep = np.ones(len(stamps), dtype=bool) if valid is None else np.asarray(valid, dtype=bool).copy()
+    invalid = int((~keep).sum())
+    ordered = np.flatnonzero(keep)
+    keep[ordered[out_of_order(stamps[ordered])]] = False
+    disordered = int((~keep).sum()) - invalid
+    if invalid or disordered:
+        first = int(np.flatnonzero(~keep)[0])
+        warnings.warn(f"{path}: {topic}: {invalid + disordered} of {len(stamps)} messages left out ({invalid} with "
+                      f"values not finite or no rotation, {disordered} with a stamp not after an earlier one; the "
+                      f"first is message {first})", UserWarning, stacklevel=3)
+    return keep

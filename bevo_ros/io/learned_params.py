@@ -92,15 +92,17 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
     def pair(key: str, positive: bool = True, default: tuple[float, float] | None = None,
              limit: float = LIMITS["variance"]) -> tuple[float, float]:
         section = doc.get(key)
-        if section is None and default is not None:
+        if section is None and default is not None:  # absent, or an empty section (warned about below)
             return default
         if not isinstance(section, dict):
             raise ConfigError(f"learned-parameters file {path}: missing section '{key}' with 'pitch' and 'roll'")
         out = []
         for axis in ("pitch", "roll"):
             try:
+                if isinstance(section[axis], bool):  # YAML's true is no variance
+                    raise TypeError
                 v = float(section[axis])
-            except (KeyError, TypeError, ValueError):
+            except (KeyError, TypeError, ValueError, OverflowError):
                 raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' missing or not a number") from None
             if not (math.isfinite(v) and (v > 0 or not positive) and abs(v) <= limit):
                 raise ConfigError(f"learned-parameters file {path}: '{key}.{axis}' = {v} must be finite"
@@ -108,7 +110,7 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
             out.append(v)
         return out[0], out[1]
 
-    unknown = sorted(set(doc) - set(LEARNED_SECTIONS))
+    unknown = sorted(map(str, set(doc) - set(LEARNED_SECTIONS)))
     if unknown:  # a misspelt section would otherwise silently be its default (suspension_gradient: no lean)
         raise ConfigError(f"learned-parameters file {path}: unknown section(s) {', '.join(map(repr, unknown))} "
                           f"(known: {', '.join(LEARNED_SECTIONS)})")
@@ -127,7 +129,7 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
                               f"(known: {', '.join(VehicleNoise.LEARNED)})")
         try:  # a number as the other sections take it: YAML reads 1e-3 (no dot) as a string
             numbers[k] = float(v) if not isinstance(v, bool) else math.nan
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             numbers[k] = math.nan
         zero_ok = k in VehicleNoise.OFF_WHEN_ZERO
         if not (math.isfinite(numbers[k]) and (numbers[k] >= 0 if zero_ok else numbers[k] > 0)
@@ -144,7 +146,7 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
             v = section.get(key)
             try:
                 x = float(v) if not isinstance(v, bool) else math.nan
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 x = math.nan
             if not (math.isfinite(x) and 0.0 <= x <= 1.0):  # the parameters' range (ros/parameters.py)
                 raise ConfigError(f"learned-parameters file {path}: 'gyro_bias.{key}' = {v!r} must be a number in "
@@ -154,7 +156,7 @@ def load_learned_params(path: str | os.PathLike) -> LearnedParams:
     learned = LearnedParams(pair("process_noise_density"), pair("measurement_noise_variance"), info, numbers,
                             pair("suspension_gradients", positive=False, default=(0.0, 0.0),
                                  limit=LIMITS["suspension"]), gyro_bias)
-    if "suspension_gradients" not in doc:  # said once the file is known good (a bad one is refused alone)
+    if doc.get("suspension_gradients") is None:  # said once the file is known good (a bad one is refused alone)
         warnings.warn(f"learned-parameters file {path} has no 'suspension_gradients': fused mode then models no "
                       f"suspension lean (0, 0); params/learned_default.yaml holds the defaults", UserWarning,
                       stacklevel=2)

@@ -42,9 +42,12 @@ def load_map(path: str | os.PathLike) -> AerialMap:
     if missing:
         raise ConfigError(f"map file {path}: missing {', '.join(missing)}")
     try:
+        if isinstance(doc["resolution"], bool) or not isinstance(doc["origin"], (list, tuple)) or any(
+                isinstance(v, bool) for v in doc["origin"]):
+            raise TypeError
         resolution = float(doc["resolution"])
         origin = [float(v) for v in doc["origin"]]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ConfigError(f"map file {path}: resolution must be a number and origin [x, y, yaw]") from None
     if not (math.isfinite(resolution) and resolution > 0):
         raise ConfigError(f"map file {path}: resolution must be > 0, got {doc['resolution']!r}")

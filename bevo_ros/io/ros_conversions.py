@@ -47,6 +47,15 @@ def ns_to_seconds(ns: np.ndarray | Any) -> np.ndarray:
     return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
+def out_of_order(stamps_ns: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: stamps not after every stamp before them (a duplicate, or a clock that stepped
+    back): such a record cannot be placed in time, while its neighbours are fine."""
+    stamps_ns = np.asarray(stamps_ns)
+    if len(stamps_ns) < 2:
+        return np.zeros(len(stamps_ns), dtype=bool)
+    return np.concatenate([[False], stamps_ns[1:] <= np.maximum.accumulate(stamps_ns)[:-1]])
+
+
 def stamp_to_ns(stamp: Any) -> int:
     """``builtin_interfaces/Time``-like (``sec``, ``nanosec``; rclpy or rosbags) -> integer nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
