@@ -257,6 +257,23 @@ def test_existing_output_and_failed_overwrite_keep_the_old_bag(layout, tmp_path,
     assert convert("--odometry", layout / "odometry", "-o", out, "--overwrite", "--count", "3") == 0
     assert bag.bag_topics(out)[bag.IMAGE_TOPIC][1] == 3
 
+    # The last rename failing (a full disk, a permission) after the old bag was moved aside: the old bag is
+    # put back, not discarded with the partial (a read-only review)
+    before = sorted((p.name, p.stat().st_size) for p in out.iterdir())
+    real_replace = bag.os.replace
+
+    def fail_into_place(src, dst):
+        if Path(dst) == out and not str(src).endswith(".old"):
+            raise OSError("no space left on device")
+        real_replace(src, dst)
+
+    import unittest.mock
+
+    with unittest.mock.patch.object(bag.os, "replace", fail_into_place), pytest.raises(OSError, match="no space"):
+        with bag.BagWriter(out, overwrite=True) as w:
+            w.write_imu(1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))
+    assert sorted((p.name, p.stat().st_size) for p in out.iterdir()) == before and _no_partial(out)
+
 
 def _steady_clock(stamps_ns: np.ndarray) -> np.ndarray:
     """The line through ``(N,)`` stamps (ns): a triggered camera's clock, which synced OXTS records jitter about."""

@@ -464,6 +464,12 @@ class BagWriter:
                 raise FileExistsError(f"{self.path}: output appeared while writing (or is no bag); not replacing it")
             trash = self._tmpdir / (self.path.name + ".old")
             os.replace(self.path, trash)  # same filesystem: two renames, never a half bag at path
+            try:
+                os.replace(new, self.path)
+            except BaseException:  # the old bag back where it was before the partial is discarded
+                os.replace(trash, self.path)
+                raise
+            return
         os.replace(new, self.path)
 
     # writing --------------------------------------------------------------------------------
