@@ -155,6 +155,7 @@ class OdometrySettings:
     # Added to every IMU stamp to put it on the images' clock (s): an IMU whose clock runs ahead of
     # the camera's by d takes -d. A few ms matter (synthetic urban, 100 Hz IMU: 5.8 % per frame, at
     # 10 ms of offset 15 %): the attitude each image is projected with is the IMU's at its stamp.
+    # `bevo calibrate BAG --imu-time-offset` measures it.
     imu_time_offset: float = 0.0
 
 
