@@ -20,12 +20,19 @@ R_BASE_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # 
 
 
 def _angle(t: np.ndarray, steady: bool = False) -> np.ndarray:
-    """The base's rotation angles (rad, per axis) at ``t``: bumps in roll and pitch at 1.1-1.7 Hz, slow
-    turns in yaw; ``steady``: a constant turn only (nothing to time an offset by). ``(N,)`` -> ``(N, 3)``."""
+    """The base's rotation angles (rad, per axis) at ``t``: bumps in roll and pitch at 0.9-2.6 Hz, slow
+    turns in yaw, each a sum of sines at incommensurate frequencies (no period within the search: a
+    real road's motion does not repeat); ``steady``: a constant turn only (nothing to time an offset
+    by). ``(N,)`` -> ``(N, 3)``."""
     if steady:
         return np.stack([0 * t, 0 * t, 0.1 * t], axis=1)
-    return np.stack([0.004 * np.sin(2 * np.pi * 1.7 * t), 0.006 * np.sin(2 * np.pi * 1.1 * t + 1.0),
-                     0.3 * np.sin(2 * np.pi * 0.05 * t)], axis=1)
+
+    def sines(*terms: tuple[float, float, float]) -> np.ndarray:
+        return sum(a * np.sin(2 * np.pi * f * t + p) for a, f, p in terms)
+
+    return np.stack([sines((0.003, 1.7, 0.0), (0.002, 1.13 * math.sqrt(2), 0.4), (0.0015, 2.61, 2.0)),
+                     sines((0.004, 1.1, 1.0), (0.002, 0.9 * math.sqrt(3), 0.3), (0.001, 2.3 * math.pi / 3, 1.0)),
+                     sines((0.3, 0.05, 0.0), (0.1, 0.031 * math.sqrt(5), 1.0))], axis=1)
 
 
 def _rig(clock_ahead: float, imu_rate: float, sampling: str, bias=(0.0, 0.0, 0.0), steady: bool = False,
@@ -79,17 +86,27 @@ def test_a_drive_that_cannot_time_the_imu_is_refused():
 
 
 def test_a_wrong_rig_or_an_offset_past_the_search_is_refused():
-    """No confident wrong answer from a wrong rig: the camera's extrinsic rotation turned 180 deg about the
-    vertical (pitch and roll flipped) or the optical axes taken for the base's are refused with the reason;
-    clocks 0.5 s apart are found, 1.012 s apart (just past the +-1 s searched) are refused; an IMU gap leaves
-    the pairs around it out (counted) and the offset stands. (Further apart, a periodic drive like this one
-    can show a false minimum inside the search: 1.2 s apart reads +0.56 s, its residual 0.126 deg per axis
-    and pair against the true one's 0.028, which the command prints.)"""
+    """No silent wrong answer from a wrong rig: the optical axes taken for the base's and a gyro in deg/s
+    are refused with the reason, the camera turned 180 deg about the vertical in the extrinsics (pitch and
+    roll flipped) gets a note; the images' yaw at half the gyro's (cars in view) is
+    a note, not a refusal; clocks 0.5 s apart are found, 1.012 s apart (just past the +-1 s searched) are
+    refused; an IMU gap leaves the pairs around it out (counted) and the offset stands."""
     frames, index, rotations, imu_stamps, gyro = _rig(0.012, 100.0, "interval_mean", seconds=60.0)
-    turned = np.diag([-1.0, -1.0, 1.0]) @ R_BASE_CAM
-    for rig in (turned, np.eye(3)):
-        with pytest.raises(ValueError, match=r"the images turn -?[\d.]+ times as the gyro does"):
-            imu_time_offset(frames, index, rotations, imu_stamps, gyro, rig)
+    for rig, gyro_scale in ((np.eye(3), 1.0), (R_BASE_CAM, 180.0 / math.pi)):  # the last a gyro in deg/s
+        with pytest.raises(ValueError, match=r"the images turn -?[\d.]+ times as the gyro does .* mixed, flipped"):
+            imu_time_offset(frames, index, rotations, imu_stamps, gyro * gyro_scale, rig)
+    # The camera turned 180 deg about the vertical in the extrinsics (pitch and roll flipped): the bumps'
+    # oscillation matches half a period off (measured -0.28 s), not refused, but noted
+    turned = imu_time_offset(frames, index, rotations, imu_stamps, gyro, np.diag([-1.0, -1.0, 1.0]) @ R_BASE_CAM)
+    assert "wrong extrinsics" in turned.gain_note()
+    # Moving cars in view turn their features with them: the images' yaw 0.5 of the gyro's is a note, and
+    # the offset, timed by the rates' changes, stands
+    damped = rotations.copy()
+    damped[:, 1] *= 0.5  # the camera's y axis: the base's vertical
+    got = imu_time_offset(frames, index, damped, imu_stamps, gyro, R_BASE_CAM)
+    assert abs(got.offset + 0.012) < 3 * got.standard_error + 1e-4 and got.gains[1] == pytest.approx(0.5, abs=0.05)
+    assert "y 0.50 times as the gyro does" in got.gain_note()
+    assert imu_time_offset(frames, index, rotations, imu_stamps, gyro, R_BASE_CAM).gain_note() is None
     far = imu_time_offset(frames, index, rotations, imu_stamps + 0.5, gyro, R_BASE_CAM)
     assert abs(far.offset + 0.512) < 3 * far.standard_error + 1e-4
     with pytest.raises(ValueError, match="edge of the"):

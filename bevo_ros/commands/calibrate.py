@@ -34,10 +34,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import numpy as np
 
-from bevo_ros.commands import add_params_option, bag_errors, guarded, new_parser
+from bevo_ros.commands import add_params_option, bag_errors, guarded, new_parser, prog_name
 from bevo_ros.config import bev_spec, load_config, mounting_in_use
 from bevo_ros.datasets.rosbag import RigSettings, load_sequence
 from bevo_ros.core.geometry import mounting_for_extrinsics
@@ -155,4 +156,6 @@ def _imu_time_offset(seq, frames: str, config, imu_stamps: np.ndarray, gyro: np.
     apart = (result.offset - now) / result.standard_error
     print(f"    odometry.imu_time_offset: {result.offset:.4f}   # s, +- {result.standard_error * 1e3:.1f} ms "
           f"(the params' {now:.4f}: {'off by' if abs(apart) > 2 else 'within'} {abs(apart):.1f} standard errors)")
+    if (note := result.gain_note()) is not None:
+        print(f"{prog_name('calibrate_mounting')}: note: {note}", file=sys.stderr)
     return 0
