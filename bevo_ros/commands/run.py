@@ -96,7 +96,8 @@ def _run(args: argparse.Namespace) -> int:
     if (note := fast_camera_note(odo.frame_period, odo.min_frame_interval)) is not None:
         print(f"{prog_name('run_bag')}: note: {note}", file=sys.stderr)
     # The trajectory has a row per frame with odometry, not per image of the bag: the bag's images from
-    # --first-frame on, those refused before the engine counted them (a wrong size, a repeated stamp) included.
+    # --first-frame on, those refused before the engine counted them (a wrong size) included; an image
+    # whose stamp is not after an earlier one is left out by read_recording already (its warning).
     images = len(rec.frame_stamps_ns) - args.first_frame - c.skipped_frame_rate  # skipped on purpose: no fault
     if len(steps) < images:
         print(f"{prog_name('run_bag')}: warning: {images - len(steps)} of {images} frames gave no odometry (see the counts above): "

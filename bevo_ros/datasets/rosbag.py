@@ -368,6 +368,8 @@ def load_sequence(bag_path: PathLike, config: BevoConfig, require_gt: bool = Tru
     rec = bag.read_recording(bag_path, **rig.read_topics())
     if rec.images is None or len(rec.frame_stamps_ns) < 2:
         raise ValueError(f"{bag_path}: needs at least 2 images")
+    if len(rec.imu_stamps_ns) == 0:  # every message left out (read_recording warned why)
+        raise ValueError(f"{bag_path}: no usable IMU sample (each one not finite or out of order)")
     calib = calibration_for_recording(rec, config, rig)
     camera = camera_for_recording(rec, config, rig, calib)
     for problem in rig_disagreements(rec, config, rig, calib):  # as bevo run warns: training, calibration, ablation

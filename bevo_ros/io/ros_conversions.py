@@ -335,6 +335,7 @@ def heatmap_to_mono8(heat: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
 __all__ = [
     "IMAGE_ENCODINGS", "CV2_GRAY_ENCODINGS", "ImageConversionError", "compressed_to_gray", "stamp_to_sec", "stamp_to_ns", "ns_to_seconds", "sec_to_stamp",
+    "out_of_order",
     "imu_to_arrays", "image_to_gray", "gray_to_image_msg", "camera_info_intrinsics",
     "quaternion_from_rpy", "rpy_from_quaternion", "odometry_msg", "pose_stamped_from_odometry",
     "transform_from_odometry", "bev_to_mono8", "heatmap_to_mono8",

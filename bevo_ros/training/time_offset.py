@@ -33,16 +33,20 @@ GRID_STEP = 0.001  # s between the offsets tried around the coarse minimum, befo
 MIN_PAIRS = 20  # frame pairs with a rotation needed
 TRIM = 0.9  # the share of pairs (smallest residuals at each offset) the cost keeps
 MAX_STANDARD_ERROR = 0.005  # s: a drive that times the IMU worse than this is refused
-# The images' rotation against the gyro's, per camera axis (where the pairs give it to GAIN_STANDARD_ERROR):
-# outside GAIN_RANGE the axes are mixed, flipped or in other units (a wrong extrinsic rotation, IMU frame or
-# gyro unit) and the rig is refused; outside NORMAL_GAIN the result carries a note (moving cars in view turn
-# their features with them: 0.40-0.75 about the vertical on rendered drives with traffic, whose offsets
-# still came out within their standard errors; a flipped pitch and roll, the camera turned 180 deg in the
-# extrinsics, matched the bumps' oscillation half a period off on a test rig: gains 0.56 / 0.79).
+# The images' rotation against the gyro's, per base axis (where the pairs give it to GAIN_STANDARD_ERROR).
+# About the base's x and y (roll, pitch) it must lie within NORMAL_GAIN: a flipped or mixed axis (a wrong
+# extrinsic rotation or IMU frame) can match the bumps' oscillation half a period off (the camera turned
+# 180 deg in the extrinsics on a test rig: -0.28 s, gains 0.56 / 0.79). About the vertical, moving cars in
+# view turn their features with them (0.40-0.75 on rendered drives with traffic, whose offsets still came
+# out within their standard errors: the offset comes from the rates' changes, which a scale does not
+# move): outside GAIN_RANGE refused (or a gyro in other units), outside NORMAL_GAIN a note.
 GAIN_RANGE = (0.25, 4.0)
 NORMAL_GAIN = (0.8, 1.25)
 GAIN_STANDARD_ERROR = 0.05
-GAP_FACTOR = 2.0  # an IMU interval over this many times the median is a gap; pairs near one are left out
+# An IMU interval over GAP_FACTOR times the median and over MIN_GAP s is a gap (a sample spread over it):
+# pairs whose search window holds one are left out. Jittered stamps, a lost sample or two are no gap.
+GAP_FACTOR = 2.0
+MIN_GAP = 0.1
 
 
 class TimeOffset(NamedTuple):
@@ -55,19 +59,17 @@ class TimeOffset(NamedTuple):
     pairs: int  # pairs kept (the trimmed share of those with a rotation)
     pairs_skipped: int  # pairs without a rotation (too few tracks, standing still), without IMU around them
     # (or a gap in it), or trimmed
-    gains: tuple[float, float, float] = (math.nan, math.nan, math.nan)  # the images' rotation over the gyro's per
-    # camera axis (x, y, z), NaN where the pairs do not determine it
+    gains: tuple[float, float, float] = (math.nan, math.nan, math.nan)  # the images' rotation over the gyro's about
+    # the base's x, y and z (roll, pitch, yaw), NaN where the pairs do not determine it
 
     def gain_note(self) -> str | None:
         """A line on the axes whose images turned outside :data:`NORMAL_GAIN` times the gyro, or None."""
-        odd = [f"{'xyz'[a]} {g:.2f}" for a, g in enumerate(self.gains)
-               if math.isfinite(g) and not NORMAL_GAIN[0] <= g <= NORMAL_GAIN[1]]
-        if not odd:
+        g = self.gains[2]
+        if not math.isfinite(g) or NORMAL_GAIN[0] <= g <= NORMAL_GAIN[1]:
             return None
-        return (f"the images turn {', '.join(odd)} times as the gyro does about the camera's axes: moving cars in view "
-                "(their features turn with them: the offset comes from the rate's changes, which such a scale does not "
-                "move), or wrong extrinsics (a flipped axis can match the gyro half a suspension period off: check "
-                "them if no car was in view)")
+        return (f"about the vertical the images turn {g:.2f} times as the gyro does: moving cars in view (their "
+                "features turn with them; the offset comes from the rates' changes, which such a scale does not move), "
+                "or extrinsics a little off")
 
 
 def image_rotations(images, K) -> tuple[np.ndarray, np.ndarray]:
@@ -88,8 +90,8 @@ def image_rotations(images, K) -> tuple[np.ndarray, np.ndarray]:
     return np.array(index, dtype=np.int64), np.array(rotations, dtype=np.float64).reshape(-1, 3)
 
 
-def _rate_integral(stamps: np.ndarray, gyro: np.ndarray, sampling: str) -> tuple:
-    """The gyro's integral and rate as functions of time over ``stamps`` ``(N,)`` / ``gyro (N, 3)``:
+def _rate_integral(stamps: np.ndarray, gyro: np.ndarray, sampling: str):
+    """The gyro's integral as a function of time ``(M,) -> (M, 3)`` over ``stamps`` ``(N,)`` / ``gyro (N, 3)``:
     with ``"interval_mean"`` each sample is the mean rate since the previous one (the rate is
     piecewise constant), with ``"instantaneous"`` the rate at its stamp (piecewise linear)."""
     h = np.diff(stamps)
@@ -104,14 +106,7 @@ def _rate_integral(stamps: np.ndarray, gyro: np.ndarray, sampling: str) -> tuple
         slope = (gyro[i + 1] - gyro[i]) / h[i][:, None]
         return F[i] + gyro[i] * u + 0.5 * slope * u * u
 
-    def rate(t: np.ndarray) -> np.ndarray:
-        i = np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, len(stamps) - 2)
-        if sampling == "interval_mean":
-            return gyro[i + 1]
-        w = ((t - stamps[i]) / h[i])[:, None]
-        return gyro[i] + (gyro[i + 1] - gyro[i]) * w
-
-    return integral, rate
+    return integral
 
 
 def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, R_base_cam,
@@ -145,7 +140,7 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
     h = np.diff(ts)
     # Every offset tried stays within the IMU, and no gap in it (a late sample spread over the gap; the
     # engine restarts past filter.max_imu_gap) lies within the pair's widest window.
-    gap = h > GAP_FACTOR * np.median(h)
+    gap = h > max(GAP_FACTOR * float(np.median(h)), MIN_GAP)
     gap_start, gap_end = ts[:-1][gap], ts[1:][gap]  # sorted, disjoint
     overlapping = (np.searchsorted(gap_start, t1 + MAX_OFFSET, side="left")
                    - np.searchsorted(gap_end, t0 - MAX_OFFSET, side="right"))
@@ -157,7 +152,7 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
         raise ValueError(f"only {len(rot)} frame pairs with a rotation from the images and the IMU {MAX_OFFSET:g} s "
                          f"around them, without a gap (at least {MIN_PAIRS}: the car must move past textured "
                          "surroundings)")
-    integral, rate = _rate_integral(ts, w, sampling)
+    integral = _rate_integral(ts, w, sampling)
     dt = (t1 - t0)[:, None]
     keep = max(MIN_PAIRS, int(TRIM * len(rot)))
 
@@ -175,10 +170,14 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
 
     coarse = np.linspace(-MAX_OFFSET, MAX_OFFSET, int(round(2 * MAX_OFFSET / COARSE_STEP)) + 1)
     best = float(coarse[int(np.argmin([fit(t)[0] for t in coarse]))])
-    taus = np.clip(best + GRID_STEP * np.arange(-COARSE_STEP / GRID_STEP, COARSE_STEP / GRID_STEP + 0.5),
-                   -MAX_OFFSET, MAX_OFFSET)
-    costs = np.array([fit(t)[0] for t in taus])
-    j = int(np.argmin(costs))
+    fine = GRID_STEP * np.arange(-COARSE_STEP / GRID_STEP, COARSE_STEP / GRID_STEP + 0.5)
+    for _ in range(10):  # the fine grid follows its minimum off its edge (a cost rougher than the coarse steps)
+        taus = np.clip(best + fine, -MAX_OFFSET, MAX_OFFSET)
+        costs = np.array([fit(t)[0] for t in taus])
+        j = int(np.argmin(costs))
+        if 1 <= j <= len(taus) - 2 or abs(taus[j]) >= MAX_OFFSET - GRID_STEP / 2:
+            break
+        best = float(taus[j])
     if abs(taus[j]) >= MAX_OFFSET - GRID_STEP / 2 or not 1 <= j <= len(taus) - 2:
         # no minimum inside: the clocks are further apart, or the rig is wrong
         raise ValueError(f"the best offset lies at the edge of the +-{MAX_OFFSET:g} s searched: the clocks are further "
@@ -190,20 +189,29 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
     tau = float(taus[j] + np.clip(step, -GRID_STEP, GRID_STEP))
     cost, bias, kept, gyro_rot = fit(tau)
     sigma = math.sqrt(cost / max(1, 3 * len(kept) - 4))  # per axis; 3 bias terms and the offset fitted
-    # The images turn as the gyro says, axis by axis (GAIN_RANGE)
-    g, r = gyro_rot[kept], rot[kept]
+    # The images turn as the gyro says, about each of the base's axes (NORMAL_GAIN, GAIN_RANGE)
+    g, r = gyro_rot[kept] @ R_cb, rot[kept] @ R_cb  # into the base's axes
     power = (g**2).sum(axis=0)
     gains = [math.nan, math.nan, math.nan]
     for axis in range(3):
         if power[axis] > 0 and sigma / math.sqrt(power[axis]) <= GAIN_STANDARD_ERROR:
-            gains[axis] = float((r[:, axis] * g[:, axis]).sum() / power[axis])
-            if not GAIN_RANGE[0] <= gains[axis] <= GAIN_RANGE[1]:
-                raise ValueError(f"about the camera's {'xyz'[axis]} axis the images turn {gains[axis]:.2f} times as the "
-                                 f"gyro does (residual {math.degrees(sigma):.3f} deg per axis and pair): the axes are "
-                                 "mixed, flipped or in other units; check the camera's extrinsics, the IMU's frame "
-                                 "(/tf_static, camera.base_T_camera) and that the gyro is in rad/s")
-    # Gauss-Newton: d(gyro_rot)/d(tau) = the rate's change across the pair, in the camera's axes
-    slope = (rate(t1[kept] + tau) - rate(t0[kept] + tau)) @ R_cb.T
+            gains[axis] = gain = float((r[:, axis] * g[:, axis]).sum() / power[axis])
+            low, high = NORMAL_GAIN if axis < 2 else GAIN_RANGE
+            if not low <= gain <= high:
+                raise ValueError(f"about the base's {'xyz'[axis]} axis ({('roll', 'pitch', 'yaw')[axis]}) the images turn "
+                                 f"{gain:.2f} times as the gyro does (residual {math.degrees(sigma):.3f} deg per axis and "
+                                 "pair): check the camera's extrinsics, the IMU's frame (/tf_static, camera.base_T_camera) "
+                                 "and that the gyro is in rad/s" + (", or use a stretch without cars turning in view"
+                                                                   if axis == 2 else ""))
+    # Gauss-Newton: d(gyro_rot)/d(tau) = the rate's change across the pair, in the camera's axes. The rate
+    # over half a frame interval: a gyro's white noise changes it from sample to sample, which times nothing
+    # (a steady turn, 100 Hz of 0.005 rad/s noise: +-4 ms read from the samples' noise, offsets at random).
+    half = 0.25 * float(np.median(dt))
+
+    def smooth_rate(t: np.ndarray) -> np.ndarray:
+        return (integral(t + half) - integral(t - half)) / (2 * half)
+
+    slope = (smooth_rate(t1[kept] + tau) - smooth_rate(t0[kept] + tau)) @ R_cb.T
     information = float((slope**2).sum())
     se = sigma / math.sqrt(information) if information > 0 else math.inf
     if not se <= MAX_STANDARD_ERROR:
