@@ -24,7 +24,7 @@ from typing import Iterable
 
 import numpy as np
 
-from bevo_ros.io.ros_conversions import ns_to_seconds, out_of_order  # noqa: F401 - kitti.out_of_order
+from bevo_ros.io.ros_conversions import ns_to_seconds, out_of_order
 
 PathLike = str | Path
 

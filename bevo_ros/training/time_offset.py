@@ -1,12 +1,13 @@
 """The IMU's clock against the camera's from a drive: ``bevo calibrate --imu-time-offset``.
 
 Each image is projected at the IMU's attitude at its stamp, so a few milliseconds between the two
-clocks show (rendered ``urban``, 100 Hz IMU: 4.9 % per frame aligned, 17.4 % with the IMU 12 ms ahead). Between two frames the camera turns by what the gyro integrates over the same interval; with
+clocks show (rendered ``urban``, 100 Hz IMU: 4.9 % per frame aligned, 17.4 % with the IMU 12 ms
+ahead). Between two frames the camera turns by what the gyro integrates over the same interval; with
 the IMU's stamps off by ``tau`` the gyro's integral over ``[t0 + tau, t1 + tau]`` matches instead.
 The images give that rotation without the IMU: per frame pair, the relative pose from their epipolar
 geometry (:func:`~bevo_ros.training.travel_direction.relative_pose`, OpenCV). The offset is the
-``tau`` at which the gyro's integrals (rotated into the camera's axes) best match the images'
-rotations, a constant gyro bias fitted along, the worst pairs (a moving car's matches) trimmed.
+``tau`` at which the gyro's integrals best match the images' rotations (compared in the base's
+axes), a constant gyro bias fitted along, the worst pairs (a moving car's matches) trimmed.
 
 What times it is the change of the rate across a frame interval (``integral over [t0 + tau, t1 + tau]``
 moves by ``tau (w(t1) - w(t0))``): a drive through bends and over bumps, not a straight smooth road.
@@ -147,7 +148,8 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
     clear = overlapping <= 0
     inside = (t0 - MAX_OFFSET >= ts[0]) & (t1 + MAX_OFFSET <= ts[-1]) & clear
     skipped = len(fs) - 1 - int(inside.sum())
-    t0, t1, rot = t0[inside], t1[inside], rot[inside]
+    t0, t1 = t0[inside], t1[inside]
+    rot = rot[inside] @ R_cb  # the images' rotations in the base's axes, the gyro's: compared there
     if len(rot) < MIN_PAIRS:
         raise ValueError(f"only {len(rot)} frame pairs with a rotation from the images and the IMU {MAX_OFFSET:g} s "
                          f"around them, without a gap (at least {MIN_PAIRS}: the car must move past textured "
@@ -157,9 +159,9 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
     keep = max(MIN_PAIRS, int(TRIM * len(rot)))
 
     def fit(tau: float) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        """Trimmed cost at ``tau``, the bias (camera axes), the kept pairs and the gyro's rotations less
-        the bias (camera axes, all pairs)."""
-        gyro_rot = (integral(t1 + tau) - integral(t0 + tau)) @ R_cb.T
+        """Trimmed cost at ``tau``, the gyro's bias, the kept pairs and the gyro's rotations less the bias
+        (all pairs; the base's axes)."""
+        gyro_rot = integral(t1 + tau) - integral(t0 + tau)
         diff = gyro_rot - rot  # the gyro's bias integrates into it
         kept = np.arange(len(rot))
         for _ in range(2):  # the bias from the kept pairs, then the pairs from the bias
@@ -190,7 +192,7 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
     cost, bias, kept, gyro_rot = fit(tau)
     sigma = math.sqrt(cost / max(1, 3 * len(kept) - 4))  # per axis; 3 bias terms and the offset fitted
     # The images turn as the gyro says, about each of the base's axes (NORMAL_GAIN, GAIN_RANGE)
-    g, r = gyro_rot[kept] @ R_cb, rot[kept] @ R_cb  # into the base's axes
+    g, r = gyro_rot[kept], rot[kept]
     power = (g**2).sum(axis=0)
     gains = [math.nan, math.nan, math.nan]
     for axis in range(3):
@@ -198,12 +200,12 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
             gains[axis] = gain = float((r[:, axis] * g[:, axis]).sum() / power[axis])
             low, high = NORMAL_GAIN if axis < 2 else GAIN_RANGE
             if not low <= gain <= high:
-                raise ValueError(f"about the base's {'xyz'[axis]} axis ({('roll', 'pitch', 'yaw')[axis]}) the images turn "
-                                 f"{gain:.2f} times as the gyro does (residual {math.degrees(sigma):.3f} deg per axis and "
-                                 "pair): check the camera's extrinsics, the IMU's frame (/tf_static, camera.base_T_camera) "
-                                 "and that the gyro is in rad/s" + (", or use a stretch without cars turning in view"
-                                                                   if axis == 2 else ""))
-    # Gauss-Newton: d(gyro_rot)/d(tau) = the rate's change across the pair, in the camera's axes. The rate
+                raise ValueError(
+                    f"about the base's {'xyz'[axis]} axis ({('roll', 'pitch', 'yaw')[axis]}) the images turn "
+                    f"{gain:.2f} times as the gyro does (residual {math.degrees(sigma):.3f} deg per axis and pair): "
+                    "check the camera's extrinsics, the IMU's frame (/tf_static, camera.base_T_camera) and that the "
+                    "gyro is in rad/s" + (", or use a stretch without cars turning in view" if axis == 2 else ""))
+    # Gauss-Newton: d(gyro_rot)/d(tau) = the rate's change across the pair. The rate
     # over half a frame interval: a gyro's white noise changes it from sample to sample, which times nothing
     # (a steady turn, 100 Hz of 0.005 rad/s noise: +-4 ms read from the samples' noise, offsets at random).
     half = 0.25 * float(np.median(dt))
@@ -211,14 +213,14 @@ def imu_time_offset(frame_stamps, rotations_index, rotations, imu_stamps, gyro, 
     def smooth_rate(t: np.ndarray) -> np.ndarray:
         return (integral(t + half) - integral(t - half)) / (2 * half)
 
-    slope = (smooth_rate(t1[kept] + tau) - smooth_rate(t0[kept] + tau)) @ R_cb.T
+    slope = smooth_rate(t1[kept] + tau) - smooth_rate(t0[kept] + tau)
     information = float((slope**2).sum())
     se = sigma / math.sqrt(information) if information > 0 else math.inf
     if not se <= MAX_STANDARD_ERROR:
-        raise ValueError(f"the drive times the IMU only to +-{se * 1e3:.1f} ms (at most {MAX_STANDARD_ERROR * 1e3:g}; the "
-                         f"gyro matches the images to {math.degrees(sigma):.3f} deg per axis and pair): too little change "
-                         "of the rotation rate between frames; drive through bends and over bumps")
-    return TimeOffset(-tau, se, sigma, tuple(float(b) for b in R_cb.T @ bias), len(kept), skipped + len(rot) - len(kept),
+        raise ValueError(f"the drive times the IMU only to +-{se * 1e3:.1f} ms (at most {MAX_STANDARD_ERROR * 1e3:g}; "
+                         f"the gyro matches the images to {math.degrees(sigma):.3f} deg per axis and pair): too little "
+                         "change of the rotation rate between frames; drive through bends and over bumps")
+    return TimeOffset(-tau, se, sigma, tuple(float(b) for b in bias), len(kept), skipped + len(rot) - len(kept),
                       tuple(gains))
 
 
@@ -234,7 +236,8 @@ def _check_inputs(fs: np.ndarray, ts: np.ndarray, w: np.ndarray, idx: np.ndarray
     if R_cb.shape != (3, 3) or not np.all(np.isfinite(R_cb)):
         raise ValueError(f"R_base_cam must be a finite (3, 3) rotation, got {R_cb.shape}")
     if rot.ndim != 2 or rot.shape[1:] != (3,) or idx.shape != (len(rot),) or not np.all(np.isfinite(rot)):
-        raise ValueError(f"the rotations must be (P, 3) finite with one pair index each, got {rot.shape} and {idx.shape}")
+        raise ValueError(f"the rotations must be (P, 3) finite with one pair index each, got {rot.shape} and "
+                         f"{idx.shape}")
     if len(idx) and (not np.issubdtype(idx.dtype, np.integer) or idx.min() < 0 or idx.max() >= len(fs) - 1):
         raise ValueError(f"the pair indices must be integers within 0..{len(fs) - 2} (a pair's first frame)")
 
