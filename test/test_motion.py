@@ -15,6 +15,7 @@ from bevo_ros.core.motion import (
     motion_jacobian,
     pitch_scale_sensitivity,
     registration_from_vehicle_motion,
+    registration_shift_floats,
     roll_yaw_sensitivity,
     vehicle_motion_from_registration,
 )
@@ -45,6 +46,15 @@ def test_round_trip():
     one_px = torch.tensor([[SPEC.metres_per_pixel, 0.0, 0.0]], dtype=torch.float64)
     a, s = registration_from_vehicle_motion(one_px, SPEC)
     assert torch.allclose(s, torch.tensor([[1.0, 0.0]], dtype=torch.float64)) and float(a) == 0.0
+
+
+def test_registration_shift_floats_equals_the_tensor_form():
+    """The engine's per-frame prior in floats is registration_from_vehicle_motion's shift."""
+    g = np.random.default_rng(4)
+    for dx, dy, dyaw in [(0.0, 0.0, 0.0), (1.3, -0.02, 0.01), (-0.4, 0.1, -0.2)] + list(g.normal(0, 1, (20, 3))):
+        _, shift = registration_from_vehicle_motion(torch.tensor([[dx, dy, dyaw]], dtype=torch.float64), SPEC)
+        got = registration_shift_floats(float(dx), float(dy), float(dyaw), SPEC)
+        np.testing.assert_allclose(got, shift[0].tolist(), rtol=0, atol=1e-10)
 
 
 def test_pure_yaw_shifts_the_bev_sideways():

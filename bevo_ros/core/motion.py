@@ -16,6 +16,8 @@ of the vehicle also shows up as a sideways shift of the BEV; ``C - R(dyaw) C`` a
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
 from .device import constant_cache
@@ -90,6 +92,15 @@ def registration_from_vehicle_motion(motion: Tensor, spec: BevSpec) -> tuple[Ten
     C = _centre(spec, motion)
     shift = (motion[:, :2] - C + _rotate(dyaw, C)) / spec.metres_per_pixel
     return -dyaw, shift
+
+
+def registration_shift_floats(dx: float, dy: float, dyaw: float, spec: BevSpec) -> tuple[float, float]:
+    """:func:`registration_from_vehicle_motion`'s shift ``(d_row, d_col)`` (px) of one motion, in
+    Python floats (the engine's per-frame prior: one motion, where tensor ops cost tens of us)."""
+    cx, cy = spec.centre
+    c, s = math.cos(dyaw), math.sin(dyaw)
+    mpp = spec.metres_per_pixel
+    return (dx - cx + (c * cx - s * cy)) / mpp, (dy - cy + (s * cx + c * cy)) / mpp
 
 
 def motion_jacobian(angle: Tensor, spec: BevSpec) -> Tensor:
@@ -175,6 +186,7 @@ __all__ = [
     "roll_yaw_sensitivity",
     "vehicle_motion_from_registration",
     "registration_from_vehicle_motion",
+    "registration_shift_floats",
     "motion_jacobian",
     "motion_covariance_from_registration",
 ]

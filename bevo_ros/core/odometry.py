@@ -24,7 +24,7 @@ from .dukf import DUKF, steady_state_variance
 from .frame_clock import FrameClock
 from .geometry import BevSpec, CameraModel, mounting_for_extrinsics
 from .gyro_bias import GyroBiasFilter
-from .motion import pitch_change_shift, pitch_scale_sensitivity, registration_from_vehicle_motion, roll_yaw_sensitivity
+from .motion import pitch_change_shift, pitch_scale_sensitivity, registration_shift_floats, roll_yaw_sensitivity
 from .phase_correlation import DpcConfig, InvalidBevError, MaskWeight
 from .trajectory import PlanarTrajectory, check_pose
 from .rate_integration import GYRO_SAMPLING, interval_rate
@@ -1030,9 +1030,7 @@ class BevoOdometry:
             predicted = self.vehicle.speed_update(predicted, *outside)
         # The BEV shift (px) of no motion of the base over this frame: the pitch-change shift and the
         # turn about the BEV's centre. A base motion (dx, dy) adds (dx, dy) / mpp to it (core/motion).
-        _, origin = registration_from_vehicle_motion(
-            torch.tensor([[pitch_shift, 0.0, dyaw]], dtype=torch.float64), self.spec)
-        row0, col0 = float(origin[0, 0]), float(origin[0, 1])
+        row0, col0 = registration_shift_floats(pitch_shift, 0.0, dyaw, self.spec)
         mpp = self.spec.metres_per_pixel
         prior = self._shift_prior(predicted, dt, dyaw, row0, col0, pull)
         direction = self._direction if self.direction_lock else 0

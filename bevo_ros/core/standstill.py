@@ -347,4 +347,9 @@ class StandstillDetector:
         if not self.enabled:
             return
         small = self._curr[1] if self._curr is not None and self._curr[0] is image else None
-        self._prev, self._curr = (image.clone(), small), None
+        kept = None if self._prev is None else self._prev[0]
+        if kept is not None and kept is not image and kept.shape == image.shape and kept.dtype == image.dtype:
+            kept.copy_(image)  # the previous copy's memory again: a fresh one each frame costs page faults
+        else:
+            kept = image.clone()
+        self._prev, self._curr = (kept, small), None
