@@ -178,6 +178,19 @@ def test_missing_directory(tmp_path, capsys):
     (tmp_path / "dataset" / "sequences" / "06" / "image_0").mkdir(parents=True)
     _expect_error(capsys, ["--odometry", tmp_path / "dataset" / "sequences" / "06", "-o", tmp_path / "o"],
                   "--odometry takes the folder that holds sequences/")
+    # sequence 03's raw drive was never among the raw downloads: the message says so, other sequences' do not
+    for seq, note in (("03", True), ("04", False)):
+        images = tmp_path / "dataset" / "sequences" / seq / "image_0"
+        images.mkdir(parents=True)
+        cv2.imwrite(str(images / "000000.png"), np.zeros((4, 4), np.uint8))
+        (images.parent / "calib.txt").write_text("P0: 1 0 2 0 0 1 2 0 0 0 1 0\n")
+        args = ["--odometry", tmp_path / "dataset", "--sequence", seq, "-o", tmp_path / "o"]
+        if note:
+            _expect_error(capsys, args, "no OXTS directory for raw drive 2011_09_26_drive_0067",
+                          "not among KITTI's raw downloads")
+        else:
+            err = _expect_error(capsys, args, "no OXTS directory for raw drive 2011_09_30_drive_0016")
+            assert "raw downloads" not in err
     assert not (tmp_path / "o").exists()
 
 

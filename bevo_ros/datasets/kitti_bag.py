@@ -95,8 +95,11 @@ def _find_oxts(opts: ConversionOptions, date: str, drive: str, odometry_root: Pa
         tried.append(str(cand))
         if cand.is_dir():
             return cand
+    # Odometry sequence 03's raw drive is not among the raw downloads: a user looks for it in vain.
+    unpublished = (" This raw drive (odometry sequence 03) is not among KITTI's raw downloads: the sequence has no IMU"
+                   if drive == kitti.ODOMETRY_TO_RAW["03"][0] else "")
     raise ConversionError(f"no OXTS directory for raw drive {drive}; looked in: {', '.join(tried)} "
-                    "(give --raw-root or --oxts)")
+                          f"(give --raw-root or --oxts).{unpublished}")
 
 
 def _raw_calib_dir(opts: ConversionOptions, near: Path, date: str, intrinsics: bool = False) -> Path:
