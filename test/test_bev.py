@@ -383,3 +383,36 @@ def test_extrinsics_at_the_first_image_move_the_dukf_start():
               "deg off the engine started with them")
         assert abs(dukf[0]) < dukf_tol and np.abs(road).max() < 0.005
         assert abs(math.degrees(moved.mounting_attitude[0])) < 1e-6
+
+
+def test_uint8_projection_converts_only_the_rows_it_samples_bit_for_bit():
+    """Outside autograd a uint8 image is converted to floats only over the rows the samples'
+    bilinear footprints reach, into a per-thread buffer (core.bev._as_float): the BEV and mask are
+    bit for bit those of converting the whole image (the path autograd takes), frame after frame
+    with the buffer's other rows holding earlier frames, at attitudes that move the rows sampled."""
+    from bevo_ros.core import bev as bev_module
+
+    cam = syn.kitti_like_camera(dtype=torch.float32)
+    g = torch.Generator().manual_seed(5)
+    rows = []
+    real = bev_module._as_float
+
+    def spy(image, grid, dtype):
+        out = real(image, grid, dtype)
+        if out.data_ptr() != image.data_ptr() and not torch.equal(out, image.to(dtype)):
+            rows.append(int((out != image.to(dtype)).any(dim=-1).sum()))  # rows left stale
+        return out
+
+    bev_module._as_float = spy
+    try:
+        for pitch_deg, roll_deg in [(0.0, 0.0), (1.5, -2.0), (-3.0, 4.0), (25.0, 0.0), (0.5, 0.5)]:
+            img8 = torch.randint(0, 256, (1, 1, cam.height_px, cam.width), generator=g, dtype=torch.uint8)
+            p, r = torch.tensor([math.radians(pitch_deg)]), torch.tensor([math.radians(roll_deg)])
+            with torch.inference_mode():
+                b8, m8 = project_to_bev(img8, cam, p, r, SPEC)
+            whole, mw = project_to_bev(img8, cam, p.clone().requires_grad_(), r, SPEC)  # autograd: the whole image
+            assert torch.equal(m8, mw) and torch.equal(b8, whole.detach()), (pitch_deg, roll_deg)
+    finally:
+        bev_module._as_float = real
+    print(f"\nrows of the buffer not converted in each frame: {rows}")
+    assert len(rows) == 5 and min(rows) > 0.4 * cam.height_px  # the buffer was used, most rows not converted
