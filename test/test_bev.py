@@ -416,3 +416,8 @@ def test_uint8_projection_converts_only_the_rows_it_samples_bit_for_bit():
         bev_module._as_float = real
     print(f"\nrows of the buffer not converted in each frame: {rows}")
     assert len(rows) == 5 and min(rows) > 0.4 * cam.height_px  # the buffer was used, most rows not converted
+    # a batch (offline) is converted whole: no buffer of its size stays held
+    batch = torch.randint(0, 256, (2, 1, cam.height_px, cam.width), generator=g, dtype=torch.uint8)
+    with torch.inference_mode():
+        project_to_bev(batch, cam, torch.zeros(2), torch.zeros(2), SPEC)
+    assert all(key[0][0] == 1 for key in bev_module._buffers.images)

@@ -147,9 +147,10 @@ def _as_float(image: Tensor, g: Tensor, dtype: torch.dtype) -> Tensor:
     spans ~a third of its rows. Outside autograd and ``torch.compile`` only the rows that the samples'
     bilinear footprints reach are converted, into a buffer kept per thread, shape and dtype; its other
     rows hold earlier frames' pixels, which no sample reads. Bit for bit what ``image.to(dtype)``
-    gives the samples: the same coordinates, the same pixel values."""
-    if g.requires_grad or torch.compiler.is_compiling():  # a backward pass would read the buffer later
-        return image.to(dtype)
+    gives the samples: the same coordinates, the same pixel values. A batch of more than one image
+    (offline, batched) is converted whole, as before: its buffer would stay held after the batch."""
+    if g.requires_grad or torch.compiler.is_compiling() or image.shape[0] != 1:
+        return image.to(dtype)  # (autograd: a backward pass would read the buffer after it changed)
     H = image.shape[-2]
     lo, hi = (float(v) for v in torch.aminmax(g[:, 1].detach()))
     # grid_sample (align_corners=False) reads rows floor(v) and floor(v) + 1 of v = ((g + 1) H - 1) / 2
