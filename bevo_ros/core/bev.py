@@ -165,7 +165,8 @@ def _as_float(image: Tensor, g: Tensor, dtype: torch.dtype) -> Tensor:
     buffer = cache.get(key)
     if buffer is None:
         cache.clear()  # one camera at a time: a new size replaces the old buffer
-        buffer = cache[key] = torch.zeros(image.shape, dtype=dtype, device=image.device)
+        with torch.inference_mode(False):  # a normal tensor: written in and outside inference mode alike
+            buffer = cache[key] = torch.zeros(image.shape, dtype=dtype, device=image.device)
     if r1 > r0:
         buffer[..., r0:r1, :].copy_(image[..., r0:r1, :])
     return buffer
