@@ -154,9 +154,10 @@ def _as_float(image: Tensor, g: Tensor, dtype: torch.dtype) -> Tensor:
     H = image.shape[-2]
     lo, hi = (float(v) for v in torch.aminmax(g[:, 1].detach()))
     # grid_sample (align_corners=False) reads rows floor(v) and floor(v) + 1 of v = ((g + 1) H - 1) / 2
-    r0 = max(0, math.floor(((lo + 1.0) * H - 1.0) / 2.0) - 1)
-    r1 = min(H, math.floor(((hi + 1.0) * H - 1.0) / 2.0) + 3)
-    if not (math.isfinite(lo) and math.isfinite(hi)):
+    if math.isfinite(lo) and math.isfinite(hi):
+        r0 = max(0, math.floor(((lo + 1.0) * H - 1.0) / 2.0) - 1)
+        r1 = min(H, math.floor(((hi + 1.0) * H - 1.0) / 2.0) + 3)
+    else:  # (not for a valid attitude: the grid is finite by construction)
         r0, r1 = 0, H
     cache = getattr(_buffers, "images", None)
     if cache is None:
@@ -164,7 +165,8 @@ def _as_float(image: Tensor, g: Tensor, dtype: torch.dtype) -> Tensor:
     key = (tuple(image.shape), dtype, image.device)
     buffer = cache.get(key)
     if buffer is None:
-        cache.clear()  # one camera at a time: a new size replaces the old buffer
+        if len(cache) >= 4:  # a few cameras per thread (the odometry and a localiser side by side)
+            del cache[next(iter(cache))]
         with torch.inference_mode(False):  # a normal tensor: written in and outside inference mode alike
             buffer = cache[key] = torch.zeros(image.shape, dtype=dtype, device=image.device)
     if r1 > r0:
