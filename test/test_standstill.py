@@ -170,6 +170,31 @@ def test_detector_copies_the_previous_image_and_skips_repeated_frames(scene):
     assert det.measure(buf) is None  # nothing remembered
 
 
+def test_the_remembered_copy_is_reused_and_stays_a_copy(scene):
+    """Frame after frame the previous image goes into the previous copy's memory (no fresh clone):
+    still a copy of a buffer the caller refills, whether the engine runs in inference mode (it does)
+    or a tool calls it outside it afterwards."""
+    cam, d, f, _ = scene
+    det = StandstillDetector(cam, (0.0, 0.0), 0.1)
+    x, y, yaw = d.poses_xy_yaw[5]
+    views = [torch.as_tensor(render_view(d.ground, cam, (x + s * math.cos(yaw), y + s * math.sin(yaw), yaw),
+                                         (0.0, 0.0), noise_seed=k)) for k, s in enumerate((0.0, 0.03, 0.06))]
+    buf = views[0].clone()
+    with torch.inference_mode():
+        det.remember(buf)
+    kept = det._prev[0]
+    assert kept.data_ptr() != buf.data_ptr() and not kept.is_inference()
+    buf.copy_(views[1])
+    det.remember(buf)  # outside inference mode now: the same memory, written again
+    assert det._prev[0] is kept and torch.equal(kept, views[1])
+    buf.copy_(views[2])
+    with torch.inference_mode():
+        m = det.measure(buf)
+        det.remember(buf)
+    assert m.forward == pytest.approx(0.03, abs=0.006)  # views[1] -> views[2], not the refilled buffer against itself
+    assert det._prev[0] is kept and torch.equal(kept, views[2])
+
+
 def test_no_texture_is_no_standstill(scene):
     """Without road texture the images cannot tell 1 cm from 10 cm: flat grey under sensor noise,
     and a night road whose texture is 20x weaker than its noise, moving 5 cm, are not at rest (the

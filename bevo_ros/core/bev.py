@@ -148,8 +148,9 @@ def _as_float(image: Tensor, g: Tensor, dtype: torch.dtype) -> Tensor:
     bilinear footprints reach are converted, into a buffer kept per thread, shape and dtype; its other
     rows hold earlier frames' pixels, which no sample reads. Bit for bit what ``image.to(dtype)``
     gives the samples: the same coordinates, the same pixel values. A batch of more than one image
-    (offline, batched) is converted whole, as before: its buffer would stay held after the batch."""
-    if g.requires_grad or torch.compiler.is_compiling() or image.shape[0] != 1:
+    (offline, batched) is converted whole, as before: its buffer would stay held after the batch; so
+    is an image on a GPU, where converting it is cheap and reading the rows' range would sync twice."""
+    if g.requires_grad or torch.compiler.is_compiling() or image.shape[0] != 1 or image.device.type != "cpu":
         return image.to(dtype)  # (autograd: a backward pass would read the buffer after it changed)
     H = image.shape[-2]
     lo, hi = (float(v) for v in torch.aminmax(g[:, 1].detach()))

@@ -348,8 +348,10 @@ class StandstillDetector:
             return
         small = self._curr[1] if self._curr is not None and self._curr[0] is image else None
         kept = None if self._prev is None else self._prev[0]
-        if kept is not None and kept is not image and kept.shape == image.shape and kept.dtype == image.dtype:
+        if (kept is not None and kept is not image and kept.shape == image.shape and kept.dtype == image.dtype
+                and kept.device == image.device):
             kept.copy_(image)  # the previous copy's memory again: a fresh one each frame costs page faults
         else:
-            kept = image.clone()
+            with torch.inference_mode(False):  # a normal tensor: written in and outside inference mode alike
+                kept = image.clone()
         self._prev, self._curr = (kept, small), None
