@@ -512,14 +512,16 @@ def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(t
     with_gt = write_drive_bag(drive, tmp_path / "gt", wheel_odometry_topic="/wheel/odometry")
     seq = load_sequence(with_gt, config, rig=rig)
     by_gt = reference_from_ground_truth(seq)
-    by_speed = reference_from_speed(seq, *read_speed(with_gt, "/wheel/odometry"))
+    ts, vs, signed = read_speed(with_gt, "/wheel/odometry")
+    assert signed  # the wheel odometry's twist is in base_link
+    by_speed = reference_from_speed(seq, ts, vs)
     assert by_speed[0] == pytest.approx(by_gt[0], rel=2e-3) and abs(by_speed[1] - by_gt[1]) < math.radians(0.05)
     pitch, roll = calibrate(seq, BevSpec(), reference=by_speed)
     assert abs(math.degrees(pitch) - 1.0) < 0.15 and abs(math.degrees(roll)) < 0.5
     long_wheel = write_drive_bag(drive, tmp_path / "long", wheel_odometry_topic="/wheel/odometry",
                                  wheel_speed_scale=1.02)
     long_pitch, _ = calibrate(seq, BevSpec(), reference=reference_from_speed(seq, *read_speed(long_wheel,
-                                                                                              "/wheel/odometry")))
+                                                                                              "/wheel/odometry")[:2]))
     with capsys.disabled():
         print(f"\nby the wheel speed and the gyro: {by_speed[0]:.3f} m (truth {by_gt[0]:.3f}), yaw "
               f"{math.degrees(by_speed[1]):+.3f} deg (truth {math.degrees(by_gt[1]):+.3f}); pitch {math.degrees(pitch):+.3f} "
@@ -548,7 +550,6 @@ def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(t
     with pytest.raises(ValueError, match=r"speed has a gap of 2\.\d+ s"):
         reference_from_speed(seq, np.array([t[0] - 1, t[0] + 0.1, t[0] + 2.2, t[-1] + 1]), np.full(4, 9.0))
     # a speed at 1 Hz (a GNSS receiver's) on this steady stretch: the same distance to 1 %
-    ts, vs = read_speed(with_gt, "/wheel/odometry")
     sparse = np.concatenate([np.arange(ts[0], ts[-1], 1.0), [ts[-1]]])
     assert reference_from_speed(seq, sparse, np.interp(sparse, ts, vs)).distance == pytest.approx(by_gt[0], rel=0.01)
 

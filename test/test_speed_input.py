@@ -118,3 +118,41 @@ def test_bevo_run_fuses_a_speed_topic(drive, tmp_path, capsys):
     assert run.main([str(exact), "--out", str(tmp_path / "x"), "--params", str(SYNTH_PARAMS), "-q",
                      "--speed-topic", "/imu/data"]) == 2
     assert "speed_topic /imu/data is not in the bag as one of" in capsys.readouterr().err
+
+
+def test_read_speed_reads_a_bag_as_the_node_does_and_a_reversing_stretch_counts_back(tmp_path):
+    """``bevo calibrate --speed-topic`` reads a bag's speeds with the node's rule: in base_frame signed,
+    else the horizontal speed, unsigned (and the command says so). On the parking drive's reversing stretch the
+    signed wheel speed gives the ground truth's distance (negative), the distance the calibration matches
+    the BEV's to; read unsigned, as before, it was the opposite one."""
+    from bevo_ros.datasets.rosbag import RigSettings, load_sequence
+    from bevo_ros.config import load_config
+    from bevo_ros.training.mounting import reference_from_ground_truth, reference_from_speed
+
+    path = tmp_path / "speeds"
+    with bag.BagWriter(path) as w:
+        for k, v in enumerate((1.0, 0.0, -1.5)):
+            w.write("/wheel", bag.ODOMETRY_MSG, bag.odometry_message(
+                1.0 + k, np.eye(4), "odom", "base_link", twist=(v, 0.2, 0, 0, 0, 0)), 1.0 + k)
+            w.write("/gnss", bag.TWIST_STAMPED_MSG, bag.twist_stamped_message(1.0 + k, (3.0 * v, 4.0, 0.0), "enu"),
+                    1.0 + k)
+        w.write("/bad", bag.TWIST_STAMPED_MSG, bag.twist_stamped_message(1.0, (math.nan, 0.0, 0.0), "base_link"), 1.0)
+    t, v, signed = bag.read_speed(path, "/wheel")
+    assert signed and t.tolist() == [1.0, 2.0, 3.0] and v.tolist() == [1.0, 0.0, -1.5]
+    t, v, signed = bag.read_speed(path, "/gnss")
+    assert not signed and v == pytest.approx([5.0, 4.0, math.hypot(4.5, 4.0)], abs=1e-12)
+    t, v, signed = bag.read_speed(path, "/wheel", base_frame="vehicle")  # another base: not its frame
+    assert not signed and v == pytest.approx([math.hypot(1.0, 0.2), 0.2, math.hypot(1.5, 0.2)], abs=1e-12)
+    with pytest.raises(bag.BagError, match="/bad: speed nan"):
+        bag.read_speed(path, "/bad")
+
+    drive = make_drive(seed=1, preset="parking", render="lazy", noise=False, camera=kitti_like_camera())
+    reverse = write_drive_bag(drive, tmp_path / "reverse", frame_range=(64, 106), wheel_odometry_topic="/wheel/odometry")
+    config, _ = load_config(SYNTH_PARAMS)
+    seq = load_sequence(reverse, config, rig=RigSettings(extrinsics_from_tf=False))
+    truth = reference_from_ground_truth(seq)
+    t, v, signed = bag.read_speed(reverse, "/wheel/odometry")
+    assert signed and v.min() < -1.4 and truth[0] < -3.0
+    by_speed = reference_from_speed(seq, t, v)
+    assert by_speed.distance == pytest.approx(truth[0], rel=3e-3), (by_speed.distance, truth[0])
+    assert reference_from_speed(seq, t, np.abs(v)).distance == pytest.approx(-truth[0], rel=3e-3)  # the old reading

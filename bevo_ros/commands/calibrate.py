@@ -65,8 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "frames against the images'; a drive through bends or over bumps")
     ref.add_argument("--speed-topic", metavar="TOPIC",
                    help="the reference without ground truth: the car's speed on TOPIC (nav_msgs/Odometry, e.g. wheel "
-                        "odometry, or geometry_msgs/TwistStamped / TwistWithCovarianceStamped from CAN or GNSS: the "
-                        "twist's horizontal speed), driving forward; the yaw from the bag's gyro, its bias read "
+                        "odometry, or geometry_msgs/TwistStamped / TwistWithCovarianceStamped from CAN or GNSS: in "
+                        "base_frame its linear.x, signed, else the twist's horizontal speed: then drive forward); the yaw from the bag's gyro, its bias read "
                         "where the speed says the car stood (start the bag at rest); as good as the speed's scale")
     return p
 
@@ -79,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _calibrate(args: argparse.Namespace) -> int:
     config, flat = load_config(args.params)
-    seq = load_sequence(args.bag, config, require_gt=False, rig=RigSettings.from_params(flat, str(args.params)))
+    rig = RigSettings.from_params(flat, str(args.params))
+    seq = load_sequence(args.bag, config, require_gt=False, rig=rig)
     whole = args.from_images or args.imu_time_offset  # image-only measurements: every frame by default
     if args.speed_topic is None and not whole and seq.gt_poses is None:
         raise ValueError(f"{args.bag}: no /ground_truth/odometry to calibrate against; without one, give the "
@@ -100,7 +101,12 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.imu_time_offset:
         return _imu_time_offset(seq, frames, config, *imu)
     if args.speed_topic:
-        reference = reference_from_speed(seq, *read_speed(args.bag, args.speed_topic))
+        speed_stamps, speeds, signed = read_speed(args.bag, args.speed_topic, rig.base_frame)
+        if not signed:  # as the node says it: an east/north velocity has no direction of travel
+            print(f"{prog_name('calibrate_mounting')}: warning: {args.speed_topic}'s twist is not in base_frame "
+                  f"'{rig.base_frame}': its horizontal speed is taken, unsigned (reversing would read as forward)",
+                  file=sys.stderr)
+        reference = reference_from_speed(seq, speed_stamps, speeds)
         source = f"{args.speed_topic}'s speed and the gyro's yaw" + (
             f", its bias {math.degrees(reference.gyro_bias):+.3f} deg/s taken off over {reference.rest_seconds:.1f} s "
             "at rest" if reference.rest_seconds else ", no rest to read its bias from")

@@ -5,6 +5,7 @@ so every tool reads a recording the same way.
 """
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from dataclasses import dataclass, fields, replace
@@ -38,7 +39,7 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
     the IMU is cut to the same time span. ``imu_axes``: ``R_base_imu (3, 3)`` of an IMU mounted in
     other axes (e.g. z down): its rates and accelerations are written in them, the rotation on
     ``/tf_static`` (default: the base's axes). ``wheel_odometry_topic``: also a wheel odometry's
-    nav_msgs/Odometry there at every IMU sample, its twist the true speed times ``wheel_speed_scale``
+    nav_msgs/Odometry there at every IMU sample, its twist the true speed (signed: reversing reads negative) times ``wheel_speed_scale``
     (a wheel's scale error), its pose unset (``bevo calibrate --speed-topic``). ``ground_truth``
     False: no ground-truth topics (a bag as a car records it).
     """
@@ -71,7 +72,9 @@ def write_drive_bag(drive, path: PathLike, storage: str = "sqlite3", overwrite: 
                     gyro, accel = R_imu_base @ np.asarray(gyro, np.float64), R_imu_base @ np.asarray(accel, np.float64)
                 w.write_imu(float(drive.imu_stamps[j]), gyro, accel, frame_id="imu_link")
                 if wheel_odometry_topic:
-                    speed = wheel_speed_scale * float(np.linalg.norm(drive.imu_velocity_gravity[j]))
+                    v = drive.imu_velocity_gravity[j]  # the base's forward speed, signed: a wheel's
+                    speed = wheel_speed_scale * math.copysign(float(np.linalg.norm(v)),
+                                                              float(drive.imu_rotation_gravity[j][:, 0] @ v))
                     w.write(wheel_odometry_topic, bag.ODOMETRY_MSG, bag.odometry_message(
                         float(drive.imu_stamps[j]), np.eye(4), "odom", "base_link", twist=(speed, 0, 0, 0, 0, 0)),
                         float(drive.imu_stamps[j]))

@@ -620,11 +620,15 @@ def iter_messages(bag_path: PathLike, topics: Sequence[str] | None = None, start
 SPEED_MSGS = (ODOMETRY_MSG, TWIST_STAMPED_MSG, "geometry_msgs/msg/TwistWithCovarianceStamped")
 
 
-def read_speed(bag_path: PathLike, topic: str) -> tuple[np.ndarray, np.ndarray]:
-    """The speed on ``topic`` (one of :data:`SPEED_MSGS`): the twist's horizontal speed, ``hypot(linear.x,
-    linear.y)`` m/s, so a vehicle-frame twist (wheel odometry, CAN) and an east/north one (GNSS drivers'
-    velocity) read alike; unsigned -> ``(stamps (N,) s, speeds (N,))`` by header stamp. BagError when the
-    topic is missing, of another type, empty or not finite."""
+def read_speed(bag_path: PathLike, topic: str, base_frame: str = "base_link") -> tuple[np.ndarray, np.ndarray, bool]:
+    """The speed on ``topic`` (one of :data:`SPEED_MSGS`), read as the node and ``bevo run`` read it
+    (:func:`~bevo_ros.io.ros_conversions.forward_speed_from_msg`): a twist in ``base_frame`` gives its
+    ``linear.x``, signed (reversing reads negative); one in another frame (a GNSS driver's east/north
+    velocity) its horizontal speed, unsigned -> ``(stamps (N,) s, speeds (N,) m/s, signed)`` by header
+    stamp, ``signed`` True when every message was in ``base_frame``. BagError when the topic is missing,
+    of another type, empty or not finite."""
+    from bevo_ros.io.ros_conversions import forward_speed_from_msg
+
     path = Path(bag_path)
     topics = bag_topics(path)
     if topic not in topics:
@@ -632,18 +636,19 @@ def read_speed(bag_path: PathLike, topic: str) -> tuple[np.ndarray, np.ndarray]:
     if topics[topic][0] not in SPEED_MSGS:
         raise BagError(f"{path}: topic {topic} carries {topics[topic][0] or 'an unknown type'}, not a speed "
                        f"({' or '.join(SPEED_MSGS)})")
-    stamps, speeds = [], []
+    stamps, speeds, signed = [], [], True
     for _, _, msg in iter_messages(path, [topic]):
-        twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry / *WithCovariance*
+        try:
+            speed, _, in_base = forward_speed_from_msg(msg, base_frame, 1.0)  # the variance is not used here
+        except ValueError as exc:
+            raise BagError(f"{path}: topic {topic}: {exc}") from None
         stamps.append(stamp_to_ns(msg.header.stamp))
-        speeds.append(math.hypot(float(twist.linear.x), float(twist.linear.y)))
+        speeds.append(speed)
+        signed &= in_base
     if not stamps:
         raise BagError(f"{path}: topic {topic} has no messages")
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
-    t, v = ns_to_seconds(np.asarray(stamps, dtype=np.int64)[order]), np.asarray(speeds, dtype=np.float64)[order]
-    if not np.isfinite(v).all():
-        raise BagError(f"{path}: topic {topic} holds speeds that are not finite")
-    return t, v
+    return ns_to_seconds(np.asarray(stamps, dtype=np.int64)[order]), np.asarray(speeds, dtype=np.float64)[order], signed
 
 
 def decode_image(msg: Any) -> np.ndarray:

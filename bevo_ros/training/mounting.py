@@ -104,7 +104,7 @@ REST_MIN = 1.0  # s of rest before the bias is taken
 
 def reference_from_speed(seq: Recording, speed_stamps: np.ndarray, speeds: np.ndarray) -> SpeedReference:
     """``(distance m, yaw rad, ...)`` over the recording's frames without ground truth: the speed
-    ``speeds (N,)`` (m/s at ``speed_stamps (N,)`` s: wheel odometry, CAN, GNSS; drive forward) integrated
+    ``speeds (N,)`` (m/s at ``speed_stamps (N,)`` s: wheel odometry, CAN, GNSS; signed, or unsigned on a drive forward) integrated
     between the first and the last frame, and the gyro's rate about gravity (the stretch's mean
     accelerometer direction) integrated over the same time, less its bias read where the speed says the
     car stood (at least REST_MIN s anywhere in the recording before the last frame: start the recording at
@@ -116,7 +116,7 @@ def reference_from_speed(seq: Recording, speed_stamps: np.ndarray, speeds: np.nd
     t, v = np.asarray(speed_stamps, dtype=np.float64), np.asarray(speeds, dtype=np.float64)
     _check_sampling(t, t0, t1, "the speed", SPEED_MAX_GAP)
     distance = _integral(t, v, t0, t1)
-    if distance < 1.0:
+    if abs(distance) < 1.0:  # signed (a speed in base_frame): a stretch in reverse counts as well
         raise ValueError(f"the speed gives {distance:.2f} m over the calibration frames: drive forward a few "
                          "metres or more")
     ti = seq.imu_stamps.double().numpy()
