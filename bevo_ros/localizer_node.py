@@ -38,9 +38,9 @@ from bevo_ros.core.map_localization import (APPEARANCES, LocalizerConfig, MapLoc
                                             se2_between)
 from bevo_ros.io.maps import load_map
 from bevo_ros.io.ros_conversions import (ImageConversionError, gray_to_image_msg, heatmap_to_mono8, image_to_gray,
-                                         planar_pose_from_msg, quaternion_from_rpy, stamp_to_ns,
-                                         stamp_to_sec, yaw_from_quaternion_msg)
+                                         planar_pose_from_msg, stamp_to_ns, stamp_to_sec, yaw_from_quaternion_msg)
 from bevo_ros.ros.diagnostics import counter_values
+from bevo_ros.rotations import quaternion_from_rpy
 
 NODE_NAME = "bevo_localizer"
 EXIT_CONFIG_ERROR = 2

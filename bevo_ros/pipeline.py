@@ -39,7 +39,8 @@ from bevo_ros.evaluation.report import write_report
 from bevo_ros.io import bag
 from bevo_ros.io.files import atomic_write_text
 from bevo_ros.io.learned_params import load_learned_params
-from bevo_ros.io.ros_conversions import forward_speed_from_msg, quaternion_from_rpy, stamp_to_ns, stamp_to_sec
+from bevo_ros.io.ros_conversions import forward_speed_from_msg, stamp_to_ns, stamp_to_sec
+from bevo_ros.rotations import quaternion_from_rpy
 
 
 def run_bag(bag_path: str | Path, config: BevoConfig, learned_path: str | Path, imu_topic: str | None = None,

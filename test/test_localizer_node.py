@@ -26,7 +26,8 @@ from bevo_ros.config import ConfigError  # noqa: E402
 from bevo_ros.core.map_localization import se2_compose  # noqa: E402
 from bevo_ros.io.maps import save_map  # noqa: E402
 from bevo_ros.io.ros_conversions import (bev_to_mono8, gray_to_image_msg, heatmap_to_mono8,  # noqa: E402
-                                         quaternion_from_rpy, rpy_from_quaternion, sec_to_stamp, stamp_to_sec)
+                                         sec_to_stamp, stamp_to_sec)
+from bevo_ros.rotations import quaternion_from_rpy, rpy_from_quaternion  # noqa: E402
 from bevo_ros.datasets.synthetic.aerial_map import frame_bev, make_localization_drive, render_aerial_map  # noqa: E402
 
 from helpers.ros import domain_id_for, ros_context  # noqa: E402

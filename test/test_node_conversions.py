@@ -34,7 +34,10 @@ def test_stamps_round_trip_and_match_bag_formula():
     assert rc.stamp_to_sec(t) == 1317388800.0 + 123456789 * 1e-9  # sec + nanosec * 1e-9: rounded once
     assert rc.stamp_to_sec(t) == float(rc.ns_to_seconds([rc.stamp_to_ns(t)])[0])
     assert bag.ns_to_seconds is kitti.ns_to_seconds is rc.ns_to_seconds  # one formula for node, bags and KITTI
-    assert bag.quaternion_from_rpy is rc.quaternion_from_rpy  # bag writer, run_bag and the node: one quaternion
+    from bevo_ros import pipeline, rotations
+
+    # bag writer, bevo run and the node: one quaternion (bevo_ros.rotations, tested in test_rotations)
+    assert bag.quaternion_from_rpy is rc.quaternion_from_rpy is pipeline.quaternion_from_rpy is rotations.quaternion_from_rpy
     back = rc.sec_to_stamp(1000.25)
     assert (back.sec, back.nanosec) == (1000, 250000000)
     edge = rc.sec_to_stamp(1.9999999999)
@@ -79,22 +82,6 @@ def test_unsupported_encoding_and_bad_sizes_name_the_reason():
     assert err.value.reason == "bad_image"
 
 
-def test_quaternion_matches_rz_ry_rx():
-    roll, pitch, yaw = 0.1, -0.2, 2.5
-    x, y, z, w = rc.quaternion_from_rpy(roll, pitch, yaw)
-    R_q = np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    assert np.allclose(R_q, Rz @ Ry @ Rx, atol=1e-12)
-    assert np.allclose(rc.rpy_from_quaternion(x, y, z, w), (roll, pitch, yaw), atol=1e-12)
-
-
 def test_odometry_message_carries_step_and_stamp():
     from types import SimpleNamespace
 
@@ -107,7 +94,7 @@ def test_odometry_message_carries_step_and_stamp():
     assert msg.header.stamp == stamp and msg.header.frame_id == "odom" and msg.child_frame_id == "base_link"
     assert (msg.pose.pose.position.x, msg.pose.pose.position.y) == (1.0, 2.0)
     q = msg.pose.pose.orientation
-    assert np.allclose(rc.rpy_from_quaternion(q.x, q.y, q.z, q.w), step.rpy)
+    assert np.allclose(rc.rpy_from_quaternion(q.x, q.y, q.z, q.w), step.rpy, atol=1e-12)
     assert np.array_equal(np.asarray(msg.pose.covariance).reshape(6, 6), cov)
     assert np.array_equal(np.asarray(msg.twist.covariance).reshape(6, 6), cov.T)
     assert msg.twist.twist.linear.x == 5.0 and msg.twist.twist.angular.z == 0.2

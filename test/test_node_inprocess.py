@@ -29,7 +29,8 @@ from sensor_msgs.msg import CameraInfo, Image, Imu  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from bevo_ros.config import ConfigError  # noqa: E402
-from bevo_ros.io.ros_conversions import rpy_from_quaternion, stamp_to_sec  # noqa: E402
+from bevo_ros.io.ros_conversions import stamp_to_sec  # noqa: E402
+from bevo_ros.rotations import rpy_from_quaternion  # noqa: E402
 
 from helpers.env import import_outside_ci, in_ci  # noqa: E402
 from helpers.ros import domain_id_for, ros_context  # noqa: E402

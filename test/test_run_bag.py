@@ -10,6 +10,7 @@ import pytest
 import torch
 import yaml
 
+from bevo_ros import rotations
 from bevo_ros.io import bag
 from bevo_ros.datasets import kitti
 from bevo_ros.commands import calibrate as calibrate_cmd
@@ -923,7 +924,7 @@ def test_a_bags_unusable_messages_are_left_out_with_a_warning(tmp_path):
     assert len(rec.gt_poses) == 10 and np.all(np.isfinite(rec.gt_poses))
     assert len(rec.gt_pitch) == 10 and rec.gt_pitch == pytest.approx(0.02)
     with pytest.raises(ValueError, match="no rotation"):
-        bag.matrix_from_quaternion((0.0, 0.0, 0.0, 0.0))
+        rotations.matrix_from_quaternion((0.0, 0.0, 0.0, 0.0))
 
 
 def test_a_bag_with_no_usable_imu_sample_is_refused_with_the_reason(tmp_path):

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from bevo_ros.datasets import synthetic as syn
-from bevo_ros.datasets.synthetic import ground as syn_ground, motion as syn_motion
+from bevo_ros.datasets.synthetic import ground as syn_ground
+from bevo_ros.rotations import rpy_from_matrices
 from bevo_ros.core.geometry import BevSpec, camera_pose_on_road
 
 SPEC = BevSpec(size=100, metres_per_pixel=0.1, forward_offset=7.5)
@@ -122,7 +123,7 @@ def test_gyro_integrates_to_attitude(any_drive):
     assert err < 1e-6  # rounding (arccos near 1); the trapezoid on these rates: 2e-3 to 7e-3 rad
     assert err_w > 1e-2
     # The stored angles are the Euler angles of the stored rotation.
-    r_, p_, _ = syn_motion._rpy(rot)
+    r_, p_, _ = rpy_from_matrices(rot)
     assert np.allclose(np.stack([p_, r_], 1), drive.imu_pitch_roll_gravity, atol=1e-12)
 
 

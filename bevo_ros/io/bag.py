@@ -26,8 +26,9 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from bevo_ros.io.ros_conversions import ns_to_seconds, out_of_order, quaternion_from_rpy, stamp_to_ns  # noqa: F401 - one place
+from bevo_ros.io.ros_conversions import ns_to_seconds, out_of_order, stamp_to_ns  # noqa: F401 - one place
 from bevo_ros.io.static_tf import StaticTree
+from bevo_ros.rotations import matrix_from_quaternion, quaternion_from_matrix, quaternion_from_rpy, rpy_from_matrix
 
 PathLike = str | Path
 
@@ -83,47 +84,6 @@ def ns_to_sec_nanosec(ns: int) -> tuple[int, int]:
     if ns < 0:
         raise ValueError(f"negative stamp {ns} ns cannot go into builtin_interfaces/Time")
     return ns // 1_000_000_000, ns % 1_000_000_000
-
-
-def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation ``(3, 3)`` -> unit quaternion ``(x, y, z, w)`` with ``w >= 0`` (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
-        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def matrix_from_quaternion(q: Sequence[float]) -> np.ndarray:
-    """Quaternion ``(x, y, z, w)`` (normalised here) -> rotation ``(3, 3)``. ValueError for a zero or
-    non-finite one (no rotation)."""
-    q = np.asarray(q, dtype=np.float64)
-    norm = float(np.linalg.norm(q))
-    if not (math.isfinite(norm) and norm > 1e-9):
-        raise ValueError(f"quaternion {tuple(q.tolist())} is no rotation (zero or not finite)")
-    x, y, z, w = q / norm
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def rpy_from_matrix(R: np.ndarray) -> tuple[float, float, float]:
-    """Inverse of ``Rz(yaw) Ry(pitch) Rx(roll)`` -> (roll, pitch, yaw)."""
-    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
-    return math.atan2(R[2, 1], R[2, 2]), pitch, math.atan2(R[1, 0], R[0, 0])
 
 
 def _covariance(value: float | Sequence[float] | np.ndarray | None, n: int, default: float) -> np.ndarray:

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from bevo_ros.rotations import quaternion_from_rpy, rpy_from_quaternion
+
 # Image encodings the node accepts: name -> (channels, bytes per channel). Everything else is
 # rejected with the reason (the engine works on one grey channel).
 IMAGE_ENCODINGS = {
@@ -202,26 +204,6 @@ def camera_info_intrinsics(msg: Any, use_p: bool = True) -> tuple[np.ndarray, in
     return M.copy(), int(msg.width), int(msg.height)
 
 
-# ---------------------------------------------------------------------------------------- outputs
-def quaternion_from_rpy(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    """``R = Rz(yaw) Ry(pitch) Rx(roll)`` -> ``(x, y, z, w)``."""
-    cr, sr = math.cos(roll * 0.5), math.sin(roll * 0.5)
-    cp, sp = math.cos(pitch * 0.5), math.sin(pitch * 0.5)
-    cy, sy = math.cos(yaw * 0.5), math.sin(yaw * 0.5)
-    return (sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy)
-
-
-def rpy_from_quaternion(x: float, y: float, z: float, w: float) -> tuple[float, float, float]:
-    """Inverse of :func:`quaternion_from_rpy` (a unit quaternion)."""
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
-
-
 def yaw_from_quaternion_msg(q: Any) -> float:
     """A geometry_msgs/Quaternion's yaw, taken at its direction (any norm: ``z: 1, w: 1`` is 90 deg).
     ValueError for a quaternion that is no rotation (zero, not finite: an orientation left out)."""
@@ -270,6 +252,7 @@ def forward_speed_from_msg(msg: Any, base_frame: str, default_variance: float) -
     return speed, variance, signed
 
 
+# ---------------------------------------------------------------------------------------- outputs
 def odometry_msg(step: Any, stamp: Any, frame_id: str, child_frame_id: str):
     """engine ``OdometryStep`` -> nav_msgs/Odometry with the given header stamp (a Time)."""
     from nav_msgs.msg import Odometry
@@ -337,6 +320,6 @@ __all__ = [
     "IMAGE_ENCODINGS", "CV2_GRAY_ENCODINGS", "ImageConversionError", "compressed_to_gray", "stamp_to_sec", "stamp_to_ns", "ns_to_seconds", "sec_to_stamp",
     "out_of_order",
     "imu_to_arrays", "image_to_gray", "gray_to_image_msg", "camera_info_intrinsics",
-    "quaternion_from_rpy", "rpy_from_quaternion", "odometry_msg", "pose_stamped_from_odometry",
+    "odometry_msg", "pose_stamped_from_odometry",
     "transform_from_odometry", "bev_to_mono8", "heatmap_to_mono8",
 ]

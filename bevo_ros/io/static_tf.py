@@ -8,14 +8,14 @@ from typing import Any
 
 import numpy as np
 
+from bevo_ros.rotations import matrix_from_quaternion
+
 # The extrinsics' source when /tf_static has no base_frame -> camera frame (the node and `bevo run` say so).
 PARAMETERS_EXTRINSICS = "parameters camera.base_T_camera"
 
 
 def matrix_from_transform(t: Any) -> np.ndarray:
     """geometry_msgs/Transform -> ``(4, 4)`` (pose of the child in the parent)."""
-    from bevo_ros.io.bag import matrix_from_quaternion
-
     q, p = t.rotation, t.translation
     T = np.eye(4)
     T[:3, :3] = matrix_from_quaternion((q.x, q.y, q.z, q.w))

@@ -134,7 +134,7 @@ def tf_static_msg(transforms):
     from geometry_msgs.msg import TransformStamped
     from tf2_msgs.msg import TFMessage
 
-    from bevo_ros.io.bag import quaternion_from_matrix
+    from bevo_ros.rotations import quaternion_from_matrix
 
     msg = TFMessage()
     for parent, child, T in transforms:

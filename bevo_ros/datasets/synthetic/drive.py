@@ -17,8 +17,9 @@ from bevo_ros.core.rate_integration import GYRO_SAMPLING
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
 from bevo_ros.datasets.synthetic.motion import (_PRESETS, REVERSING_PRESETS, _integrate_xy, _Motion, _random_hills,
-                                                _random_motion, _RoadClock, _rpy, _rx, _ry, _rz, _with_preset)
+                                                _random_motion, _RoadClock, _with_preset)
 from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
+from bevo_ros.rotations import rotation_x, rotation_y, rotation_z, rpy_from_matrices
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
 
 __all__ = ["LazyImages", "SyntheticDrive", "base_poses_4x4", "camera_poses_4x4", "make_drive", "preset_drive"]
@@ -317,7 +318,7 @@ def make_drive(
 
     yaw = motion.yaw(t_imu)
     r_grav = motion.r_grav_base(t_imu)
-    roll_g, pitch_g, _ = _rpy(r_grav)
+    roll_g, pitch_g, _ = rpy_from_matrices(r_grav)
     pr_road = np.stack([motion.pitch_rel(t_imu), motion.roll_rel(t_imu)], -1)
     tilt = np.stack([motion.slope(t_imu), motion.camber(t_imu)], -1)
     if gyro_sampling == "interval_mean":
@@ -377,7 +378,7 @@ def base_poses_4x4(drive: SyntheticDrive, at_imu: bool = False) -> np.ndarray:
     else:
         xy_yaw, pr, z = drive.poses_xy_yaw, drive.pitch_roll_road, drive.base_height
     T = np.tile(np.eye(4), (len(xy_yaw), 1, 1))
-    T[:, :3, :3] = _rz(xy_yaw[:, 2]) @ _ry(pr[:, 0]) @ _rx(pr[:, 1])
+    T[:, :3, :3] = rotation_z(xy_yaw[:, 2]) @ rotation_y(pr[:, 0]) @ rotation_x(pr[:, 1])
     T[:, 0, 3], T[:, 1, 3], T[:, 2, 3] = xy_yaw[:, 0], xy_yaw[:, 1], z
     return T
 

@@ -34,6 +34,7 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from bevo_ros.core.geometry import CameraModel
+from bevo_ros.rotations import rotation_vector, rotation_x, rotation_y, rotation_z
 
 __all__ = ["GRAVITY", "PRESETS", "REVERSING_PRESETS"]
 
@@ -42,35 +43,6 @@ GRAVITY = 9.80665
 # ---------------------------------------------------------------------------------------------
 # Drive: analytic motion model
 # ---------------------------------------------------------------------------------------------
-
-
-def _rx(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([o, z, z, z, c, -s, z, s, c], -1).reshape(*np.shape(a), 3, 3)
-
-
-def _ry(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([c, z, s, z, o, z, -s, z, c], -1).reshape(*np.shape(a), 3, 3)
-
-
-def _rz(a: np.ndarray) -> np.ndarray:
-    c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([c, -s, z, s, c, z, z, z, o], -1).reshape(*np.shape(a), 3, 3)
-
-
-def _rpy(r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(roll, pitch, yaw) of ``Rz Ry Rx`` rotations ``(..., 3, 3)``."""
-    return (np.arctan2(r[..., 2, 1], r[..., 2, 2]), np.arcsin(np.clip(-r[..., 2, 0], -1, 1)),
-            np.arctan2(r[..., 1, 0], r[..., 0, 0]))
-
-
-def _rotation_vector(r: np.ndarray) -> np.ndarray:
-    """Axis times angle of rotations ``(..., 3, 3)`` with angles below pi -> ``(..., 3)``."""
-    w = 0.5 * np.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
-    sin = np.linalg.norm(w, axis=-1)
-    angle = np.arctan2(sin, 0.5 * (np.trace(r, axis1=-2, axis2=-1) - 1.0))
-    return w * np.where(sin > 1e-12, angle / np.maximum(sin, 1e-300), 1.0)[..., None]
 
 
 def _d5(f, t: np.ndarray, h: float = 1e-3) -> np.ndarray:
@@ -384,10 +356,10 @@ class _Motion:
         return self.camber0 + self.camber_sines(self.road_time(t))
 
     def r_road_base(self, t):
-        return _ry(self.pitch_rel(t)) @ _rx(self.roll_rel(t))
+        return rotation_y(self.pitch_rel(t)) @ rotation_x(self.roll_rel(t))
 
     def r_grav_base(self, t):
-        return _rz(self.yaw(t)) @ _ry(self.slope(t)) @ _rx(self.camber(t)) @ self.r_road_base(t)
+        return rotation_z(self.yaw(t)) @ rotation_y(self.slope(t)) @ rotation_x(self.camber(t)) @ self.r_road_base(t)
 
     def z_base(self, t):
         """Base origin height above the road (the camera centre stays at ``cam_height``)."""
@@ -396,7 +368,7 @@ class _Motion:
     def vel_grav(self, t):
         """Base velocity in the gravity frame, ``(N, 3)``."""
         v = np.stack([self.speed(t), np.zeros_like(t), _d5(self.z_base, t)], -1)
-        r = _rz(self.yaw(t)) @ _ry(self.slope(t)) @ _rx(self.camber(t))
+        r = rotation_z(self.yaw(t)) @ rotation_y(self.slope(t)) @ rotation_x(self.camber(t))
         return (r @ v[..., None])[..., 0]
 
     def gyro(self, t):
@@ -411,7 +383,7 @@ class _Motion:
         the two attitudes as a rotation vector over ``dt``, what an IMU reporting its integrated
         rate (delta angle) over each sample interval gives."""
         rel = np.swapaxes(self.r_grav_base(t - dt), -1, -2) @ self.r_grav_base(t)
-        return _rotation_vector(rel) / dt
+        return rotation_vector(rel) / dt
 
     def specific_force(self, t):
         """Accelerometer reading without noise, ``(N, 3)`` m/s^2 in the base frame."""

@@ -38,8 +38,8 @@ from bevo_ros.datasets.kitti import OxtsData, oxts_positions
 from bevo_ros.datasets.synthetic.drive import LazyImages, SyntheticDrive
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
-from bevo_ros.datasets.synthetic.motion import _rx, _ry, _rz
 from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
+from bevo_ros.rotations import rotation_x, rotation_y, rotation_z
 
 __all__ = ["drive_from_oxts"]
 
@@ -182,7 +182,7 @@ def drive_from_oxts(
 
     # IMU-rate quantities, at the unit's own stamps.
     yaw_u = np.unwrap(oxts.yaw)
-    r_grav = _rz(yaw_u) @ _ry(oxts.pitch) @ _rx(oxts.roll)
+    r_grav = rotation_z(yaw_u) @ rotation_y(oxts.pitch) @ rotation_x(oxts.roll)
     vel = np.stack([oxts.field("ve"), oxts.field("vn"), vu], -1)
     gyro, accel = oxts.gyro.copy(), oxts.accel.copy()
     pr_grav = np.stack([oxts.pitch, oxts.roll], -1)
@@ -213,7 +213,7 @@ def drive_from_oxts(
     ground = RoadGround(seed, path=_lane_path(xy, yaw_u))
     options = render_options if render_options is not None else RenderOptions()
     t_base_cam = camera.T_base_cam.detach().cpu().double().numpy()[:3, 3]
-    base_height = float(camera.mount_height) - (_ry(f_pr_road[:, 0]) @ _rx(f_pr_road[:, 1]) @ t_base_cam)[:, 2]
+    base_height = float(camera.mount_height) - (rotation_y(f_pr_road[:, 0]) @ rotation_x(f_pr_road[:, 1]) @ t_base_cam)[:, 2]
     drive = SyntheticDrive(
         camera=camera, ground=ground, seed=int(seed), frame_stamps=f_stamps, frame_imu_index=nearest, images=None,
         imu_stamps=stamps, gyro=gyro, accel=accel, gyro_true=gyro.copy(), accel_true=accel.copy(),
