@@ -690,6 +690,52 @@ def test_kitti_sample_end_to_end(kitti_root, tmp_path):
     np.testing.assert_allclose(kitti.read_poses(out / "gt_kitti.txt"), gt, atol=2e-6)
 
 
+def test_the_kitti_sample_holds_in_other_light_and_through_other_cameras(kitti_root, tmp_path):
+    """The engine on the sample's real images made darker (x0.4 and a dusk gamma of 2), noisier (a
+    sensor's sigma 8), JPEG-compressed at quality 30 (a CompressedImage topic) and flickering +-15 %
+    from frame to frame (auto-exposure): the per-frame error and the drift stay within a few tenths of
+    the clean run's (measured 2026-12-07: clean 4.10 cm and 1.37 %, the worst 4.38 cm and 1.53 %). No
+    threshold may read grey levels: the phase correlation is normalised, and so must the rest be."""
+    import cv2
+
+    from bevo_ros.evaluation.metrics import motion_scores
+    from bevo_ros.io.learned_params import load_learned_params
+
+    bag_path = tmp_path / "kitti06"
+    assert convert.main(["--odometry", str(kitti_root / "odometry"), "--sequence", "06",
+                         "-o", str(bag_path), "-q"]) == 0
+    config, flat = load_config(REPO_ROOT / "params" / "kitti.yaml")
+    seq = load_sequence(bag_path, config, rig=RigSettings.from_params(flat, "params/kitti.yaml"))
+    images, gt = seq.images.numpy(), np.asarray(seq.gt_motion())
+    learned = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
+    rng = np.random.default_rng(0)
+
+    def jpeg(im: np.ndarray) -> np.ndarray:
+        return cv2.imdecode(cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, 30])[1], cv2.IMREAD_GRAYSCALE)
+
+    variants = {
+        "clean": lambda k, im: im,
+        "dusk": lambda k, im: (255.0 * (im * 0.4 / 255.0) ** 2.0).astype(np.uint8),
+        "noise": lambda k, im: np.clip(im + rng.normal(0.0, 8.0, im.shape), 0, 255).astype(np.uint8),
+        "jpeg": lambda k, im: jpeg(im),
+        "flicker": lambda k, im: np.clip(im * (1.0 + 0.15 * (-1) ** k), 0, 255).astype(np.uint8),
+    }
+    scores = {}
+    for name, change in variants.items():
+        odo = build_odometry(config, learned, camera=seq.camera)
+        steps = feed_engine(odo, seq.imu_stamps.numpy(), seq.gyro.numpy(), seq.accel.numpy(), seq.frame_stamps.numpy(),
+                            lambda k: change(k, images[k]), by_stamp=True)
+        est = np.array([s.motion for s in steps[1:]])
+        assert est.shape == gt.shape, f"{name}: {len(est)} frame pairs of {len(gt)}"
+        per_frame = 100.0 * float(np.sqrt(np.mean(np.sum((est[:, :2] - gt[:, :2]) ** 2, axis=1))))
+        scores[name] = (per_frame, motion_scores(est, gt)["drift"])
+    print("\nKITTI sample, per frame (cm) / drift (%): " + ", ".join(f"{n} {c:.2f} / {d:.2f}" for n, (c, d) in scores.items()))
+    clean_cm, clean_drift = scores["clean"]
+    assert clean_cm < 4.6 and clean_drift < 2.0, scores["clean"]
+    for name, (cm, drift) in scores.items():
+        assert cm < clean_cm + 0.6 and drift < clean_drift + 0.6, (name, scores)
+
+
 def test_stamp_order_is_the_node_s_arrival_order():
     """One feeding order (datasets.stamp_order): IMU first on an equal stamp, images up to the
     latest IMU sample, optionally the image first and the frames after the last IMU sample."""
