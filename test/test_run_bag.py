@@ -497,7 +497,7 @@ def test_mounting_pitch_from_travel_inverts_the_road_geometry():
             assert pitch == pytest.approx(p, abs=1e-12) and azimuth == pytest.approx(psi, abs=1e-12)
 
 
-def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(tmp_path, capsys):
+def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(tmp_path, capsys, monkeypatch):
     """A car with no ground truth: ``--speed-topic`` (its wheel odometry) gives the distance, the gyro
     the yaw. On a bag without ground truth the camera's 1 deg tilt comes back as with it; a wheel
     speed 2 % long moves it by what the BEV's scale says (~0.08 deg at this geometry); a wrong topic,
@@ -538,6 +538,13 @@ def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(t
     assert "by /wheel/odometry's speed and the gyro's yaw" in out, out
     printed = yaml.safe_load("\n".join(out.splitlines()[1:]))
     assert abs(math.degrees(printed["filter.mounting_pitch"]) - 1.0) < 0.15
+    # a speed in another frame than base_frame (a GNSS velocity): read unsigned, and the command says so
+    monkeypatch.setattr(calibrate_cmd, "read_speed", lambda *a: (*read_speed(*a)[:2], False))
+    assert calibrate_cmd.main([str(no_gt), "--params", str(SYNTH_PARAMS), "--frames", f"0:{len(seq)}",
+                               "--speed-topic", "/wheel/odometry"]) == 0
+    assert ("/wheel/odometry's twist is not in base_frame 'base_link': its horizontal speed is taken, unsigned"
+            in capsys.readouterr().err)
+    monkeypatch.undo()
     for argv, says in ((["--speed-topic", "/imu/data"], "not a speed"), ([], "give the car's speed (--speed-topic)"),
                        (["--speed-topic", "/nothing"], "no topic /nothing")):
         assert calibrate_cmd.main([str(no_gt), "--params", str(SYNTH_PARAMS)] + argv) == 2
@@ -546,8 +553,12 @@ def test_calibrate_without_ground_truth_takes_the_cars_speed_and_the_gyros_yaw(t
         reference_from_speed(seq, np.array([0.0, 0.5]), np.array([5.0, 5.0]))
     t = seq.frame_stamps.double().numpy()
     still = np.arange(t[0] - 1, t[-1] + 1, 0.1)
-    with pytest.raises(ValueError, match="drive forward"):
+    with pytest.raises(ValueError, match="drive a few metres"):
         reference_from_speed(seq, still, np.zeros_like(still))
+    # forth and back (signed: a wheel odometry in base_frame) nets little of the path: refused
+    back = np.where(still < 0.5 * (t[0] + t[-1]), 5.0, -4.5)
+    with pytest.raises(ValueError, match=r"changes direction over the calibration frames \(\+\d+\.\d+ m net of"):
+        reference_from_speed(seq, still, back)
     with pytest.raises(ValueError, match=r"speed has a gap of 2\.\d+ s"):
         reference_from_speed(seq, np.array([t[0] - 1, t[0] + 0.1, t[0] + 2.2, t[-1] + 1]), np.full(4, 9.0))
     # a speed at 1 Hz (a GNSS receiver's) on this steady stretch: the same distance to 1 %
@@ -690,6 +701,7 @@ def test_kitti_sample_end_to_end(kitti_root, tmp_path):
     np.testing.assert_allclose(kitti.read_poses(out / "gt_kitti.txt"), gt, atol=2e-6)
 
 
+@pytest.mark.kitti
 def test_the_kitti_sample_holds_in_other_light_and_through_other_cameras(kitti_root, tmp_path):
     """The engine on the sample's real images made darker (x0.4 and a dusk gamma of 2), noisier (a
     sensor's sigma 8), JPEG-compressed at quality 30 (a CompressedImage topic) and flickering +-15 %

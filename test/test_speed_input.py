@@ -137,14 +137,30 @@ def test_read_speed_reads_a_bag_as_the_node_does_and_a_reversing_stretch_counts_
             w.write("/gnss", bag.TWIST_STAMPED_MSG, bag.twist_stamped_message(1.0 + k, (3.0 * v, 4.0, 0.0), "enu"),
                     1.0 + k)
         w.write("/bad", bag.TWIST_STAMPED_MSG, bag.twist_stamped_message(1.0, (math.nan, 0.0, 0.0), "base_link"), 1.0)
+        w.write("/mixed", bag.ODOMETRY_MSG, bag.odometry_message(1.0, np.eye(4), "odom", "base_link",
+                                                                 twist=(1.0, 0, 0, 0, 0, 0)), 1.0)
+        w.write("/mixed", bag.ODOMETRY_MSG, bag.odometry_message(2.0, np.eye(4), "odom", "gps",
+                                                                 twist=(1.0, 0, 0, 0, 0, 0)), 2.0)
+        twc = bag.typestore().types["geometry_msgs/msg/TwistWithCovarianceStamped"]
+        cov = np.zeros(36)
+        cov[0] = math.inf  # a speed whose variance no one knows: read, the variance is not
+        for k in range(2):
+            w.write("/cov", "geometry_msgs/msg/TwistWithCovarianceStamped", twc(
+                header=bag.twist_stamped_message(1.0 + k, (0, 0, 0), "base_link").header,
+                twist=bag.typestore().types["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=bag.twist_stamped_message(1.0, (-2.0, 0.0, 0.0), "base_link").twist, covariance=cov)), 1.0 + k)
     t, v, signed = bag.read_speed(path, "/wheel")
     assert signed and t.tolist() == [1.0, 2.0, 3.0] and v.tolist() == [1.0, 0.0, -1.5]
     t, v, signed = bag.read_speed(path, "/gnss")
     assert not signed and v == pytest.approx([5.0, 4.0, math.hypot(4.5, 4.0)], abs=1e-12)
     t, v, signed = bag.read_speed(path, "/wheel", base_frame="vehicle")  # another base: not its frame
     assert not signed and v == pytest.approx([math.hypot(1.0, 0.2), 0.2, math.hypot(1.5, 0.2)], abs=1e-12)
-    with pytest.raises(bag.BagError, match="/bad: speed nan"):
+    with pytest.raises(bag.BagError, match=r"topic /bad holds a speed that is not finite \(nan m/s at 1\.000000 s\)"):
         bag.read_speed(path, "/bad")
+    with pytest.raises(bag.BagError, match="mixes twists in base_frame 'base_link' with twists in 'gps'"):
+        bag.read_speed(path, "/mixed")
+    t, v, signed = bag.read_speed(path, "/cov")
+    assert signed and v.tolist() == [-2.0, -2.0]
 
     drive = make_drive(seed=1, preset="parking", render="lazy", noise=False, camera=kitti_like_camera())
     reverse = write_drive_bag(drive, tmp_path / "reverse", frame_range=(64, 106), wheel_odometry_topic="/wheel/odometry")

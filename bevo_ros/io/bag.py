@@ -26,7 +26,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from bevo_ros.io.ros_conversions import ns_to_seconds, out_of_order, stamp_to_ns  # noqa: F401 - one place
+from bevo_ros.io.ros_conversions import (forward_speed_from_msg, ns_to_seconds, out_of_order,  # noqa: F401 - one place
+                                         speed_frame, stamp_to_ns)
 from bevo_ros.io.static_tf import StaticTree
 from bevo_ros.rotations import matrix_from_quaternion, quaternion_from_matrix, quaternion_from_rpy, rpy_from_matrix
 
@@ -585,10 +586,8 @@ def read_speed(bag_path: PathLike, topic: str, base_frame: str = "base_link") ->
     (:func:`~bevo_ros.io.ros_conversions.forward_speed_from_msg`): a twist in ``base_frame`` gives its
     ``linear.x``, signed (reversing reads negative); one in another frame (a GNSS driver's east/north
     velocity) its horizontal speed, unsigned -> ``(stamps (N,) s, speeds (N,) m/s, signed)`` by header
-    stamp, ``signed`` True when every message was in ``base_frame``. BagError when the topic is missing,
-    of another type, empty or not finite."""
-    from bevo_ros.io.ros_conversions import forward_speed_from_msg
-
+    stamp. The covariance is not read. BagError when the topic is missing, of another type, empty, not
+    finite, or mixes twists in ``base_frame`` with twists in other frames (signed with unsigned speeds)."""
     path = Path(bag_path)
     topics = bag_topics(path)
     if topic not in topics:
@@ -596,18 +595,23 @@ def read_speed(bag_path: PathLike, topic: str, base_frame: str = "base_link") ->
     if topics[topic][0] not in SPEED_MSGS:
         raise BagError(f"{path}: topic {topic} carries {topics[topic][0] or 'an unknown type'}, not a speed "
                        f"({' or '.join(SPEED_MSGS)})")
-    stamps, speeds, signed = [], [], True
+    stamps, speeds, frames = [], [], set()
     for _, _, msg in iter_messages(path, [topic]):
-        try:
-            speed, _, in_base = forward_speed_from_msg(msg, base_frame, 1.0)  # the variance is not used here
-        except ValueError as exc:
-            raise BagError(f"{path}: topic {topic}: {exc}") from None
+        speed, _, signed = forward_speed_from_msg(msg, base_frame, 1.0, check_variance=False)
+        if not math.isfinite(speed):
+            raise BagError(f"{path}: topic {topic} holds a speed that is not finite ({speed!r} m/s at "
+                           f"{stamp_to_ns(msg.header.stamp) * 1e-9:.6f} s)")
         stamps.append(stamp_to_ns(msg.header.stamp))
         speeds.append(speed)
-        signed &= in_base
+        frames.add((speed_frame(msg), signed))
     if not stamps:
         raise BagError(f"{path}: topic {topic} has no messages")
+    if len({signed for _, signed in frames}) > 1:
+        others = sorted(f"'{f}'" for f, signed in frames if not signed)
+        raise BagError(f"{path}: topic {topic} mixes twists in base_frame '{base_frame}' with twists in "
+                       f"{', '.join(others)}: its speeds would mix signed and unsigned")
     order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+    signed = next(iter(frames))[1]
     return ns_to_seconds(np.asarray(stamps, dtype=np.int64)[order]), np.asarray(speeds, dtype=np.float64)[order], signed
 
 

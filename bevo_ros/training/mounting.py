@@ -100,6 +100,7 @@ SPEED_MAX_GAP = 1.5  # s between speed samples (a 1 Hz GNSS speed passes; a stea
 IMU_MAX_GAP = 0.5  # s between IMU samples
 REST_SPEED = 0.05  # m/s: the car is at rest, the gyro reads its bias
 REST_MIN = 1.0  # s of rest before the bias is taken
+REVERSAL_RATIO = 0.9  # net distance / distance travelled below which the stretch drove both ways
 
 
 def reference_from_speed(seq: Recording, speed_stamps: np.ndarray, speeds: np.ndarray) -> SpeedReference:
@@ -110,15 +111,19 @@ def reference_from_speed(seq: Recording, speed_stamps: np.ndarray, speeds: np.nd
     car stood (at least REST_MIN s anywhere in the recording before the last frame: start the recording at
     rest; a bias b left in reads as a roll error of ~b / (0.3 v)). The pitch found is as good as the
     speed's scale: a wheel speed 1 % long reads the camera ~0.04 deg less nose-down (KITTI's geometry).
-    ValueError when the speed or the IMU does not cover the frames, the car hardly moves, or the
-    accelerometer does not read gravity."""
+    ValueError when the speed or the IMU does not cover the frames, the car hardly moves or changes
+    direction, or the accelerometer does not read gravity."""
     t0, t1 = (float(v) for v in seq.frame_stamps[[0, -1]])
     t, v = np.asarray(speed_stamps, dtype=np.float64), np.asarray(speeds, dtype=np.float64)
     _check_sampling(t, t0, t1, "the speed", SPEED_MAX_GAP)
-    distance = _integral(t, v, t0, t1)
-    if abs(distance) < 1.0:  # signed (a speed in base_frame): a stretch in reverse counts as well
-        raise ValueError(f"the speed gives {distance:.2f} m over the calibration frames: drive forward a few "
-                         "metres or more")
+    distance = _integral(t, v, t0, t1)  # signed (a speed in base_frame): a stretch in reverse counts back
+    travelled = _integral(t, np.abs(v), t0, t1)
+    if travelled < 1.0:
+        raise ValueError(f"the speed gives {travelled:.2f} m over the calibration frames: drive a few metres or "
+                         "more")
+    if abs(distance) < REVERSAL_RATIO * travelled:  # forth and back: the BEV's errors add over the whole path
+        raise ValueError(f"the speed changes direction over the calibration frames ({distance:+.2f} m net of "
+                         f"{travelled:.2f} m travelled): choose frames driving one way")
     ti = seq.imu_stamps.double().numpy()
     gyro, accel = seq.gyro.double().numpy(), seq.accel.double().numpy()
     _check_sampling(ti, t0, t1, "the IMU", IMU_MAX_GAP)

@@ -19,8 +19,8 @@ from bevo_ros.datasets.synthetic.imu import ImuNoise, noisy_imu
 from bevo_ros.datasets.synthetic.motion import (_PRESETS, REVERSING_PRESETS, _integrate_xy, _Motion, _random_hills,
                                                 _random_motion, _RoadClock, _with_preset)
 from bevo_ros.datasets.synthetic.render import RenderOptions, RoadProfile, kitti_like_camera, render_frame
-from bevo_ros.rotations import rotation_x, rotation_y, rotation_z, rpy_from_matrices
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
+from bevo_ros.rotations import rotation_x, rotation_y, rotation_z, rpy_from_matrices
 
 __all__ = ["LazyImages", "SyntheticDrive", "base_poses_4x4", "camera_poses_4x4", "make_drive", "preset_drive"]
 
