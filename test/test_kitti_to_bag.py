@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -564,3 +565,60 @@ def test_oxts_poses_at_a_steady_camera_clock_are_the_odometry_ground_truths_moti
     print(f"\n{drive}: frame motions' lengths against the odometry poses: {at_camera * 100:.2f} cm at the camera's "
           f"clock, {at_records * 100:.2f} cm at the records' stamps")
     assert at_camera < 0.008 and at_records > 0.015
+
+
+def _fake_extract(synced: Path, into: Path, records: slice, factor: int = 10) -> kitti.OxtsData:
+    """A raw extract's unsynced OXTS stand-in: the synced records ``records`` linearly interpolated
+    ``factor`` x denser (100 Hz from KITTI's 10 Hz), on the same clock: its records at the synced stamps
+    are the synced records."""
+    ox = kitti.read_oxts(synced)
+    t, d = ox.stamps_ns[records], ox.data[records]
+    fine = np.concatenate([t[i] + (t[i + 1] - t[i]) * np.arange(factor) // factor for i in range(len(t) - 1)] + [t[-1:]])
+    data = np.stack([np.interp(fine.astype(np.float64), t.astype(np.float64), d[:, k]) for k in range(d.shape[1])], 1)
+    (into / "data").mkdir(parents=True)
+    for i, row in enumerate(data):
+        (into / "data" / f"{i:010d}.txt").write_text(" ".join(repr(float(v)) for v in row) + "\n")
+    day = np.datetime64("1970-01-01T00:00:00", "ns")
+    (into / "timestamps.txt").write_text("".join(str(day + np.timedelta64(int(s), "ns")).replace("T", " ") + "\n"
+                                                 for s in fine))
+    return kitti.read_oxts(into)
+
+
+def test_the_imu_topic_from_the_raw_extracts_100_hz_oxts(layout, kitti_root, tmp_path, capsys):
+    """``--imu-oxts``: /imu/data from another OXTS directory of the drive (the raw extract's unsynced
+    100 Hz records, the paper's IMU rate), from 0.5 s before the first frame to the first record at or
+    after the last; the synced records still give the ground truth and /ground_truth/imu; bevo run takes
+    the 100 Hz stream. A directory that does not cover the frames is refused, and so is the option with
+    --render-oxts."""
+    from bevo_ros.commands import run
+
+    synced = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts"
+    fast = _fake_extract(synced, tmp_path / "extract" / "oxts", slice(0, 12))
+    base = ["--odometry", str(layout / "odometry"), "--sequence", "06", "--raw-root", str(layout / "raw"),
+            "--count", "5"]
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "b10"), "-q"]) == 0
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "b100"), "--imu-oxts", str(tmp_path / "extract" / "oxts")]) == 0
+    err = capsys.readouterr().err
+    assert re.search(r"/imu/data from \S+extract/oxts \(41 records, 1\d\d Hz\); the synced records give /ground_truth/imu", err), err
+    slow, quick = bag.read_recording(tmp_path / "b10"), bag.read_recording(tmp_path / "b100")
+    frames = quick.frame_stamps_ns
+    want = (fast.stamps_ns >= frames[0] - 500_000_000) & (fast.stamps_ns <= frames[-1])
+    assert np.array_equal(quick.imu_stamps_ns, fast.stamps_ns[want])  # 100 Hz, the lead-in and the last frame's
+    assert np.array_equal(quick.gyro, fast.gyro[want]) and np.array_equal(quick.accel, fast.accel[want])
+    at_frames = np.searchsorted(quick.imu_stamps_ns, slow.imu_stamps_ns)  # the synced records are among them
+    assert np.array_equal(quick.imu_stamps_ns[at_frames], slow.imu_stamps_ns)
+    np.testing.assert_allclose(quick.gyro[at_frames], slow.gyro, atol=1e-12)
+    assert np.array_equal(quick.frame_stamps_ns, slow.frame_stamps_ns) and np.array_equal(quick.gt_poses, slow.gt_poses)
+    assert np.array_equal(quick.gt_att_stamps_ns, slow.gt_att_stamps_ns)  # /ground_truth/imu: the synced records
+    assert run.main([str(tmp_path / "b100"), "--out", str(tmp_path / "run100"), "-q"]) == 0
+    assert len(kitti.read_poses(tmp_path / "run100" / "trajectory_kitti.txt")) == 5
+
+    # a directory that ends before the frames do (another drive's, another clock): refused, nothing written
+    short = _fake_extract(synced, tmp_path / "short" / "oxts", slice(0, 3))
+    assert short.stamps_ns[-1] < frames[-1]
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bshort"), "--imu-oxts", str(tmp_path / "short" / "oxts")]) == 2
+    assert "do not cover the frames converted" in capsys.readouterr().err and not (tmp_path / "bshort").exists()
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bnone"), "--imu-oxts", str(tmp_path / "nothing")]) == 2
+    assert "--imu-oxts" in capsys.readouterr().err
+    assert kitti_to_bag.main(["--render-oxts", str(synced), "--imu-oxts", str(synced), "-o", str(tmp_path / "r")]) == 2
+    assert "--imu-oxts applies to a drive's real images" in capsys.readouterr().err

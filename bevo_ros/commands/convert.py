@@ -28,7 +28,8 @@ from bevo_ros.datasets.kitti_bag import ConversionError, ConversionOptions, conv
 EPILOG = """\
 notes:
   KITTI's synced OXTS stream is only 10 Hz, so /imu/data is 10 Hz here (one IMU message per
-  frame, stamped with the OXTS time); the unsynced 100 Hz OXTS data is not used.
+  frame, stamped with the OXTS time); --imu-oxts takes it from the raw extract's unsynced 100 Hz
+  OXTS of the same drive instead (the paper's IMU rate).
   Frame times: odometry times.txt when present (placed on the OXTS clock by the records' median
   offset: a synced record is the packet nearest the trigger, ms away), otherwise the OXTS
   timestamps; raw layout: image_0X/timestamps.txt.
@@ -48,6 +49,7 @@ examples:
   bevo convert --odometry DATASET --sequence 06 --first 0 --count 20 --storage mcap -o short
   bevo convert --raw RAW/2011_10_03/2011_10_03_drive_0042_sync --poses DATASET/poses/01.txt -o drive42_bag
   bevo convert --raw RAW/2011_09_26/2011_09_26_drive_0009_sync -o drive09_bag   # ground truth: the OXTS's poses
+  bevo convert --raw RAW/2011_09_26/2011_09_26_drive_0009_sync --imu-oxts EXTRACT/2011_09_26/2011_09_26_drive_0009_extract/oxts -o drive09_100hz
   bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0027_sync/oxts --first 0 --count 160 -o real_imu_bag
   bevo convert --render-oxts RAW/2011_09_30/2011_09_30_drive_0020_sync/oxts --vertical-curves -o drive20_hills_bag
 """
@@ -77,6 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--first", type=int, default=0, help="first frame to convert (default 0)")
     p.add_argument("--count", type=int, default=None, help="number of frames to convert (default: all)")
     p.add_argument("--oxts", metavar="DIR", help="raw OXTS directory (overrides the lookup)")
+    p.add_argument("--imu-oxts", metavar="DIR",
+                   help="the IMU topic from this OXTS directory instead of the synced records: the raw extract's "
+                        "unsynced 100 Hz oxts/ of the same drive (the synced records still give the frame times, "
+                        "the ground truth and the ground-truth attitude); from 0.5 s before the first frame")
     p.add_argument("--oxts-offset", type=int, default=None, metavar="N",
                    help="raw frame of odometry frame 0 (default: from the devkit mapping)")
     p.add_argument("--raw-root", metavar="DIR", help="raw data root holding <date>/<drive>_sync (default: "
@@ -143,6 +149,10 @@ def _render_oxts(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.render_oxts:
+        if args.imu_oxts:
+            print(f"{prog_name('kitti_to_bag')}: error: --imu-oxts applies to a drive's real images (--render-oxts "
+                  "renders its frames at the given OXTS records)", file=sys.stderr)
+            return 2
         return _render_oxts(args)
     if args.vertical_curves:
         print(f"{prog_name('kitti_to_bag')}: error: --vertical-curves applies to --render-oxts only (real images "

@@ -15,6 +15,9 @@ from bevo_ros.io import bag
 from bevo_ros.datasets import kitti
 
 
+IMU_LEAD_S = 0.5  # s of --imu-oxts records written before the first frame (the DUKF's start)
+
+
 class ConversionError(ValueError):
     """Expected bad input (missing or inconsistent KITTI files, bad options): ``bevo convert`` reports it
     with exit code 2."""
@@ -55,6 +58,7 @@ class ConversionOptions:
     quiet: bool = False
     leave_out_interpolated_imu: bool = False
     oxts_ground_truth: bool = True  # a raw drive without poses: the OXTS unit's GPS/INS poses
+    imu_oxts: str | Path | None = None  # /imu/data from this OXTS directory (the raw extract's 100 Hz one)
 
 
 @dataclass
@@ -363,7 +367,7 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     # with the images' rotation alone was worse: README, Limitations): written unless asked, and reported.
     interpolated = kitti.interpolated_oxts(src.oxts)
     found = np.flatnonzero(interpolated[first:stop]) + first
-    if len(found) and not opts.quiet:
+    if len(found) and not opts.quiet and opts.imu_oxts is None:  # with --imu-oxts they are not the IMU topic
         where = (f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})" if opts.leave_out_interpolated_imu
                  else f"written to {opts.imu_topic} as they are (--leave-out-interpolated-imu leaves them out)")
         print(f"{prog_name('kitti_to_bag')}: {len(found)} OXTS record(s) {_ranges(found + src.record_offset)} are KITTI's linear "
@@ -379,6 +383,7 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
         print(f"{prog_name('kitti_to_bag')}: warning: {int(disordered.sum())} OXTS record(s) "
               f"{_ranges(np.flatnonzero(disordered) + src.record_offset)} stamped at or before an earlier record "
               f"(oxts/timestamps.txt): left out of {opts.imu_topic} and {opts.gt_imu_topic}", file=sys.stderr)
+    imu_stream, imu_records = _imu_stream(src, opts, first, stop)
 
     # Every message as (stamp, rank, kind, index): same-stamp ties keep the IMU before the image,
     # so a consumer has the IMU sample of a frame when the frame arrives.
@@ -387,6 +392,7 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
         if not disordered[i]:
             events.append((int(src.oxts.stamps_ns[i]), 0, "imu", i))
         events.append((int(src.frame_stamps_ns[i]), 2, "image", i))
+    events += [(int(imu_stream.stamps_ns[j]), 0, "imu_stream", j) for j in imu_records]
     events.sort()
 
     size = None
@@ -399,9 +405,13 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
             writer.write_tf_static(events[0][0], [(opts.base_frame, opts.imu_frame, np.eye(4)),
                                                   (opts.base_frame, opts.camera_frame, src.T_base_cam)])
         for stamp, _, kind, i in tqdm(events, desc="kitti_to_bag", unit="msg", disable=opts.quiet, file=sys.stderr):
+            if kind == "imu_stream":  # --imu-oxts: the IMU's own records, not the synced ones
+                writer.write_imu(stamp, imu_stream.gyro[i], imu_stream.accel[i], opts.imu_frame, topic=opts.imu_topic,
+                                 gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
+                continue
             if kind == "imu":
                 gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
-                if not (opts.leave_out_interpolated_imu and interpolated[i]):
+                if imu_stream is None and not (opts.leave_out_interpolated_imu and interpolated[i]):
                     writer.write_imu(stamp, gyro, accel, opts.imu_frame, topic=opts.imu_topic,
                                      gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
                 writer.write_imu_attitude(stamp, src.oxts.roll[i], src.oxts.pitch[i], src.oxts.yaw[i], gyro=gyro,
@@ -430,6 +440,41 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     return counts
 
 
+
+
+def _imu_stream(src: Source, opts: ConversionOptions, first: int, stop: int) -> tuple[kitti.OxtsData | None, list[int]]:
+    """``--imu-oxts``: the OXTS directory whose records are the IMU topic (the raw extract's unsynced
+    100 Hz ``oxts``, on the synced records' clock) and its records to write: from IMU_LEAD_S before the
+    first frame to the first record at or after the last one; those stamped at or before an earlier
+    record left out, said. ``(None, [])`` without the option. ConversionError when it does not cover
+    the frames (another drive's, or another clock)."""
+    if opts.imu_oxts is None:
+        return None, []
+    path = Path(opts.imu_oxts)
+    try:
+        stream = kitti.read_oxts(path, increasing=False)
+    except (OSError, ValueError) as exc:
+        raise ConversionError(f"--imu-oxts: {exc}") from None
+    t0, t1 = int(src.frame_stamps_ns[first]), int(src.frame_stamps_ns[stop - 1])
+    t = stream.stamps_ns
+    if not len(t) or t.min() > t0 or t.max() < t1:
+        span = f"{t.min() * 1e-9:.3f}..{t.max() * 1e-9:.3f} s" if len(t) else "no records"
+        raise ConversionError(f"--imu-oxts {path}: its records ({span}) do not cover the frames converted "
+                              f"({t0 * 1e-9:.3f}..{t1 * 1e-9:.3f} s): not this drive's OXTS, or another clock")
+    bad = kitti.out_of_order(t)
+    after = np.flatnonzero((t >= t1) & ~bad)
+    last = t[after[0]] if len(after) else t1
+    keep = np.flatnonzero((t >= t0 - int(IMU_LEAD_S * 1e9)) & (t <= last) & ~bad)
+    inside = (t >= t0) & (t <= t1)
+    if (bad & inside).any():
+        print(f"{prog_name('kitti_to_bag')}: warning: {int((bad & inside).sum())} record(s) of --imu-oxts "
+              f"{_ranges(np.flatnonzero(bad & inside))} stamped at or before an earlier record: left out of "
+              f"{opts.imu_topic}", file=sys.stderr)
+    rate = (len(keep) - 1) / max((t[keep[-1]] - t[keep[0]]) * 1e-9, 1e-9)
+    if not opts.quiet:
+        print(f"{prog_name('kitti_to_bag')}: note: {opts.imu_topic} from {path} ({len(keep)} records, "
+              f"{rate:.0f} Hz); the synced records give {opts.gt_imu_topic} and the ground truth", file=sys.stderr)
+    return stream, keep.tolist()
 
 
 def load_source(opts: ConversionOptions) -> Source:
