@@ -493,7 +493,7 @@ def test_an_oxts_stamp_out_of_order_leaves_that_record_out(layout, tmp_path, cap
     (seq / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(5)))
     out = tmp_path / "o"
     assert kitti_to_bag.main(["--odometry", str(layout / "odometry"), "-o", str(out), "--quiet"]) == 0
-    assert "1 OXTS record(s) 3 stamped at or before an earlier record" in capsys.readouterr().err
+    assert "1 OXTS record(s) 3 stamped out of order with the others" in capsys.readouterr().err
     rec = bag.read_recording(out)
     stamps = kitti.read_timestamps_ns(oxts / "timestamps.txt", increasing=False)
     assert np.array_equal(rec.imu_stamps_ns, stamps[[0, 1, 2, 4]]) and len(rec.frame_stamps_ns) == 5
@@ -567,58 +567,88 @@ def test_oxts_poses_at_a_steady_camera_clock_are_the_odometry_ground_truths_moti
     assert at_camera < 0.008 and at_records > 0.015
 
 
-def _fake_extract(synced: Path, into: Path, records: slice, factor: int = 10) -> kitti.OxtsData:
+def _fake_extract(synced: Path, records: slice, factor: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """A raw extract's unsynced OXTS stand-in: the synced records ``records`` linearly interpolated
-    ``factor`` x denser (100 Hz from KITTI's 10 Hz), on the same clock: its records at the synced stamps
-    are the synced records."""
+    ``factor`` x denser (~100 Hz from KITTI's 10 Hz), on the same clock, so that its records at the synced
+    stamps are the synced records. -> ``(stamps_ns (M,), data (M, 30))``."""
     ox = kitti.read_oxts(synced)
     t, d = ox.stamps_ns[records], ox.data[records]
     fine = np.concatenate([t[i] + (t[i + 1] - t[i]) * np.arange(factor) // factor for i in range(len(t) - 1)] + [t[-1:]])
-    data = np.stack([np.interp(fine.astype(np.float64), t.astype(np.float64), d[:, k]) for k in range(d.shape[1])], 1)
+    return fine, np.stack([np.interp(fine.astype(np.float64), t.astype(np.float64), d[:, k]) for k in range(d.shape[1])], 1)
+
+
+def _write_oxts(into: Path, stamps_ns: np.ndarray, data: np.ndarray) -> Path:
+    """An OXTS directory (``timestamps.txt``, ``data/NNNNNNNNNN.txt``) as KITTI's raw downloads lay it out."""
     (into / "data").mkdir(parents=True)
     for i, row in enumerate(data):
         (into / "data" / f"{i:010d}.txt").write_text(" ".join(repr(float(v)) for v in row) + "\n")
     day = np.datetime64("1970-01-01T00:00:00", "ns")
     (into / "timestamps.txt").write_text("".join(str(day + np.timedelta64(int(s), "ns")).replace("T", " ") + "\n"
-                                                 for s in fine))
-    return kitti.read_oxts(into)
+                                                 for s in stamps_ns))
+    return into
 
 
 def test_the_imu_topic_from_the_raw_extracts_100_hz_oxts(layout, kitti_root, tmp_path, capsys):
     """``--imu-oxts``: /imu/data from another OXTS directory of the drive (the raw extract's unsynced
-    100 Hz records, the paper's IMU rate), from 0.5 s before the first frame to the first record at or
+    ~100 Hz records, the paper's IMU rate), from 0.5 s before the first frame to the first record at or
     after the last; the synced records still give the ground truth and /ground_truth/imu; bevo run takes
-    the 100 Hz stream. A directory that does not cover the frames is refused, and so is the option with
-    --render-oxts."""
+    the stream. A record stamped out of order is left out alone (not the good ones after it), a gap
+    (lost packets) is said, and so is a stream that does not hold the synced records; one that does not
+    cover the frames is refused, and so are --render-oxts and --leave-out-interpolated-imu with it."""
     from bevo_ros.commands import run
 
     synced = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts"
-    fast = _fake_extract(synced, tmp_path / "extract" / "oxts", slice(0, 12))
+    images = layout / "odometry" / "sequences" / "06" / "image_0"
+    for i in range(5, 19):  # the layout's 5 frames and 14 more (records 1-11 are KITTI's interpolation)
+        os.symlink(kitti_root / "odometry" / "sequences" / "06" / "image_0" / f"{i:06d}.png", images / f"{i:06d}.png")
+    frames10 = kitti.read_oxts(synced).stamps_ns  # this layout has no times.txt: the frames are at the records
+    t, d = _fake_extract(synced, slice(0, 25))
+    late = int(np.searchsorted(t, frames10[14])) + 5  # between frames 14 and 15
+    t[late] += 300_000_000  # stamped 0.3 s late: only it is out of order
+    gap = slice(int(np.searchsorted(t, frames10[16])) + 1, int(np.searchsorted(t, frames10[16])) + 8)  # 7 packets lost
+    at_last = int(np.searchsorted(t, frames10[17]))  # the record at the last frame's stamp lost too
+    drop = np.zeros(len(t), dtype=bool)
+    drop[gap], drop[at_last] = True, True
+    t, d = t[~drop], d[~drop]
+    extract = _write_oxts(tmp_path / "extract" / "oxts", t, d)
     base = ["--odometry", str(layout / "odometry"), "--sequence", "06", "--raw-root", str(layout / "raw"),
-            "--count", "5"]
+            "--first", "13", "--count", "5"]
     assert kitti_to_bag.main(base + ["-o", str(tmp_path / "b10"), "-q"]) == 0
-    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "b100"), "--imu-oxts", str(tmp_path / "extract" / "oxts")]) == 0
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "b100"), "--imu-oxts", str(extract)]) == 0
     err = capsys.readouterr().err
-    assert re.search(r"/imu/data from \S+extract/oxts \(41 records, 1\d\d Hz\); the synced records give /ground_truth/imu", err), err
+    assert re.search(r"/imu/data from \S+extract/oxts \(\d+ records, 1\d\d Hz\); the synced records give /ground_truth/imu",
+                     err), err
+    assert f"1 record(s) of --imu-oxts {late} stamped out of order with the others" in err, err
+    assert re.search(r"1 gap\(s\) over 2.5 periods \(lost packets\) over the frames, the longest 0\.0[789]\d s after record 160: ", err), err
+    assert "synced OXTS records are among" not in err
     slow, quick = bag.read_recording(tmp_path / "b10"), bag.read_recording(tmp_path / "b100")
     frames = quick.frame_stamps_ns
-    want = (fast.stamps_ns >= frames[0] - 500_000_000) & (fast.stamps_ns <= frames[-1])
-    assert np.array_equal(quick.imu_stamps_ns, fast.stamps_ns[want])  # 100 Hz, the lead-in and the last frame's
-    assert np.array_equal(quick.gyro, fast.gyro[want]) and np.array_equal(quick.accel, fast.accel[want])
-    at_frames = np.searchsorted(quick.imu_stamps_ns, slow.imu_stamps_ns)  # the synced records are among them
-    assert np.array_equal(quick.imu_stamps_ns[at_frames], slow.imu_stamps_ns)
-    np.testing.assert_allclose(quick.gyro[at_frames], slow.gyro, atol=1e-12)
-    assert np.array_equal(quick.frame_stamps_ns, slow.frame_stamps_ns) and np.array_equal(quick.gt_poses, slow.gt_poses)
-    assert np.array_equal(quick.gt_att_stamps_ns, slow.gt_att_stamps_ns)  # /ground_truth/imu: the synced records
+    assert np.array_equal(frames, frames10[13:18]) and np.array_equal(frames, slow.frame_stamps_ns)
+    ok = np.ones(len(t), dtype=bool)
+    ok[late] = False
+    end = t[ok][np.searchsorted(t[ok], frames[-1])]  # the first record after the last frame (its own is lost)
+    want = ok & (t >= frames[0] - 500_000_000) & (t <= end)
+    assert end > frames[-1] and t[want][0] < frames[0] - 400_000_000  # a lead-in and a record past the last frame
+    assert np.array_equal(quick.imu_stamps_ns, t[want])
+    assert bag.bag_topics(tmp_path / "b100")[bag.IMU_TOPIC][1] == want.sum()  # nothing else on the IMU topic
+    assert np.array_equal(quick.gyro, kitti.OxtsData(t, d).gyro[want])
+    assert np.array_equal(quick.gt_poses, slow.gt_poses) and np.array_equal(quick.gt_att_stamps_ns, slow.gt_att_stamps_ns)
     assert run.main([str(tmp_path / "b100"), "--out", str(tmp_path / "run100"), "-q"]) == 0
     assert len(kitti.read_poses(tmp_path / "run100" / "trajectory_kitti.txt")) == 5
 
-    # a directory that ends before the frames do (another drive's, another clock): refused, nothing written
-    short = _fake_extract(synced, tmp_path / "short" / "oxts", slice(0, 3))
-    assert short.stamps_ns[-1] < frames[-1]
-    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bshort"), "--imu-oxts", str(tmp_path / "short" / "oxts")]) == 2
+    # 3 ms later: none of the synced records is among its records (another drive's, or shifted): said
+    t2, d2 = _fake_extract(synced, slice(0, 25))
+    shifted = _write_oxts(tmp_path / "shifted" / "oxts", t2 + 3_000_000, d2)
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bshift"), "--imu-oxts", str(shifted), "-q"]) == 0
+    assert "only 0 of the 5 synced OXTS records are among --imu-oxts's" in capsys.readouterr().err
+    # a directory that ends before the frames do: refused, nothing written
+    short = _write_oxts(tmp_path / "short" / "oxts", *_fake_extract(synced, slice(0, 16)))
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bshort"), "--imu-oxts", str(short)]) == 2
     assert "do not cover the frames converted" in capsys.readouterr().err and not (tmp_path / "bshort").exists()
     assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bnone"), "--imu-oxts", str(tmp_path / "nothing")]) == 2
     assert "--imu-oxts" in capsys.readouterr().err
+    assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bi"), "--imu-oxts", str(extract),
+                                     "--leave-out-interpolated-imu"]) == 2
+    assert "--leave-out-interpolated-imu applies to the synced records" in capsys.readouterr().err
     assert kitti_to_bag.main(["--render-oxts", str(synced), "--imu-oxts", str(synced), "-o", str(tmp_path / "r")]) == 2
     assert "--imu-oxts applies to a drive's real images" in capsys.readouterr().err

@@ -241,6 +241,36 @@ def oxts_poses(oxts: "OxtsData", stamps_ns: np.ndarray | None = None) -> np.ndar
     return np.linalg.inv(T[0]) @ T
 
 
+def misstamped(stamps_ns: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: the records outside the longest run of strictly increasing stamps (on ties the
+    earlier record stays), i.e. the fewest records whose stamps cannot be placed in time. Unlike
+    :func:`~bevo_ros.io.ros_conversions.out_of_order` (each stamp against the highest before it), one
+    record stamped too late leaves out that record, not the good ones after it (the raw extract's
+    100 Hz OXTS has such jumps)."""
+    import bisect
+
+    t = np.asarray(stamps_ns)
+    tails: list[int] = []  # tails[k]: index of the smallest last stamp of an increasing run of length k + 1
+    tail_stamps: list[int] = []
+    before = np.full(len(t), -1)
+    for i, s in enumerate(t.tolist()):
+        k = bisect.bisect_left(tail_stamps, s)
+        if k < len(tail_stamps) and tail_stamps[k] == s:
+            continue  # a stamp equal to a run's end: the earlier record keeps it
+        before[i] = tails[k - 1] if k else -1
+        if k == len(tails):
+            tails.append(i)
+            tail_stamps.append(s)
+        else:
+            tails[k], tail_stamps[k] = i, s
+    bad = np.ones(len(t), dtype=bool)
+    i = tails[-1] if tails else -1
+    while i >= 0:
+        bad[i] = False
+        i = before[i]
+    return bad
+
+
 def interpolated_oxts(oxts: OxtsData, rtol: float = 1e-9) -> np.ndarray:
     """``(N,)`` bool: the records KITTI's synchronisation filled in where the unit's packets were
     lost, by linear interpolation between the real records on either side. Such a record's six

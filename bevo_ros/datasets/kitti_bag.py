@@ -16,6 +16,7 @@ from bevo_ros.datasets import kitti
 
 
 IMU_LEAD_S = 0.5  # s of --imu-oxts records written before the first frame (the DUKF's start)
+IMU_GAP_PERIODS = 2.5  # --imu-oxts: a step between records longer than this many (median) periods is a gap
 
 
 class ConversionError(ValueError):
@@ -378,12 +379,13 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     # An OXTS record stamped at or before an earlier one cannot be placed in time: left out (both IMU
     # topics), said; the drive's others are written (a whole drive refused for one stamp before).
     disordered = np.zeros(n, dtype=bool)
-    disordered[first:stop] = kitti.out_of_order(src.oxts.stamps_ns[first:stop])
+    disordered[first:stop] = kitti.misstamped(src.oxts.stamps_ns[first:stop])
     if disordered.any():
+        topics = opts.gt_imu_topic if opts.imu_oxts is not None else f"{opts.imu_topic} and {opts.gt_imu_topic}"
         print(f"{prog_name('kitti_to_bag')}: warning: {int(disordered.sum())} OXTS record(s) "
-              f"{_ranges(np.flatnonzero(disordered) + src.record_offset)} stamped at or before an earlier record "
-              f"(oxts/timestamps.txt): left out of {opts.imu_topic} and {opts.gt_imu_topic}", file=sys.stderr)
-    imu_stream, imu_records = _imu_stream(src, opts, first, stop)
+              f"{_ranges(np.flatnonzero(disordered) + src.record_offset)} stamped out of order with the others "
+              f"(oxts/timestamps.txt): left out of {topics}", file=sys.stderr)
+    imu_stream, imu_records = _imu_stream(src, opts, first, stop, ~disordered & ~interpolated)
 
     # Every message as (stamp, rank, kind, index): same-stamp ties keep the IMU before the image,
     # so a consumer has the IMU sample of a frame when the frame arrives.
@@ -442,14 +444,19 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
 
 
 
-def _imu_stream(src: Source, opts: ConversionOptions, first: int, stop: int) -> tuple[kitti.OxtsData | None, list[int]]:
+def _imu_stream(src: Source, opts: ConversionOptions, first: int, stop: int,
+                real: np.ndarray) -> tuple[kitti.OxtsData | None, list[int]]:
     """``--imu-oxts``: the OXTS directory whose records are the IMU topic (the raw extract's unsynced
     100 Hz ``oxts``, on the synced records' clock) and its records to write: from IMU_LEAD_S before the
-    first frame to the first record at or after the last one; those stamped at or before an earlier
-    record left out, said. ``(None, [])`` without the option. ConversionError when it does not cover
-    the frames (another drive's, or another clock)."""
+    first frame to the first record at or after the last one. Records whose stamps cannot be placed
+    in time (:func:`kitti.misstamped`) are left out, gaps longer than IMU_GAP_PERIODS periods (lost
+    packets, which the extract leaves out where the synced records were interpolated) listed, and
+    said; so is a stream that does not hold the synced records ``real`` (``(F,)`` bool: neither
+    misstamped nor interpolated), which are its packets. ``(None, [])`` without the option.
+    ConversionError when the records kept do not cover the frames (another drive's, another clock)."""
     if opts.imu_oxts is None:
         return None, []
+    say = prog_name("kitti_to_bag")
     path = Path(opts.imu_oxts)
     try:
         stream = kitti.read_oxts(path, increasing=False)
@@ -457,23 +464,37 @@ def _imu_stream(src: Source, opts: ConversionOptions, first: int, stop: int) -> 
         raise ConversionError(f"--imu-oxts: {exc}") from None
     t0, t1 = int(src.frame_stamps_ns[first]), int(src.frame_stamps_ns[stop - 1])
     t = stream.stamps_ns
-    if not len(t) or t.min() > t0 or t.max() < t1:
-        span = f"{t.min() * 1e-9:.3f}..{t.max() * 1e-9:.3f} s" if len(t) else "no records"
+    bad = kitti.misstamped(t)
+    good = np.flatnonzero(~bad)
+    if not len(good) or t[good[0]] > t0 or t[good[-1]] < t1:
+        span = f"{t[good[0]] * 1e-9:.3f}..{t[good[-1]] * 1e-9:.3f} s" if len(good) else "no records"
         raise ConversionError(f"--imu-oxts {path}: its records ({span}) do not cover the frames converted "
                               f"({t0 * 1e-9:.3f}..{t1 * 1e-9:.3f} s): not this drive's OXTS, or another clock")
-    bad = kitti.out_of_order(t)
-    after = np.flatnonzero((t >= t1) & ~bad)
-    last = t[after[0]] if len(after) else t1
-    keep = np.flatnonzero((t >= t0 - int(IMU_LEAD_S * 1e9)) & (t <= last) & ~bad)
-    inside = (t >= t0) & (t <= t1)
-    if (bad & inside).any():
-        print(f"{prog_name('kitti_to_bag')}: warning: {int((bad & inside).sum())} record(s) of --imu-oxts "
-              f"{_ranges(np.flatnonzero(bad & inside))} stamped at or before an earlier record: left out of "
-              f"{opts.imu_topic}", file=sys.stderr)
-    rate = (len(keep) - 1) / max((t[keep[-1]] - t[keep[0]]) * 1e-9, 1e-9)
+    last = t[good[np.searchsorted(t[good], t1)]]  # the first record at or after the last frame
+    lead = t0 - int(IMU_LEAD_S * 1e9)
+    keep = good[(t[good] >= lead) & (t[good] <= last)]
+    window = np.flatnonzero(bad)
+    window = window[(window > keep[0]) & (window < keep[-1])]  # by record number, not by the bad stamps
+    if len(window):
+        print(f"{say}: warning: {len(window)} record(s) of --imu-oxts {_ranges(window)} stamped out of order with "
+              f"the others: left out of {opts.imu_topic}", file=sys.stderr)
+    dt = np.diff(t[keep]) * 1e-9
+    period = float(np.median(dt)) if len(dt) else 0.0
+    gaps = np.flatnonzero(dt > IMU_GAP_PERIODS * period)
+    if len(gaps):
+        worst = gaps[np.argmax(dt[gaps])]
+        print(f"{say}: warning: --imu-oxts has {len(gaps)} gap(s) over {IMU_GAP_PERIODS:g} periods (lost packets) "
+              f"over the frames, the longest {dt[worst]:.3f} s after record {keep[worst]}: the engine bridges gaps up to "
+              f"filter.max_imu_gap (0.5 s by default) and restarts its attitude past one", file=sys.stderr)
+    synced = src.oxts.stamps_ns[first:stop][real[first:stop]]
+    held = np.isin(synced, t[keep])
+    if len(synced) and held.mean() < 0.5:
+        print(f"{say}: warning: only {int(held.sum())} of the {len(synced)} synced OXTS records are among --imu-oxts's "
+              f"(KITTI's synced records are the unit's packets nearest each frame): another drive's, or shifted?",
+              file=sys.stderr)
     if not opts.quiet:
-        print(f"{prog_name('kitti_to_bag')}: note: {opts.imu_topic} from {path} ({len(keep)} records, "
-              f"{rate:.0f} Hz); the synced records give {opts.gt_imu_topic} and the ground truth", file=sys.stderr)
+        print(f"{say}: note: {opts.imu_topic} from {path} ({len(keep)} records, {1.0 / max(period, 1e-9):.0f} Hz); "
+              f"the synced records give {opts.gt_imu_topic} and the ground truth", file=sys.stderr)
     return stream, keep.tolist()
 
 
@@ -484,6 +505,9 @@ def load_source(opts: ConversionOptions) -> Source:
     for name in ("gyro_var", "accel_var"):  # a negative covariance in every IMU message
         if not getattr(opts, name) >= 0:
             raise ConversionError(f"--{name.replace('_', '-')} {getattr(opts, name)}: a variance must be >= 0")
+    if opts.imu_oxts is not None and opts.leave_out_interpolated_imu:
+        raise ConversionError("--leave-out-interpolated-imu applies to the synced records; with --imu-oxts they are "
+                              "not the IMU topic (the extract has no interpolated records: lost packets are gaps)")
     if opts.oxts_offset is not None and opts.oxts_offset < 0:  # a negative slice left no OXTS record (IndexError)
         raise ConversionError(f"--oxts-offset {opts.oxts_offset}: must be >= 0 (the OXTS record of the first image)")
     return odometry_source(opts) if opts.odometry is not None else raw_source(opts)
