@@ -252,3 +252,14 @@ def test_raw_calibration_search_prefers_the_day_then_the_nearest(tmp_path):
     assert kitti.find_raw_calib_dir(drive, None).name == "2011_99_99"  # no date: the newest name
     (tmp_path / "2011_09_30" / "calib_imu_to_velo.txt").write_text("x\n")  # a partial set is no calibration
     assert kitti.find_raw_calib_dir(drive, "2011_09_30").name == "2011_09_29"
+
+
+def test_misstamped_leaves_out_the_fewest_records():
+    """The records outside the longest strictly increasing run of stamps: one late stamp is that record
+    alone (a running maximum would take every good record after it), a duplicate is the later one."""
+    from bevo_ros.datasets.kitti import misstamped
+
+    cases = {(0, 1, 2, 2, 4): [3], (0, 1, 2, 30, 4, 5, 6): [3], (0, 1, -5, 3, 4): [2], (0, 10, 20, 15, 16, 17, 30): [2],
+             (5,): [], (): [], (0, 1, 2): []}
+    for stamps, bad in cases.items():
+        assert np.flatnonzero(misstamped(np.array(stamps, dtype=np.int64))).tolist() == bad, stamps
