@@ -367,6 +367,15 @@ def test_raw_layout(layout, kitti_root, tmp_path, capsys):
     assert np.array_equal(rec.frame_stamps_ns, stamps) and len(rec.imu_stamps_ns) == 5
     assert rec.camera_info.k[0] == pytest.approx(707.0912)  # P_rect_00 of the drive's own day
     assert rec.gt_poses.shape == (5, 4, 4)
+    # with the IMU from a ~100 Hz extract of the drive (a stand-in: its synced records interpolated)
+    fine, data = _fake_extract(drive / "oxts", slice(0, 5))
+    fine, data = np.append(fine, fine[-1] + 9_500_000), np.vstack([data, data[-1:]])  # past the last image (5 ms on)
+    extract = _write_oxts(tmp_path / "extract" / "oxts", fine, data)
+    assert kitti_to_bag.main(["--raw", str(drive), "-o", str(tmp_path / "raw100"), "-q", "--imu-oxts", str(extract),
+                              "--poses", str(layout / "odometry" / "poses" / "06.txt")]) == 0
+    fast = bag.read_recording(tmp_path / "raw100")
+    assert np.array_equal(fast.frame_stamps_ns, stamps) and np.array_equal(fast.gt_poses, rec.gt_poses)
+    assert np.array_equal(fast.imu_stamps_ns, fine[(fine >= stamps[0] - 500_000_000) & (fine <= fine[fine >= stamps[-1]][0])])
     # The day comes from the drive folder's name: moved under a folder that is no date, or given as `.`,
     # it still finds its own day's calibration (2011_09_30, a sibling of the new folder's parent).
     moved = layout / "raw" / "drives" / drive.name
