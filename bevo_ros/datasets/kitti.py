@@ -14,6 +14,7 @@ Frames (see ``bevo_ros/core/geometry.py``):
 """
 from __future__ import annotations
 
+import bisect
 import calendar
 import math
 import re
@@ -247,8 +248,6 @@ def misstamped(stamps_ns: np.ndarray) -> np.ndarray:
     :func:`~bevo_ros.io.ros_conversions.out_of_order` (each stamp against the highest before it), one
     record stamped too late leaves out that record, not the good ones after it (the raw extract's
     100 Hz OXTS has such jumps)."""
-    import bisect
-
     t = np.asarray(stamps_ns)
     tails: list[int] = []  # tails[k]: index of the smallest last stamp of an increasing run of length k + 1
     tail_stamps: list[int] = []

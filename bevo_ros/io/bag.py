@@ -26,8 +26,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from bevo_ros.io.ros_conversions import (forward_speed_from_msg, ns_to_seconds, out_of_order,  # noqa: F401 - one place
-                                         speed_frame, stamp_to_ns)
+from bevo_ros.io.ros_conversions import (ns_to_seconds, out_of_order, speed_frame, stamp_to_ns,  # noqa: F401 - one place
+                                         twist_speed)
 from bevo_ros.io.static_tf import StaticTree
 from bevo_ros.rotations import matrix_from_quaternion, quaternion_from_matrix, quaternion_from_rpy, rpy_from_matrix
 
@@ -597,7 +597,7 @@ def read_speed(bag_path: PathLike, topic: str, base_frame: str = "base_link") ->
                        f"({' or '.join(SPEED_MSGS)})")
     stamps, speeds, frames = [], [], set()
     for _, _, msg in iter_messages(path, [topic]):
-        speed, _, signed = forward_speed_from_msg(msg, base_frame, 1.0, check_variance=False)
+        speed, signed = twist_speed(msg, base_frame)
         if not math.isfinite(speed):
             raise BagError(f"{path}: topic {topic} holds a speed that is not finite ({speed!r} m/s at "
                            f"{stamp_to_ns(msg.header.stamp) * 1e-9:.6f} s)")

@@ -230,8 +230,15 @@ def speed_frame(msg: Any) -> str:
     return (msg.child_frame_id if hasattr(msg, "child_frame_id") else msg.header.frame_id).lstrip("/")
 
 
-def forward_speed_from_msg(msg: Any, base_frame: str, default_variance: float,
-                           check_variance: bool = True) -> tuple[float, float, bool]:
+def twist_speed(msg: Any, base_frame: str) -> tuple[float, bool]:
+    """A speed message's ``(speed m/s, signed)`` (:func:`forward_speed_from_msg`'s rule, no variance, no check)."""
+    twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry / *WithCovariance*
+    vx, vy = float(twist.linear.x), float(twist.linear.y)
+    signed = speed_frame(msg) == base_frame.lstrip("/")
+    return (vx if signed else math.hypot(vx, vy)), signed
+
+
+def forward_speed_from_msg(msg: Any, base_frame: str, default_variance: float) -> tuple[float, float, bool]:
     """A vehicle's speed message -> ``(speed m/s, variance (m/s)^2, signed)``, the arguments of
     :meth:`~bevo_ros.core.odometry.BevoOdometry.add_speed`: nav_msgs/Odometry (wheel odometry),
     geometry_msgs/TwistStamped (CAN, GNSS) or TwistWithCovarianceStamped, as rclpy or rosbags gives it.
@@ -241,15 +248,11 @@ def forward_speed_from_msg(msg: Any, base_frame: str, default_variance: float,
     east/north velocity) its horizontal speed ``hypot(linear.x, linear.y)``, unsigned (the engine
     takes the direction of travel from the images). The variance
     is the twist covariance's ``linear.x`` entry when it has one above 0, else ``default_variance``.
-    ValueError when the speed or the variance is not finite (``check_variance`` False: no check at all,
-    for a reader of the speed alone)."""
-    twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry / *WithCovariance*
-    vx, vy = float(twist.linear.x), float(twist.linear.y)
-    signed = speed_frame(msg) == base_frame.lstrip("/")
-    speed = vx if signed else math.hypot(vx, vy)
+    ValueError when the speed or the variance is not finite."""
+    speed, signed = twist_speed(msg, base_frame)
     cov = float(msg.twist.covariance[0]) if hasattr(msg.twist, "covariance") else 0.0
     variance = cov if cov > 0 else float(default_variance)
-    if check_variance and not (math.isfinite(speed) and math.isfinite(variance) and variance > 0):
+    if not (math.isfinite(speed) and math.isfinite(variance) and variance > 0):
         raise ValueError(f"speed {speed!r} with variance {variance!r}: not a finite speed with a variance > 0")
     return speed, variance, signed
 
