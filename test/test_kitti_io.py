@@ -154,6 +154,64 @@ def test_interpolated_oxts_records_are_found_exactly():
     assert not kitti.interpolated_oxts(oxts.slice(0, 2)).any()
 
 
+def test_bridged_rates_integrate_to_the_units_attitude_change():
+    """A run of KITTI's interpolated records gets rates that meet the real rates at both ends and
+    integrate to the rotation between the unit's attitudes there (what its INS integrated over the
+    lost packets): on an S-bend's 1.5 s the line's heading is 20 deg off, the bridge's 0.1 deg, and
+    its rates twice as near the truth; real records keep their rates; a run with a misstamped end or
+    an impossible turn keeps the line."""
+    from scipy.spatial.transform import Rotation
+
+    def rates(t):  # (..., 3) body rates of an S-bend with a little roll and pitch, rad/s
+        return np.stack([0.05 * np.cos(2 * np.pi * 0.7 * t), 0.03 * np.sin(2 * np.pi * 0.5 * t),
+                         0.3 * np.sin(2 * np.pi * 0.4 * t)], -1)
+
+    n, fine = 40, 100  # records at 10 Hz, the attitude integrated at 1 kHz
+    R, attitude = Rotation.identity(), []
+    for k in range(n):
+        attitude.append(R)
+        t = k * 0.1 + (np.arange(fine) + 0.5) * 0.1 / fine  # midpoints
+        for w in rates(t):
+            R = R * Rotation.from_rotvec(w * 0.1 / fine)
+    yaw, pitch, roll = np.array([a.as_euler("ZYX") for a in attitude]).T
+    data = np.zeros((n, len(kitti.OXTS_FIELDS)))
+    data[:, 3], data[:, 4], data[:, 5] = roll, pitch, yaw
+    data[:, 11:14] = [0.0, 0.0, 9.81]
+    data[:, 17:20] = rates(np.arange(n) * 0.1)
+    truth = data[:, 17:20].copy()
+
+    def fill(a, b):  # KITTI's linear fill of every channel between real records a and b
+        w = np.linspace(0.0, 1.0, b - a + 1)[1:-1, None]
+        data[a + 1:b] = (1 - w) * data[a] + w * data[b]
+
+    fill(10, 25)  # records 11-24, through the bend's change of direction
+    fill(30, 32)  # one lost packet
+    stamps = np.arange(n, dtype=np.int64) * 100_000_000
+    oxts = kitti.OxtsData(stamps, data)
+    interpolated = kitti.interpolated_oxts(oxts)
+    assert kitti.interpolated_runs(interpolated) == [(11, 25), (31, 32)]
+    gyro, bridged = kitti.bridged_rates(oxts, interpolated)
+    assert bridged == [(11, 25), (31, 32)]
+    assert np.array_equal(gyro[~interpolated], data[~interpolated, 17:20])  # real records as they are
+    t = stamps * 1e-9
+    turn = (attitude[10].inv() * attitude[25]).as_rotvec()
+    line_turn, bridged_turn = (np.trapezoid(g[10:26], t[10:26], axis=0) for g in (data[:, 17:20], gyro))
+    print(f"turn over 10..25 (deg): unit {np.degrees(turn).round(3)}, line {np.degrees(line_turn).round(3)}, "
+          f"bridged {np.degrees(bridged_turn).round(3)}")
+    assert np.abs(line_turn - turn).max() > np.radians(2.0)
+    assert np.abs(bridged_turn - turn).max() < np.radians(0.15)  # the samples' trapezoid: 0.09 deg off the profile's
+    # and the rates themselves nearer the truth than the line, sample by sample
+    line_err, bridged_err = (np.sqrt(np.mean((g[11:25] - truth[11:25]) ** 2)) for g in (data[:, 17:20], gyro))
+    assert bridged_err < 0.5 * line_err, (bridged_err, line_err)
+    # an end stamped out of order, or a turn no car makes in 1.5 s: the line stays
+    late = stamps.copy()
+    late[25] = late[24]
+    assert kitti.bridged_rates(kitti.OxtsData(late, data), interpolated)[1] == [(31, 32)]
+    spun = data.copy()
+    spun[25:, 5] += np.radians(60.0)
+    assert kitti.bridged_rates(kitti.OxtsData(stamps, spun), interpolated)[1] == [(31, 32)]
+
+
 @pytest.mark.kitti
 def test_interpolated_records_of_the_shared_drives(kitti_root):
     """The shared drives' synced OXTS: 0020 (the sample's drive) records 1-11 ramp the yaw rate

@@ -89,9 +89,18 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
         assert np.allclose(rec.static_tf.lookup("base_link", rec.image_frame_id), T_base_cam, atol=1e-12)
         qos = bag.topic_qos(path)
         assert qos[bag.TF_STATIC_TOPIC].transient_local and not qos[bag.IMU_TOPIC].transient_local
-        # IMU: exact values and exact nanosecond stamps.
+        # IMU: exact values and exact nanosecond stamps; the rates of the records KITTI interpolated
+        # (1-11) bridged by the unit's attitude change across them, those on /ground_truth/imu as written
         assert np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns)
-        assert np.array_equal(rec.gyro, oxts.gyro) and np.array_equal(rec.accel, oxts.accel)
+        interpolated = kitti.interpolated_oxts(oxts)
+        assert np.flatnonzero(interpolated).tolist() == list(range(1, 12))
+        assert np.array_equal(rec.gyro[~interpolated], oxts.gyro[~interpolated])
+        assert np.array_equal(rec.accel, oxts.accel)  # KITTI's line (kitti.bridged_rates: tried, no gain)
+        assert np.array_equal(rec.gyro, kitti.bridged_rates(oxts, interpolated)[0])
+        assert np.abs(rec.gyro[1:12] - oxts.gyro[1:12]).max() > np.radians(0.5)  # not the line
+        gt_gyro = [(m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z)
+                   for _, _, m in bag.iter_messages(path, [bag.GT_IMU_TOPIC])]
+        assert np.array_equal(np.array(gt_gyro), oxts.gyro)
         # Frames: no times.txt in the sample -> the OXTS stamps; images byte-exact.
         assert np.array_equal(rec.frame_stamps_ns, oxts.stamps_ns)
         assert rec.images.shape == (N_FRAMES, 370, 1226) and rec.image_encoding == "mono8"
@@ -145,12 +154,20 @@ def test_first_and_count(kitti_root, tmp_path, capsys):
     assert len(rec.frame_stamps_ns) == 5 and np.array_equal(rec.imu_stamps_ns, oxts.stamps_ns[10:15])
     assert np.allclose(rec.gt_poses[0], np.eye(4), atol=1e-9)  # odom = base at the first written frame
     assert rec.gt_poses[-1][0, 3] > 4.0  # ~12 m/s over 0.4 s, along base x
+    # bridged with the run's real ends, record 0 before the frames converted among them
+    gyro = kitti.bridged_rates(oxts.slice(0, N_FRAMES), kitti.interpolated_oxts(oxts.slice(0, N_FRAMES)))[0]
+    assert np.array_equal(rec.gyro, gyro[10:15]) and not np.allclose(rec.gyro[:2], oxts.gyro[10:12])
     left_out = tmp_path / "left_out"
     assert kitti_to_bag.main(["--odometry", str(kitti_root / "odometry"), "-o", str(left_out), "--first", "10",
-                              "--count", "5", "--leave-out-interpolated-imu"]) == 0
+                              "--count", "5", "--interpolated-imu", "leave-out"]) == 0
     assert "left out of /imu/data" in capsys.readouterr().err
     short = bag.read_recording(left_out)
     assert np.array_equal(short.imu_stamps_ns, oxts.stamps_ns[12:15]) and len(short.gt_roll) == 5
+    line = tmp_path / "line"
+    assert kitti_to_bag.main(["--odometry", str(kitti_root / "odometry"), "-o", str(line), "--first", "10",
+                              "--count", "5", "--interpolated-imu", "line"]) == 0
+    assert "written to /imu/data as KITTI wrote them" in capsys.readouterr().err
+    assert np.array_equal(bag.read_recording(line).gyro, oxts.gyro[10:15])
 
 
 def _expect_error(capsys, argv, *fragments) -> str:
@@ -657,7 +674,7 @@ def test_the_imu_topic_from_the_raw_extracts_100_hz_oxts(layout, kitti_root, tmp
     assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bnone"), "--imu-oxts", str(tmp_path / "nothing")]) == 2
     assert "--imu-oxts" in capsys.readouterr().err
     assert kitti_to_bag.main(base + ["-o", str(tmp_path / "bi"), "--imu-oxts", str(extract),
-                                     "--leave-out-interpolated-imu"]) == 2
-    assert "--leave-out-interpolated-imu applies to the synced records" in capsys.readouterr().err
+                                     "--interpolated-imu", "leave-out"]) == 2
+    assert "--interpolated-imu applies to the synced records" in capsys.readouterr().err
     assert kitti_to_bag.main(["--render-oxts", str(synced), "--imu-oxts", str(synced), "-o", str(tmp_path / "r")]) == 2
     assert "--imu-oxts applies to a drive's real images" in capsys.readouterr().err

@@ -3,6 +3,7 @@ calibration and poses (:func:`load_source`), then write IMU, images, CameraInfo,
 ground truth in stamp order (:func:`convert`)."""
 from __future__ import annotations
 
+import math
 import re
 import sys
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ from bevo_ros.datasets import kitti
 
 IMU_LEAD_S = 0.5  # s of --imu-oxts records written before the first frame (the DUKF's start)
 IMU_GAP_PERIODS = 2.5  # --imu-oxts: a step between records longer than this many (median) periods is a gap
+INTERPOLATED_IMU = ("bridge", "line", "leave-out")  # ConversionOptions.interpolated_imu
 
 
 class ConversionError(ValueError):
@@ -57,7 +59,10 @@ class ConversionOptions:
     gyro_var: float = 1e-4
     accel_var: float = 1e-2
     quiet: bool = False
-    leave_out_interpolated_imu: bool = False
+    # KITTI's interpolated OXTS records on the IMU topic (kitti.interpolated_oxts): "bridge" (their rates
+    # from the unit's own attitude change across them, kitti.bridged_rates), "line" (as KITTI wrote
+    # them) or "leave-out" (an IMU gap); /ground_truth/imu keeps them as they are
+    interpolated_imu: str = "bridge"
     oxts_ground_truth: bool = True  # a raw drive without poses: the OXTS unit's GPS/INS poses
     imu_oxts: str | Path | None = None  # /imu/data from this OXTS directory (the raw extract's 100 Hz one)
 
@@ -363,14 +368,24 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
             gt = np.full_like(sel, np.nan)
             gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam0)
 
-    # Records KITTI's synchronisation interpolated over lost packets are no measurement, but the
-    # line between the real rates on either side is the best bridge an IMU-only engine has (a gap
-    # with the images' rotation alone was worse: README, Limitations): written unless asked, and reported.
+    # Records KITTI's synchronisation interpolated over lost packets are no measurement: their rates are
+    # bridged by the unit's own attitude change across them (kitti.bridged_rates; the line KITTI wrote
+    # turned the sample's heading 1.5 deg too far), unless asked otherwise, and reported.
     interpolated = kitti.interpolated_oxts(src.oxts)
+    gyro_out = src.oxts.gyro
+    bridged: list[tuple[int, int]] = []
+    if opts.interpolated_imu == "bridge" and opts.imu_oxts is None:
+        gyro_out, bridged = kitti.bridged_rates(src.oxts, interpolated)
     found = np.flatnonzero(interpolated[first:stop]) + first
     if len(found) and not opts.quiet and opts.imu_oxts is None:  # with --imu-oxts they are not the IMU topic
-        where = (f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})" if opts.leave_out_interpolated_imu
-                 else f"written to {opts.imu_topic} as they are (--leave-out-interpolated-imu leaves them out)")
+        kept = np.setdiff1d(found, [i for a, b in bridged for i in range(a, b)])
+        where = {"leave-out": f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})",
+                 "line": f"written to {opts.imu_topic} as KITTI wrote them",
+                 "bridge": (f"their rates on {opts.imu_topic} bridged by the unit's own attitude change across them "
+                            f"(as KITTI wrote them on {opts.gt_imu_topic}; --interpolated-imu line|leave-out)"
+                            + (f"; {_ranges(kept + src.record_offset)} not (no real record, or one misstamped, at "
+                               f"an end, or over {math.degrees(kitti.BRIDGE_MAX_ANGLE):.0f} deg of turn): as KITTI "
+                               "wrote them" if len(kept) else ""))}[opts.interpolated_imu]
         print(f"{prog_name('kitti_to_bag')}: {len(found)} OXTS record(s) {_ranges(found + src.record_offset)} are KITTI's linear "
               f"interpolation over lost packets (all six IMU channels exactly on the line through their "
               f"neighbours): {where}",
@@ -413,8 +428,8 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
                 continue
             if kind == "imu":
                 gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
-                if imu_stream is None and not (opts.leave_out_interpolated_imu and interpolated[i]):
-                    writer.write_imu(stamp, gyro, accel, opts.imu_frame, topic=opts.imu_topic,
+                if imu_stream is None and not (opts.interpolated_imu == "leave-out" and interpolated[i]):
+                    writer.write_imu(stamp, gyro_out[i], accel, opts.imu_frame, topic=opts.imu_topic,
                                      gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
                 writer.write_imu_attitude(stamp, src.oxts.roll[i], src.oxts.pitch[i], src.oxts.yaw[i], gyro=gyro,
                                           accel=accel, frame_id=opts.imu_frame, topic=opts.gt_imu_topic,
@@ -505,9 +520,11 @@ def load_source(opts: ConversionOptions) -> Source:
     for name in ("gyro_var", "accel_var"):  # a negative covariance in every IMU message
         if not getattr(opts, name) >= 0:
             raise ConversionError(f"--{name.replace('_', '-')} {getattr(opts, name)}: a variance must be >= 0")
-    if opts.imu_oxts is not None and opts.leave_out_interpolated_imu:
-        raise ConversionError("--leave-out-interpolated-imu applies to the synced records; with --imu-oxts they are "
-                              "not the IMU topic (the extract has no interpolated records: lost packets are gaps)")
+    if opts.interpolated_imu not in INTERPOLATED_IMU:
+        raise ConversionError(f"--interpolated-imu {opts.interpolated_imu!r}: choose one of {', '.join(INTERPOLATED_IMU)}")
+    if opts.imu_oxts is not None and opts.interpolated_imu != "bridge":
+        raise ConversionError("--interpolated-imu applies to the synced records; with --imu-oxts they are not the IMU "
+                              "topic (the extract has no interpolated records: lost packets are gaps)")
     if opts.oxts_offset is not None and opts.oxts_offset < 0:  # a negative slice left no OXTS record (IndexError)
         raise ConversionError(f"--oxts-offset {opts.oxts_offset}: must be >= 0 (the OXTS record of the first image)")
     return odometry_source(opts) if opts.odometry is not None else raw_source(opts)
