@@ -95,8 +95,9 @@ def test_roundtrip_is_exact(bags, kitti_root, capsys):
         interpolated = kitti.interpolated_oxts(oxts)
         assert np.flatnonzero(interpolated).tolist() == list(range(1, 12))
         assert np.array_equal(rec.gyro[~interpolated], oxts.gyro[~interpolated])
-        assert np.array_equal(rec.accel, oxts.accel)  # KITTI's line (kitti.bridged_rates: tried, no gain)
-        assert np.array_equal(rec.gyro, kitti.bridged_rates(oxts, interpolated)[0])
+        assert np.array_equal(rec.accel[~interpolated], oxts.accel[~interpolated])
+        gyro, accel, _ = kitti.bridged_imu(oxts, interpolated)
+        assert np.array_equal(rec.gyro, gyro) and np.array_equal(rec.accel, accel)
         assert np.abs(rec.gyro[1:12] - oxts.gyro[1:12]).max() > np.radians(0.5)  # not the line
         gt_gyro = [(m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z)
                    for _, _, m in bag.iter_messages(path, [bag.GT_IMU_TOPIC])]
@@ -155,8 +156,9 @@ def test_first_and_count(kitti_root, tmp_path, capsys):
     assert np.allclose(rec.gt_poses[0], np.eye(4), atol=1e-9)  # odom = base at the first written frame
     assert rec.gt_poses[-1][0, 3] > 4.0  # ~12 m/s over 0.4 s, along base x
     # bridged with the run's real ends, record 0 before the frames converted among them
-    gyro = kitti.bridged_rates(oxts.slice(0, N_FRAMES), kitti.interpolated_oxts(oxts.slice(0, N_FRAMES)))[0]
+    gyro, accel, _ = kitti.bridged_imu(oxts.slice(0, N_FRAMES), kitti.interpolated_oxts(oxts.slice(0, N_FRAMES)))
     assert np.array_equal(rec.gyro, gyro[10:15]) and not np.allclose(rec.gyro[:2], oxts.gyro[10:12])
+    assert np.array_equal(rec.accel, accel[10:15])
     left_out = tmp_path / "left_out"
     assert kitti_to_bag.main(["--odometry", str(kitti_root / "odometry"), "-o", str(left_out), "--first", "10",
                               "--count", "5", "--interpolated-imu", "leave-out"]) == 0
@@ -168,6 +170,7 @@ def test_first_and_count(kitti_root, tmp_path, capsys):
                               "--count", "5", "--interpolated-imu", "line"]) == 0
     assert "written to /imu/data as KITTI wrote them" in capsys.readouterr().err
     assert np.array_equal(bag.read_recording(line).gyro, oxts.gyro[10:15])
+    assert np.array_equal(bag.read_recording(line).accel, oxts.accel[10:15])
 
 
 def _expect_error(capsys, argv, *fragments) -> str:

@@ -60,8 +60,8 @@ class ConversionOptions:
     accel_var: float = 1e-2
     quiet: bool = False
     # KITTI's interpolated OXTS records on the IMU topic (kitti.interpolated_oxts): "bridge" (their rates
-    # from the unit's own attitude change across them, kitti.bridged_rates), "line" (as KITTI wrote
-    # them) or "leave-out" (an IMU gap); /ground_truth/imu keeps them as they are
+    # and accelerations from the unit's own attitude and velocity change across them, kitti.bridged_imu),
+    # "line" (as KITTI wrote them) or "leave-out" (an IMU gap); /ground_truth/imu keeps them as they are
     interpolated_imu: str = "bridge"
     oxts_ground_truth: bool = True  # a raw drive without poses: the OXTS unit's GPS/INS poses
     imu_oxts: str | Path | None = None  # /imu/data from this OXTS directory (the raw extract's 100 Hz one)
@@ -368,20 +368,20 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
             gt = np.full_like(sel, np.nan)
             gt[valid] = kitti.base_poses(sel[valid], src.T_base_cam0)
 
-    # Records KITTI's synchronisation interpolated over lost packets are no measurement: their rates are
-    # bridged by the unit's own attitude change across them (kitti.bridged_rates; the line KITTI wrote
-    # turned the sample's heading 1.5 deg too far), unless asked otherwise, and reported.
+    # Records KITTI's synchronisation interpolated over lost packets are no measurement: they are
+    # bridged by the unit's own attitude and velocity change across them (kitti.bridged_imu; the line
+    # KITTI wrote turned the sample's heading 1.5 deg too far), unless asked otherwise, and reported.
     interpolated = kitti.interpolated_oxts(src.oxts)
-    gyro_out = src.oxts.gyro
+    gyro_out, accel_out = src.oxts.gyro, src.oxts.accel
     bridged: list[tuple[int, int]] = []
     if opts.interpolated_imu == "bridge" and opts.imu_oxts is None:
-        gyro_out, bridged = kitti.bridged_rates(src.oxts, interpolated)
+        gyro_out, accel_out, bridged = kitti.bridged_imu(src.oxts, interpolated)
     found = np.flatnonzero(interpolated[first:stop]) + first
     if len(found) and not opts.quiet and opts.imu_oxts is None:  # with --imu-oxts they are not the IMU topic
         kept = np.setdiff1d(found, [i for a, b in bridged for i in range(a, b)])
         where = {"leave-out": f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})",
                  "line": f"written to {opts.imu_topic} as KITTI wrote them",
-                 "bridge": (f"their rates on {opts.imu_topic} bridged by the unit's own attitude change across them "
+                 "bridge": (f"bridged on {opts.imu_topic} by the unit's own attitude and velocity change across them "
                             f"(as KITTI wrote them on {opts.gt_imu_topic}; --interpolated-imu line|leave-out)"
                             + (f"; {_ranges(kept + src.record_offset)} not (no real record, or one misstamped, at "
                                f"an end, or over {math.degrees(kitti.BRIDGE_MAX_ANGLE):.0f} deg of turn): as KITTI "
@@ -429,7 +429,7 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
             if kind == "imu":
                 gyro, accel = src.oxts.gyro[i], src.oxts.accel[i]
                 if imu_stream is None and not (opts.interpolated_imu == "leave-out" and interpolated[i]):
-                    writer.write_imu(stamp, gyro_out[i], accel, opts.imu_frame, topic=opts.imu_topic,
+                    writer.write_imu(stamp, gyro_out[i], accel_out[i], opts.imu_frame, topic=opts.imu_topic,
                                      gyro_covariance=opts.gyro_var, accel_covariance=opts.accel_var)
                 writer.write_imu_attitude(stamp, src.oxts.roll[i], src.oxts.pitch[i], src.oxts.yaw[i], gyro=gyro,
                                           accel=accel, frame_id=opts.imu_frame, topic=opts.gt_imu_topic,

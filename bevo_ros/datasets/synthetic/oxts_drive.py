@@ -34,7 +34,7 @@ import math
 import numpy as np
 
 from bevo_ros.core.geometry import CameraModel
-from bevo_ros.datasets.kitti import OxtsData, bridged_rates, interpolated_oxts, oxts_positions
+from bevo_ros.datasets.kitti import OxtsData, bridged_imu, interpolated_oxts, oxts_positions
 from bevo_ros.datasets.synthetic.drive import LazyImages, SyntheticDrive
 from bevo_ros.datasets.synthetic.ground import RoadGround, _lane_path
 from bevo_ros.datasets.synthetic.traffic import TrafficOptions, as_traffic_options, traffic_at_frames
@@ -147,9 +147,9 @@ def drive_from_oxts(
             records' path; None/False = an empty road.
         vertical_curves: the images show the road ahead bent by the drive's slope further along
             (crests, sags); False = a plane. Not with ``traffic`` (its vehicles stand on the plane).
-        bridge_interpolated: the IMU's rates over KITTI's interpolated records bridged by the unit's
-            attitude change across them (:func:`~bevo_ros.datasets.kitti.bridged_rates`), as ``bevo
-            convert`` writes them by default; False = the line KITTI wrote. The truth is the same.
+        bridge_interpolated: the IMU over KITTI's interpolated records bridged by the unit's attitude
+            and velocity change across them (:func:`~bevo_ros.datasets.kitti.bridged_imu`), as ``bevo
+            convert`` writes it by default; False = the line KITTI wrote. The truth is the same.
 
     Returns:
         a :class:`SyntheticDrive`: the IMU at the records' stamps, the frames on the camera's clock
@@ -188,8 +188,8 @@ def drive_from_oxts(
     yaw_u = np.unwrap(oxts.yaw)
     r_grav = rotation_z(yaw_u) @ rotation_y(oxts.pitch) @ rotation_x(oxts.roll)
     vel = np.stack([oxts.field("ve"), oxts.field("vn"), vu], -1)
-    gyro = bridged_rates(oxts, interpolated_oxts(oxts))[0] if bridge_interpolated else oxts.gyro.copy()
-    accel = oxts.accel.copy()
+    gyro, accel = (bridged_imu(oxts, interpolated_oxts(oxts))[:2] if bridge_interpolated
+                   else (oxts.gyro.copy(), oxts.accel.copy()))
     pr_grav = np.stack([oxts.pitch, oxts.roll], -1)
     imu_poses = np.concatenate([xy, _wrap(yaw_u)[:, None]], 1)
 
