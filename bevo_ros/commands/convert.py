@@ -37,8 +37,8 @@ notes:
   is looked up in --raw-root, or given with --oxts.
   OXTS records that KITTI's synchronisation filled in by linear interpolation over lost packets
   (all six IMU channels exactly on the line through their neighbours; e.g. drive 0020's records
-  1-11, the sample's start) are reported, and their rates bridged by the unit's own attitude change
-  across them (which holds the lost packets' integral; --interpolated-imu line|leave-out otherwise).
+  1-11, the sample's start) are reported, and bridged by the unit's own attitude and velocity change
+  across them (which hold the lost packets' integrals; --interpolated-imu line|leave-out otherwise).
   Calibration: the odometry layout's camera matrix is calib.txt's; the rig's extrinsics come from
   the raw calibration of the drive's day, else the nearest other day found (the sample's 2011_09_30
   drives have none: 2011_09_26's describe the same rig; override with --raw-calib). A raw drive's
@@ -112,8 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--accel-var", type=float, default=1e-2, help="linear_acceleration variance, (m/s^2)^2")
     p.add_argument("--interpolated-imu", choices=("bridge", "line", "leave-out"), default="bridge",
                    help="the OXTS records KITTI's synchronisation interpolated over lost packets, on the IMU topic: "
-                        "bridge (default: their rates from the unit's own attitude change across them, which holds "
-                        "the lost packets' integral), line (as KITTI wrote them: the line between the real rates) or "
+                        "bridge (default: their rates and accelerations from the unit's own attitude and velocity "
+                        "change across them, which hold the lost packets' integrals), line (as KITTI wrote them: "
+                        "the line between the real records) or "
                         "leave-out (an IMU gap); the ground-truth IMU topic keeps them as they are")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or notes")
     return p
