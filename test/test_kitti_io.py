@@ -158,9 +158,10 @@ def test_bridged_imu_integrates_to_the_units_attitude_and_velocity_change():
     """A run of KITTI's interpolated records gets rates and accelerations that meet the real records
     at both ends and integrate to the unit's own change across the run (what its INS integrated over
     the lost packets): the rotation between its attitudes and its velocity change. On an S-bend's
-    1.5 s the line's heading is 20 deg off, the bridge's 0.1 deg; its lateral acceleration's mean
-    2.7 m/s^2 off, the bridge's 0.1; real records keep their values; a run with a misstamped end or
-    an impossible turn keeps the line."""
+    1.5 s the line's heading is 20 deg off, the bridge's records integrate to the unit's turn; the
+    line's lateral acceleration's mean is 2.7 m/s^2 off, the bridge's 0.1; the same with the world
+    turned so that the heading wraps at +-pi in the run; real records keep their values; a run with a
+    misstamped end or an impossible turn keeps the line."""
     from scipy.spatial.transform import Rotation
 
     from bevo_ros.core.vehicle_dynamics import GRAVITY
@@ -171,7 +172,8 @@ def test_bridged_imu_integrates_to_the_units_attitude_and_velocity_change():
 
     speed = 12.0  # m/s along the body's x, constant: the specific force is w x v + gravity
     n, fine = 40, 100  # records at 10 Hz, integrated at 1 kHz
-    R, attitude, velocity, force = Rotation.identity(), [], [], []
+    # a start away from level and north: a nav-frame rotation vector would not pass for the body's
+    R, attitude, velocity, force = Rotation.from_euler("ZYX", np.radians([90.0, 3.0, 5.0])), [], [], []
     for k in range(n):
         attitude.append(R)
         velocity.append(R.apply([speed, 0.0, 0.0]))
@@ -209,7 +211,7 @@ def test_bridged_imu_integrates_to_the_units_attitude_and_velocity_change():
     print(f"turn over 10..25 (deg): unit {np.degrees(turn).round(3)}, line {np.degrees(line_turn).round(3)}, "
           f"bridged {np.degrees(bridged_turn).round(3)}")
     assert np.abs(line_turn - turn).max() > np.radians(2.0)
-    assert np.abs(bridged_turn - turn).max() < np.radians(0.15)  # the samples' trapezoid: 0.09 deg off the profile's
+    assert np.abs(bridged_turn - turn).max() < np.radians(1e-6)  # the records' trapezoid has the unit's mean
     true_force, line_force, bridged_force = (np.trapezoid(a[10:26], t[10:26], axis=0) / 1.5
                                              for a in (truth[:, :3], data[:, 11:14], accel))
     print(f"mean specific force over 10..25 (m/s^2): truth {true_force.round(3)}, line {line_force.round(3)}, "
@@ -222,10 +224,24 @@ def test_bridged_imu_integrates_to_the_units_attitude_and_velocity_change():
         line_err, bridged_err = (np.sqrt(np.mean((v[11:25] - truth[11:25, channels]) ** 2))
                                  for v in (data[:, 11:20][:, channels], x))
         assert bridged_err < 0.5 * line_err, (channels, bridged_err, line_err)
-    # an end stamped out of order, or a turn no car makes in 1.5 s: the line stays
-    late = stamps.copy()
-    late[25] = late[24]
-    assert kitti.bridged_imu(kitti.OxtsData(late, data), interpolated)[2] == [(31, 32)]
+    # the same drive with the world turned so that the run's heading crosses +-pi (KITTI's linear fill
+    # of the yaw field then sweeps the long way round): the body's rates and forces are the same
+    turned = data.copy()
+    turn_by = np.pi - yaw[18]
+    turned[:, 5] = np.angle(np.exp(1j * (yaw + turn_by)))
+    c, s_ = np.cos(turn_by), np.sin(turn_by)
+    ve, vn = data[:, kitti.OXTS_INDEX["ve"]], data[:, kitti.OXTS_INDEX["vn"]]
+    turned[:, kitti.OXTS_INDEX["ve"]], turned[:, kitti.OXTS_INDEX["vn"]] = c * ve - s_ * vn, s_ * ve + c * vn
+    assert np.ptp(turned[10:26, 5]) > np.pi  # the fill wraps
+    gyro_t, accel_t, bridged_t = kitti.bridged_imu(kitti.OxtsData(stamps, turned), interpolated)
+    assert bridged_t == bridged
+    np.testing.assert_allclose(gyro_t, gyro, atol=1e-9)
+    np.testing.assert_allclose(accel_t, accel, atol=1e-9)
+    # an end stamped out of order (a duplicate, a late one), or a turn no car makes in 1.5 s: the line stays
+    for late_by in (-100_000_000, 300_000_000):
+        late = stamps.copy()
+        late[25] += late_by
+        assert kitti.bridged_imu(kitti.OxtsData(late, data), interpolated)[2] == [(31, 32)], late_by
     spun = data.copy()
     spun[25:, 5] += np.radians(60.0)
     assert kitti.bridged_imu(kitti.OxtsData(stamps, spun), interpolated)[2] == [(31, 32)]

@@ -156,7 +156,7 @@ def test_first_and_count(kitti_root, tmp_path, capsys):
     assert np.allclose(rec.gt_poses[0], np.eye(4), atol=1e-9)  # odom = base at the first written frame
     assert rec.gt_poses[-1][0, 3] > 4.0  # ~12 m/s over 0.4 s, along base x
     # bridged with the run's real ends, record 0 before the frames converted among them
-    gyro, accel, _ = kitti.bridged_imu(oxts.slice(0, N_FRAMES), kitti.interpolated_oxts(oxts.slice(0, N_FRAMES)))
+    gyro, accel, _ = kitti.bridged_imu(oxts, kitti.interpolated_oxts(oxts))  # the drive's records, as convert
     assert np.array_equal(rec.gyro, gyro[10:15]) and not np.allclose(rec.gyro[:2], oxts.gyro[10:12])
     assert np.array_equal(rec.accel, accel[10:15])
     left_out = tmp_path / "left_out"
@@ -623,7 +623,7 @@ def test_the_imu_topic_from_the_raw_extracts_100_hz_oxts(layout, kitti_root, tmp
     after the last; the synced records still give the ground truth and /ground_truth/imu; bevo run takes
     the stream. A record stamped out of order is left out alone (not the good ones after it), a gap
     (lost packets) is said, and so is a stream that does not hold the synced records; one that does not
-    cover the frames is refused, and so are --render-oxts and --leave-out-interpolated-imu with it."""
+    cover the frames is refused, and so are --render-oxts and --interpolated-imu other than bridge with it."""
     from bevo_ros.commands import run
 
     synced = layout / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts"

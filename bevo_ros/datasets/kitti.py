@@ -308,39 +308,50 @@ def bridged_imu(oxts: OxtsData, interpolated: np.ndarray) -> tuple[np.ndarray, n
     scatter), and its lateral acceleration is 0.94 m/s^2 off the unit's velocity change (over real
     1.2 s windows of the shared drives the two agree to 0.03-0.05 m/s^2 std). Both are bridged: the
     rates alone, with the line's lateral acceleration no longer matching the turn, read as a 6 deg
-    roll in the DUKF (the sample's gravity roll 1.15 -> 2.14 deg RMS; both: 0.65). Each run's channels
-    become the smoothest profile (least squared change) that starts and ends at the real records and
-    has the unit's mean over ``[t_i, t_j]``: the line plus ``6 c s (1 - s)``, ``s`` the run's time
-    fraction, ``c`` the mean the line lacks. The rates' mean is the rotation vector of ``R_i^T R_j``
-    over the span (``R = Rz(yaw) Ry(pitch) Rx(roll)``, the body's rates; a second's coning is
-    negligible), the specific force's the body-frame mean of ``R^T (dv/dt + g z)``, ``dv`` the
-    east/north/up velocity change, over the run's attitudes (KITTI's fill between the real two). A
-    run whose ends are missing or misstamped, or whose attitude turns by more than
+    roll in the DUKF (the sample's gravity roll 1.15 -> 2.14 deg RMS; both: 0.65).
+
+    Each run's channels become the smoothest profile (least squared change) that starts and ends at
+    the real records and has the unit's mean over ``[t_i, t_j]``: the line plus a parabola
+    ``s (1 - s)`` in the run's time fraction ``s``, scaled so that the records' trapezoid over the
+    run (what an integrator of the samples sees; a single lost packet's parabola alone would give 75 %
+    of it) has that mean. The rates' mean is the rotation vector of ``R_i^T R_j`` over the span
+    (``R = Rz(yaw) Ry(pitch) Rx(roll)``, so the body's rates; a second's coning is negligible); the
+    specific force's is the mean over the run of ``R(s)^T (dv/dt + g z)``, ``dv`` the east/north/up
+    velocity change and ``R(s) = R_i exp(s log(R_i^T R_j))`` the shortest rotation between the real
+    two (KITTI's own fill of the yaw goes the long way round where it wraps at +-pi). A run whose
+    ends are missing or misstamped (:func:`misstamped`), or whose attitude turns by more than
     :data:`BRIDGE_MAX_ANGLE`, keeps the line.
     """
+    from scipy.spatial.transform import Rotation
+
     from bevo_ros.core.vehicle_dynamics import GRAVITY
     from bevo_ros.rotations import rotation_vector, rotation_x, rotation_y, rotation_z
 
     gyro, accel = np.array(oxts.gyro, dtype=np.float64), np.array(oxts.accel, dtype=np.float64)
     t = np.asarray(oxts.stamps_ns, dtype=np.int64)
+    bad_stamp = misstamped(t)
     R = rotation_z(oxts.yaw) @ rotation_y(oxts.pitch) @ rotation_x(oxts.roll)
     velocity = np.stack([oxts.field("ve"), oxts.field("vn"), oxts.field("vu")], 1)
     bridged = []
     for start, stop in interpolated_runs(interpolated):
         i, j = start - 1, stop
-        if i < 0 or j >= len(gyro) or not np.all(np.diff(t[i:j + 1]) > 0):
+        if i < 0 or j >= len(gyro) or bad_stamp[i:j + 1].any():
             continue
         span = (t[j] - t[i]) * 1e-9
         theta = rotation_vector(R[i].T @ R[j])
+        s = (t[i:j + 1] - t[i]) * 1e-9 / span  # (m + 1,) 0 .. 1
+        along = R[i] @ Rotation.from_rotvec(s[:, None] * theta).as_matrix()  # (m + 1, 3, 3) geodesic
         force = (velocity[j] - velocity[i]) / span + np.array([0.0, 0.0, GRAVITY])  # nav frame
-        mean_force = np.einsum("kji,j->ki", R[i:j + 1], force).mean(0)  # into the body, averaged
+        mean_force = np.trapezoid(np.einsum("kji,j->ki", along, force), s, axis=0)  # into the body
         if not (np.isfinite(theta).all() and np.isfinite(mean_force).all()
                 and np.linalg.norm(theta) <= BRIDGE_MAX_ANGLE):
             continue
-        s = ((t[start:stop] - t[i]) * 1e-9 / span)[:, None]
+        bump = (s * (1.0 - s))[:, None]
+        bump = bump / np.trapezoid(bump, s, axis=0)  # its trapezoid over the run: 1
         for x, mean in ((gyro, theta / span), (accel, mean_force)):
-            missing = mean - 0.5 * (x[i] + x[j])  # (3,) the mean the line lacks
-            x[start:stop] = x[i] + (x[j] - x[i]) * s + 6.0 * missing * s * (1.0 - s)
+            line = x[i] + (x[j] - x[i]) * s[:, None]
+            missing = mean - np.trapezoid(line, s, axis=0)  # (3,) the mean the line lacks
+            x[start:stop] = (line + missing * bump)[1:-1]
         bridged.append((start, stop))
     return gyro, accel, bridged
 

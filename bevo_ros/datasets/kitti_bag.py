@@ -81,6 +81,9 @@ class Source:
     description: str
     T_base_cam0: np.ndarray | None = None  # (4, 4) camera 0's, the poses' frame: set with T_base_cam
     record_offset: int = 0  # the raw OXTS record of frame 0 (an odometry sequence's start in its drive)
+    # the drive's records around the sequence's (oxts = oxts_drive[record_offset:][:F]): a run of
+    # interpolated records is judged and bridged with its real ends outside the sequence; None: oxts only
+    oxts_drive: kitti.OxtsData | None = None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -205,7 +208,7 @@ def odometry_source(opts: ConversionOptions) -> Source:
     if last >= len(oxts):
         raise ConversionError(f"{oxts_dir}: {len(oxts)} OXTS records, but {n} images starting at raw frame {start} "
                         f"need {last + 1}")
-    oxts = oxts.slice(start, start + n)
+    oxts_drive, oxts = oxts, oxts.slice(start, start + n)
 
     times_txt = seq_dir / "times.txt"
     if times_txt.is_file():
@@ -242,7 +245,8 @@ def odometry_source(opts: ConversionOptions) -> Source:
               f"and bevo run / bevo_node take the camera's extrinsics from their parameters (camera.base_T_camera)",
               file=sys.stderr)
     return Source(images, stamps, oxts, calib[key], opts.camera, poses, T_base_cam,
-                  f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})", T_base_cam0, start)
+                  f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})", T_base_cam0, start,
+                  oxts_drive)
 
 
 def raw_source(opts: ConversionOptions) -> Source:
@@ -371,14 +375,19 @@ def convert(src: Source, opts: ConversionOptions) -> dict[str, int]:
     # Records KITTI's synchronisation interpolated over lost packets are no measurement: they are
     # bridged by the unit's own attitude and velocity change across them (kitti.bridged_imu; the line
     # KITTI wrote turned the sample's heading 1.5 deg too far), unless asked otherwise, and reported.
-    interpolated = kitti.interpolated_oxts(src.oxts)
+    # Judged and bridged over the drive's records, so that a run across the sequence's ends has its real ends.
+    drive, offset = (src.oxts, 0) if src.oxts_drive is None else (src.oxts_drive, src.record_offset)
+    in_source = slice(offset, offset + len(src.oxts))
+    interpolated_drive = kitti.interpolated_oxts(drive)
+    interpolated = interpolated_drive[in_source]
     gyro_out, accel_out = src.oxts.gyro, src.oxts.accel
     bridged: list[tuple[int, int]] = []
     if opts.interpolated_imu == "bridge" and opts.imu_oxts is None:
-        gyro_out, accel_out, bridged = kitti.bridged_imu(src.oxts, interpolated)
+        gyro_out, accel_out, bridged = kitti.bridged_imu(drive, interpolated_drive)
+        gyro_out, accel_out = gyro_out[in_source], accel_out[in_source]
     found = np.flatnonzero(interpolated[first:stop]) + first
     if len(found) and not opts.quiet and opts.imu_oxts is None:  # with --imu-oxts they are not the IMU topic
-        kept = np.setdiff1d(found, [i for a, b in bridged for i in range(a, b)])
+        kept = np.setdiff1d(found, [i - offset for a, b in bridged for i in range(a, b)])
         where = {"leave-out": f"left out of {opts.imu_topic} (kept on {opts.gt_imu_topic})",
                  "line": f"written to {opts.imu_topic} as KITTI wrote them",
                  "bridge": (f"bridged on {opts.imu_topic} by the unit's own attitude and velocity change across them "
