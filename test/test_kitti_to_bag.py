@@ -530,10 +530,18 @@ def test_an_oxts_stamp_out_of_order_leaves_that_record_out(layout, tmp_path, cap
 
 
 def test_interpolated_records_are_named_by_the_drives_record_numbers(layout, tmp_path, capsys):
-    """Records are the drive's oxts/data file numbers, not the frames of a sequence that starts later."""
+    """Records are the drive's oxts/data file numbers, not the frames of a sequence that starts later;
+    they are judged and bridged over the drive's records, so the sequence's first and last records,
+    inside the drive's run 1-11, are found too (judged on the sequence's alone they were not)."""
     assert kitti_to_bag.main(["--odometry", str(layout / "odometry"), "-o", str(tmp_path / "o"),
                               "--oxts-offset", "3"]) == 0
-    assert "3 OXTS record(s) 4-6 are KITTI's linear interpolation" in capsys.readouterr().err  # frames 1-3
+    err = capsys.readouterr().err
+    assert "5 OXTS record(s) 3-7 are KITTI's linear interpolation" in err and "bridged" in err  # frames 0-4
+    assert " not (no real record" not in err  # the run's real ends, records 0 and 12, lie outside the sequence
+    oxts = kitti.read_oxts(layout / "raw" / "2011_09_30" / f"{DRIVE}_sync" / "oxts")
+    gyro, accel, _ = kitti.bridged_imu(oxts, kitti.interpolated_oxts(oxts))
+    rec = bag.read_recording(tmp_path / "o")
+    assert np.array_equal(rec.gyro, gyro[3:3 + len(rec.gyro)]) and np.array_equal(rec.accel, accel[3:3 + len(rec.gyro)])
 
 
 def test_overwrite_replaces_only_a_bag(layout, tmp_path, capsys):
