@@ -706,8 +706,10 @@ def test_the_kitti_sample_holds_in_other_light_and_through_other_cameras(kitti_r
     """The engine on the sample's real images made darker (x0.4 and a dusk gamma of 2), noisier (a
     sensor's sigma 8), JPEG-compressed at quality 30 (a CompressedImage topic) and flickering +-15 %
     from frame to frame (auto-exposure): the per-frame error and the drift stay within a few tenths of
-    the clean run's (measured 2026-12-07: clean 4.10 cm and 1.37 %, the worst 4.38 cm and 1.53 %). No
-    threshold may read grey levels: the phase correlation is normalised, and so must the rest be."""
+    the clean run's (measured 2026-12-07, the bag's interpolated OXTS records bridged as `bevo convert`
+    writes them: clean 4.70 cm and 0.87 %, the worst 4.94 cm and 1.18 %; with KITTI's line before,
+    clean 4.10 cm and 1.37 %). No threshold may read grey levels: the phase correlation is normalised,
+    and so must the rest be."""
     import cv2
 
     from bevo_ros.evaluation.metrics import motion_scores
@@ -743,7 +745,7 @@ def test_the_kitti_sample_holds_in_other_light_and_through_other_cameras(kitti_r
         scores[name] = (per_frame, motion_scores(est, gt)["drift"])
     print("\nKITTI sample, per frame (cm) / drift (%): " + ", ".join(f"{n} {c:.2f} / {d:.2f}" for n, (c, d) in scores.items()))
     clean_cm, clean_drift = scores["clean"]
-    assert clean_cm < 4.6 and clean_drift < 2.0, scores["clean"]
+    assert clean_cm < 5.0 and clean_drift < 2.0, scores["clean"]
     for name, (cm, drift) in scores.items():
         assert cm < clean_cm + 0.6 and drift < clean_drift + 0.6, (name, scores)
 
