@@ -23,7 +23,7 @@ from pathlib import Path
 
 from bevo_ros.commands import new_parser, prog_name
 from bevo_ros.io import bag
-from bevo_ros.datasets.kitti_bag import ConversionError, ConversionOptions, convert, load_source
+from bevo_ros.datasets.kitti_bag import INTERPOLATED_IMU, ConversionError, ConversionOptions, convert, load_source
 
 EPILOG = """\
 notes:
@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="do not write /tf_static (base -> IMU identity, base -> camera optical frame)")
     p.add_argument("--gyro-var", type=float, default=1e-4, help="angular_velocity variance, (rad/s)^2")
     p.add_argument("--accel-var", type=float, default=1e-2, help="linear_acceleration variance, (m/s^2)^2")
-    p.add_argument("--interpolated-imu", choices=("bridge", "line", "leave-out"), default="bridge",
+    p.add_argument("--interpolated-imu", choices=INTERPOLATED_IMU, default="bridge",
                    help="the OXTS records KITTI's synchronisation interpolated over lost packets, on the IMU topic: "
                         "bridge (default: their rates and accelerations from the unit's own attitude and velocity "
                         "change across them, which hold the lost packets' integrals), line (as KITTI wrote them: "
