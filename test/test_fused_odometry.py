@@ -18,7 +18,7 @@ from bevo_ros.core.geometry import CameraModel
 from bevo_ros.datasets.rosbag import feed_engine
 from bevo_ros.core.vehicle_dynamics import GRAVITY, compensate_floats, compensate_specific_force
 from bevo_ros.core.vehicle_filter import VehicleFilter, VehicleNoise, initial_vehicle_state
-from bevo_ros.datasets.synthetic import kitti_like_camera, preset_drive
+from bevo_ros.datasets.synthetic import kitti_like_camera, make_drive, preset_drive
 from bevo_ros.evaluation.metrics import motion_scores
 
 FUSED = load_learned_params(REPO_ROOT / "params" / "learned_default.yaml")
@@ -466,6 +466,24 @@ def test_fused_holds_over_crests_and_sags(camera):
     assert fused["trans_pct"] <= 9.0 and fused["drift"] <= 3.0 and fused["yaw"] <= 0.04
     assert fused["trans_pct"] < 0.5 * paper["trans_pct"] and fused["drift"] < 0.3 * paper["drift"]
     assert 0.5 < fused["nees_mean"] < 8.0
+
+
+@pytest.mark.slow
+def test_the_bev_reaches_highway_speeds(camera):
+    """38 m/s (137 km/h) from a cold start: 3.8 m a frame at 10 Hz, 38 % of the BEV's 10 m. The
+    consecutive BEVs' common road shrinks with the speed and the correlation's peak with it (peak
+    quality 0.36 at 20 m/s, 0.15 at 38, 0.10 at 46); past ~4.2 m a frame a cold start locks onto a
+    wrong peak. Measured (5 s, half-size camera, 100 Hz IMU): 6.4 % per frame, 3.4 % drift, mean
+    NEES 1.5; the same drive at 46 m/s reads 77 % short, and at 38 m/s with
+    ``bev.metres_per_pixel`` 0.08 (an 8 m BEV, better in town: README, Limitations) 65 %. This
+    holds the BEV's reach against tuning for the city."""
+    d = make_drive(seed=1, duration=5.0, camera=camera, render="lazy", speed_range=(38.0, 38.0),
+                   speed_variation=0.0, curvature=0.3)
+    assert abs(np.linalg.norm(d.relative_motion[:, :2], axis=1).mean() - 3.8) < 0.05  # m a frame
+    fused = scores(feed(engine(camera, "fused"), d, [d.image(k) for k in range(d.num_frames)]), d)
+    print(f"\n38 m/s from a cold start: {fused}")
+    assert fused["trans_pct"] <= 10.0 and fused["drift"] <= 6.0 and fused["yaw"] <= 0.04
+    assert 0.3 < fused["nees_mean"] < 8.0
 
 
 def test_black_frame_does_not_move_a_still_vehicle(camera):
