@@ -151,7 +151,7 @@ class BevoNode(Node):
         self.create_timer(s.diagnostics_period, self._guard("diagnostics", self._publish_diagnostics), clock=steady)
         self._path_restart_at: float | None = None  # a waiting set_pose's stamp: the path restarts there
         self._diag_drops = 0  # drops_total at the last /diagnostics
-        self._diag_frames = (0, 0)  # odometry published and frames the images moved nothing of, at the last one
+        self._diag_frames = (0, 0, 0)  # at the last one: odometry published, blind frames, frames near the reach
         # with use_sim_time, /clock jumping back (bag restarted) resets like robot_localization
         self._jump_handle = watch_clock_jumps(self, s.max_time_jump_back, self._guard("clock_jump", self._on_clock_jump))
 
@@ -481,10 +481,13 @@ class BevoNode(Node):
                         for k, st in inputs.items()}
         frames = int(values["odometry_published"])
         blind = sum(int(values.get(f"event.{e}", "0")) for e in BLIND_FRAME_EVENTS)
-        (prev_frames, prev_blind), self._diag_frames = self._diag_frames, (frames, blind)
+        beyond = int(values.get("event.beyond_reach", "0"))
+        (prev_frames, prev_blind, prev_beyond), self._diag_frames = self._diag_frames, (frames, blind, beyond)
+        if self.engine is not None:  # the forward motion a frame past which it counts beyond_reach
+            values["reach_m"] = f"{self.engine.reach:.2f}"
         statuses = [status_message(name, "odometry", odometry_state(values, for_odometry, self.engine is not None,
                                                                     drops - prev_drops, frames - prev_frames,
-                                                                    blind - prev_blind))]
+                                                                    blind - prev_blind, beyond - prev_beyond))]
         statuses += [status_message(name, f"{key} input", st) for key, st in inputs.items()]
         statuses.append(status_message(name, "calibration", self.rig.state()))
         msg = DiagnosticArray(status=statuses)

@@ -167,7 +167,7 @@ class _FrameEngine:
 
     def __init__(self, fail_at: float | None = None) -> None:
         self.counters = SimpleNamespace(frames_out=0, standstill=0, gated_peak=0, pitch_correction_off=0,
-                                        skipped_frame_rate=0)
+                                        skipped_frame_rate=0, beyond_reach=0)
         self.max_pending_images, self.pending_images, self.fail_at = 0, 0, fail_at
 
     def reset(self) -> None:  # as BevoOdometry.reset: the counters run on

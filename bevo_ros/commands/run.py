@@ -91,7 +91,8 @@ def _run(args: argparse.Namespace) -> int:
           + (f", speed {c.rejected_speed} (of {rig.speed_topic})" if rig.speed_topic else "") + f"; at rest {c.standstill}; "
           f"peak off the highest (second motion in view, direction of travel) {c.gated_peak}; "
           f"pitch-change correction off (DUKF pull, turn) {c.pitch_correction_off}"
-          + (f"; skipped (odometry.min_frame_interval) {c.skipped_frame_rate}" if c.skipped_frame_rate else ""))
+          + (f"; skipped (odometry.min_frame_interval) {c.skipped_frame_rate}" if c.skipped_frame_rate else "")
+          + (f"; near the BEV's reach (README, Limitations: Top speed) {c.beyond_reach}" if c.beyond_reach else ""))
     print("wrote " + ", ".join(str(p) for p in paths))
     if (note := fast_camera_note(odo.frame_period, odo.min_frame_interval)) is not None:
         print(f"{prog_name('run_bag')}: note: {note}", file=sys.stderr)

@@ -134,6 +134,12 @@ class InvalidInputError(ValueError):
 
 # m/s: an outside speed beyond this is no car's (add_speed refuses it; 540 km/h)
 MAX_SPEED = 150.0
+# A frame's forward motion past this share of the BEV's forward extent (``size x metres_per_pixel``)
+# nears the correlation's reach: two consecutive BEVs share only the rest of the road, and from ~42 %
+# a cold start locks onto a wrong peak (46 m/s at 10 Hz with the default 10 m BEV read 69 % short, its
+# covariance not saying so; README, Limitations: "Top speed"). Counted (``beyond_reach``) and said in
+# /diagnostics: 40 m/s at 10 Hz with the default BEV.
+REACH_SHARE = 0.4
 
 
 class OutOfOrderError(InvalidInputError):
@@ -208,6 +214,7 @@ class Counters:
     gated_peak: int = 0  # fused: the highest peak was off the prediction or the direction of travel, the road's taken
     pitch_correction_off: int = 0  # fused: pairs the pitch-change correction left alone (its DUKF pull or turn gate)
     skipped_frame_rate: int = 0  # frames closer than min_frame_interval to the last processed one: not processed
+    beyond_reach: int = 0  # frames whose forward motion passed REACH_SHARE of the BEV's forward extent
 
 
 def _peak_height(reg) -> float:
@@ -553,6 +560,12 @@ class BevoOdometry:
         events = list(self._events)
         self._events.clear()
         return events
+
+    @property
+    def reach(self) -> float:
+        """m: the forward motion a frame past which the frame counts as ``beyond_reach``
+        (:data:`REACH_SHARE` of the BEV's forward extent)."""
+        return REACH_SHARE * self.spec.size * self.spec.metres_per_pixel
 
     def _count(self, kind: str, stamp: float, tag: Any = None) -> None:
         setattr(self.counters, kind, getattr(self.counters, kind) + 1)
@@ -913,6 +926,8 @@ class BevoOdometry:
             motion = self._vehicle_motion(reg)
             motion_cov = self._motion_covariance(reg, motion, state)
             quality = reg.quality.item()
+        if not first and abs(float(motion[0])) > self.reach:
+            self.counters.beyond_reach += 1
         self._trajectory.add(stamp, motion, motion_cov)
         self._prev, self._prev_stamp, self._last_image = curr, stamp, stamp
         if self.mode == "fused":

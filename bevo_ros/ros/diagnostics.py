@@ -198,11 +198,12 @@ BLIND_SHARE = 0.8  # of the frames since the last report (a drive's first frame 
 
 
 def odometry_state(values: dict[str, str], inputs: dict[str, SensorState], calibrated: bool,
-                   new_drops: int, new_frames: int = 0, new_blind: int = 0) -> SensorState:
+                   new_drops: int, new_frames: int = 0, new_blind: int = 0, new_beyond: int = 0) -> SensorState:
     """The odometry's status: ERROR when an input is silent, WARN while uncalibrated, WARN on new
     drops, images without odometry, most new frames blind (``new_blind`` of the ``new_frames``
     published since the last report had :data:`BLIND_FRAME_EVENTS`, at least :data:`BLIND_SHARE`: a
-    covered, black or textureless camera, dead reckoning) or a late input, else OK."""
+    covered, black or textureless camera, dead reckoning), new frames near the BEV's reach
+    (``new_beyond``: the engine's ``beyond_reach``) or a late input, else OK."""
     worst = max((st.level for st in inputs.values()), default=OK)
     if worst == ERROR:  # a silent input is the worse news, calibrated or not
         return SensorState(ERROR, "; ".join(st.message for st in inputs.values() if st.level == ERROR), values)
@@ -215,6 +216,11 @@ def odometry_state(values: dict[str, str], inputs: dict[str, SensorState], calib
     if new_blind >= 2 and new_blind >= BLIND_SHARE * new_frames:
         return SensorState(WARN, f"{new_blind} of the last {new_frames} frame(s) rejected (a covered, black or "
                                  "textureless camera?): the pose is mostly the motion filter's prediction", values)
+    if new_beyond > 0:
+        return SensorState(WARN, f"{new_beyond} of the last {new_frames} frame(s) moved more than "
+                                 f"{values.get('reach_m', '?')} m, near the BEV's reach: past it a frame's "
+                                 "correlation fails (a faster camera, or a longer BEV: README, Limitations, "
+                                 "Top speed)", values)
     if worst == WARN:
         return SensorState(WARN, "; ".join(st.message for st in inputs.values() if st.level == WARN), values)
     return SensorState(OK, "running", values)

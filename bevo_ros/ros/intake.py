@@ -206,8 +206,9 @@ ENGINE_REJECTIONS = (
 # motion, the gyro's biases observed) and frames whose translation took a correlation peak other
 # than the highest (the one nearest the motion filter's prediction, or in the direction of travel:
 # a second motion in view, the car ahead, its shadow), and frame pairs over which the pitch-change
-# correction was off (the DUKF pulled hard by its accelerometer, or turning with its roll unconverged)
-ENGINE_STATES = ("standstill", "gated_peak", "pitch_correction_off", "skipped_frame_rate")
+# correction was off (the DUKF pulled hard by its accelerometer, or turning with its roll unconverged);
+# both modes: frames that moved near the BEV's reach (core.odometry.REACH_SHARE: a WARN in /diagnostics)
+ENGINE_STATES = ("standstill", "gated_peak", "pitch_correction_off", "skipped_frame_rate", "beyond_reach")
 # engine event -> node drop reason, and why (formatted with the node settings as ``s``)
 ENGINE_DROPS = (
     ("dropped_no_imu", "no_imu", "with no IMU sample at or before their stamp (frames before any IMU)"),
