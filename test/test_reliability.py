@@ -633,11 +633,15 @@ def test_a_bev_size_of_any_number_runs():
 
 
 # ------------------------------------------------------------------------------ the node's edges (review 2026-12-06)
+def _status(st) -> tuple[int, str, dict]:
+    """A DiagnosticStatus as (level, message, values)."""
+    return (st.level[0] if isinstance(st.level, bytes) else st.level, st.message, {kv.key: kv.value for kv in st.values})
+
+
 def _statuses(h) -> dict[str, tuple[int, str, dict]]:
     h.diag.clear()
     assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
-    return {st.name.split(": ", 1)[1]: (st.level[0] if isinstance(st.level, bytes) else st.level, st.message,
-                                        {kv.key: kv.value for kv in st.values}) for st in h.diag[-1].status}
+    return {st.name.split(": ", 1)[1]: _status(st) for st in h.diag[-1].status}
 
 
 def test_the_node_refuses_unusable_frames_and_extrinsics_at_start(harness):
@@ -759,8 +763,7 @@ def test_diagnostics_warn_near_the_bevs_reach(harness, monkeypatch):
     h.settle()
     assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
     # every report while the frames came in (a report counts the frames since the one before it)
-    said = [(st.level[0] if isinstance(st.level, bytes) else st.level, st.message, {kv.key: kv.value for kv in st.values})
-            for msg in h.diag for st in msg.status if st.name.endswith(": odometry")]
+    said = [_status(st) for msg in h.diag for st in msg.status if st.name.endswith(": odometry")]
     warned = [(message, values) for level, message, values in said if level == 1 and "near the BEV's reach" in message]
     assert h.node.events["beyond_reach"] >= 5 and warned, said
     bev = h.node.config.bev

@@ -164,9 +164,14 @@ class BevSpec:
     forward_offset: float = 7.5
 
     @property
+    def extent(self) -> float:
+        """Side of the square grid on the road (forward and across), metres."""
+        return self.size * self.metres_per_pixel
+
+    @property
     def centre(self) -> tuple[float, float]:
         """Road-frame (x, y) of the BEV centre, metres."""
-        return (self.forward_offset + self.size * self.metres_per_pixel / 2.0, 0.0)
+        return (self.forward_offset + self.extent / 2.0, 0.0)
 
     def ground_points(self, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
         """Road-frame (x, y) of every pixel centre. -> ``(size, size, 2)``, indexed [row, col]."""

@@ -151,7 +151,7 @@ def mosaic_anchor(poses: Tensor, spec: BevSpec) -> Tensor:
     """Centre of a mosaic of keyframes at ``poses (K, 3)`` (oldest first): the middle of the ground
     they saw, with the newest keyframe's heading (so the map crop is nearly aligned with the road
     ahead). -> ``(3,)``."""
-    near, far = spec.forward_offset, spec.forward_offset + spec.size * spec.metres_per_pixel
+    near, far = spec.forward_offset, spec.forward_offset + spec.extent
     heading = torch.stack([torch.cos(poses[:, 2]), torch.sin(poses[:, 2])], dim=-1)
     # Midway between the oldest BEV's near edge and the newest BEV's far edge: the mosaic's extent.
     mid = 0.5 * (poses[0, :2] + near * heading[0] + poses[-1, :2] + far * heading[-1])
@@ -176,8 +176,8 @@ def mosaic_to_map(bevs: Tensor, masks: Tensor, poses: Tensor, spec: BevSpec, res
     """
     from .aerial_map import AerialMap
 
-    near, far = spec.forward_offset, spec.forward_offset + spec.size * spec.metres_per_pixel
-    half = spec.size * spec.metres_per_pixel / 2.0
+    near, far = spec.forward_offset, spec.forward_offset + spec.extent
+    half = spec.extent / 2.0
     corners = torch.tensor([[near, -half], [near, half], [far, -half], [far, half]], dtype=poses.dtype,
                            device=poses.device)
     world = transform_points(poses, corners).reshape(-1, 2)

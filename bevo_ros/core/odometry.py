@@ -134,7 +134,7 @@ class InvalidInputError(ValueError):
 
 # m/s: an outside speed beyond this is no car's (add_speed refuses it; 540 km/h)
 MAX_SPEED = 150.0
-# A frame's forward motion past this share of the BEV's forward extent (``size x metres_per_pixel``)
+# A frame's forward motion past this share of the BEV's forward extent (``BevSpec.extent``)
 # nears the correlation's reach: two consecutive BEVs share only the rest of the road, and from ~42 %
 # a cold start locks onto a wrong peak (46 m/s at 10 Hz with the default 10 m BEV read 69 % short, its
 # covariance not saying so; README, Limitations: "Top speed"). Counted (``beyond_reach``) and said in
@@ -565,7 +565,7 @@ class BevoOdometry:
     def reach(self) -> float:
         """m: the forward motion a frame past which the frame counts as ``beyond_reach``
         (:data:`REACH_SHARE` of the BEV's forward extent)."""
-        return REACH_SHARE * self.spec.size * self.spec.metres_per_pixel
+        return REACH_SHARE * self.spec.extent
 
     def _count(self, kind: str, stamp: float, tag: Any = None) -> None:
         setattr(self.counters, kind, getattr(self.counters, kind) + 1)
