@@ -45,7 +45,7 @@ from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.io.bag import read_speed
 from bevo_ros.training.mounting import calibrate, reference_from_ground_truth, reference_from_speed
 from bevo_ros.training.time_offset import image_rotations, imu_time_offset
-from bevo_ros.training.travel_direction import mounting_pitch_from_travel, travel_direction
+from bevo_ros.training.travel_direction import TravelDirection, mounting_pitch_from_travel, travel_direction
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -97,7 +97,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     seq = seq.frames(start, stop)
     params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
     if args.from_images:
-        return _from_images(seq, frames, config, params_chain)
+        return _from_images(seq, frames, config)
     if args.imu_time_offset:
         return _imu_time_offset(seq, frames, config, *imu)
     if args.speed_topic:
@@ -128,16 +128,27 @@ def _calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _from_images(seq, frames: str, config, params_chain: np.ndarray) -> int:
-    """``--from-images``: the pitch from the direction of travel, at the params' roll."""
+def mounting_from_images(seq, config) -> tuple[float, float, TravelDirection, float]:
+    """The mounting that the direction of travel the images of ``seq`` show puts the camera at:
+    ``(pitch, roll, direction, azimuth)``, the angles (rad) for ``camera.base_T_camera`` with
+    ``filter.mounting_reference: camera`` (the params lines ``--from-images`` prints, and what ``bevo run
+    --tilt-from-images`` runs with), the roll the params' on the bag's rig. ValueError: a camera not
+    looking forward, or too few frame pairs with a direction."""
     T_bag = seq.camera.T_base_cam.double().numpy()
     if T_bag[0, 2] < 0.5:  # the optical axis in base_frame: within 60 deg of forward
-        raise ValueError("--from-images needs a camera looking forward (its optical axis within 60 deg of "
-                         "base_frame's x): the direction of travel is measured ahead of it")
+        raise ValueError("the pitch from the images needs a camera looking forward (its optical axis within 60 deg "
+                         "of base_frame's x): the direction of travel is measured ahead of it")
     roll = mounting_in_use(config, T_bag)[1]  # the roll the engine uses on the bag's rig, kept
     direction = travel_direction(seq.images.numpy(), seq.camera.K.double().numpy())  # ValueError: too few pairs
     pitch, azimuth = mounting_pitch_from_travel(direction, T_bag[:3, :3], roll)
+    params_chain = np.asarray(config.camera.base_T_camera, dtype=np.float64).reshape(4, 4)
     pitch, roll = mounting_for_extrinsics((pitch, roll), T_bag, params_chain)
+    return pitch, roll, direction, azimuth
+
+
+def _from_images(seq, frames: str, config) -> int:
+    """``--from-images``: the pitch from the direction of travel, at the params' roll."""
+    pitch, roll, direction, azimuth = mounting_from_images(seq, config)
     print(f"calibrated on frames {frames} from the images' direction of travel ({direction.pairs} frame pairs, "
           f"{direction.pairs_skipped} without one): the optical axis {-math.degrees(direction.elevation):+.2f} "
           f"+- {math.degrees(direction.elevation_sem):.2f} deg below it (+ down); its azimuth from base_frame's x "

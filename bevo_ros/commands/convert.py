@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 from bevo_ros.commands import new_parser, prog_name
+from bevo_ros.datasets import kitti
 from bevo_ros.io import bag
 from bevo_ros.datasets.kitti_bag import INTERPOLATED_IMU, ConversionError, ConversionOptions, convert, load_source
 
@@ -182,4 +183,6 @@ def main(argv: list[str] | None = None) -> int:
     for topic, c in sorted(counts.items()):
         print(f"  {topic:<{width}}  {c:6d} msgs")
     print(f"  duration {(last - first) * 1e-9:.3f} s, size {_dir_size(out) / 1e6:.2f} MB")
+    if not args.quiet and (note := kitti.day_tilt_note(src.date)) is not None:
+        print(f"{prog_name('kitti_to_bag')}: note: {note}".replace("BAG", str(out)), file=sys.stderr)
     return 0

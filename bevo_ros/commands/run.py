@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from pathlib import Path
@@ -25,9 +26,14 @@ from bevo_ros.commands import DEFAULT_PARAMS  # noqa: F401 (re-exported: tests l
 from bevo_ros.commands import (add_params_option, add_threads_option, bag_errors, guarded, new_parser, prog_name,
                                 set_threads)
 from bevo_ros.core.frame_clock import fast_camera_note
-from bevo_ros.config import load_config, shipped_learned_for_mode
+from bevo_ros.config import load_config, mounting_in_use, shipped_learned_for_mode
 from bevo_ros.datasets.rosbag import RigSettings, extrinsics_for_recording
 from bevo_ros.pipeline import run_bag, write_outputs
+
+
+# --tilt-from-images reads the direction of travel over at most this many frames (a minute at 10 Hz: the
+# median of ~600 pairs, ~0.02 deg; each pair costs ~0.1 s of feature tracking)
+TILT_FRAMES = 600
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,6 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "a TwistStamped / TwistWithCovarianceStamped: in base_frame its linear.x, else its horizontal speed); "
                    "overrides the params' speed_topic, '' = none. Its scale must be right: the odometry's scale is then its")
     p.add_argument("--first-frame", type=int, default=0, help="start the odometry at this frame (IMU before it warms the filter)")
+    p.add_argument("--tilt-from-images", action="store_true",
+                   help="before the run, measure the camera's tilt to the road from the bag's images (their direction "
+                        "of travel, as `bevo calibrate --from-images`; from --first-frame on, at most "
+                        f"{TILT_FRAMES} frames) and run with it instead of the params' filter.mounting_pitch: a rig "
+                        "whose tilt is not the params' (another KITTI day: `bevo convert` says so). Prints the params "
+                        "lines, for bevo_node; a drive too short or standing still keeps the params' (a warning)")
     p.add_argument("--mode", choices=("fused", "paper"), help="override odometry.mode of --params (fused: the default "
                    "acceleration-aware, gyro-yaw, motion-filtered odometry; paper: the paper's pipeline)")
     add_threads_option(p, ", as bevo_node's torch_threads: same arithmetic, same result")
@@ -53,6 +65,32 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     set_threads(args.threads)
     return guarded("run_bag", lambda: _run(args), bag_errors())
+
+
+def _tilt_from_images(args: argparse.Namespace, config, rig: RigSettings) -> None:
+    """``--tilt-from-images``: ``config.filter``'s mounting pitch (and reference) set to the one the bag's
+    images show, said with the params lines; the params' kept, with a warning, where they show none."""
+    from bevo_ros.commands.calibrate import mounting_from_images
+    from bevo_ros.datasets.rosbag import load_sequence
+
+    say = prog_name("run_bag")
+    seq = load_sequence(args.bag, config, require_gt=False, rig=rig)
+    first = min(max(args.first_frame, 0), len(seq) - 2)
+    try:
+        pitch, roll, direction, _ = mounting_from_images(seq.frames(first, min(len(seq), first + TILT_FRAMES)), config)
+    except ValueError as exc:
+        print(f"{say}: warning: --tilt-from-images: {exc}; the params' filter.mounting_pitch "
+              f"{config.filter.mounting_pitch:.4f} kept", file=sys.stderr)
+        return
+    before = mounting_in_use(config, seq.camera.T_base_cam.double().numpy())[0]
+    config.filter.mounting_pitch, config.filter.mounting_roll = pitch, roll
+    config.filter.mounting_reference = "camera"  # the angles are for camera.base_T_camera
+    change = math.degrees(mounting_in_use(config, seq.camera.T_base_cam.double().numpy())[0] - before)
+    print(f"{say}: the camera's tilt from the images' direction of travel ({direction.pairs} frame pairs, +- "
+          f"{math.degrees(direction.elevation_sem):.2f} deg): {change:+.2f} deg from the params' (nose down +; "
+          f"~2 % of scale per 0.1 deg on KITTI); for bevo_node's params:\n"
+          f"    filter.mounting_pitch: {pitch:.4f}\n    filter.mounting_roll: {roll:.4f}\n"
+          "    filter.mounting_reference: camera", file=sys.stderr)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -72,6 +110,8 @@ def _run(args: argparse.Namespace) -> int:
                       "(the shipped file for that mode; "
                       f"--learned FILE to choose another)", file=sys.stderr)
                 learned = str(swapped)
+    if args.tilt_from_images:
+        _tilt_from_images(args, config, rig)
     t0 = time.perf_counter()
     steps, rec, odo = run_bag(args.bag, config, learned, args.imu_topic, args.image_topic, args.first_frame,
                               progress=not args.quiet, rig=rig, keep_bevs=False,

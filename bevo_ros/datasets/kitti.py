@@ -45,6 +45,34 @@ ODOMETRY_TO_RAW: dict[str, tuple[str, int, int]] = {
     "10": ("2011_09_30_drive_0034", 0, 1200),
 }
 
+# The camera's tilt to the road differs between KITTI's recording days: the ground truth's mean
+# direction of travel in camera 0's frame (poses/NN.txt, distance-weighted), deg below the optical axis.
+# params/kitti.yaml's mounting was fitted on 2011_09_30 (the sample). Measured 2026-12-07: 04-07
+# 1.18-1.20, 08 1.24; 00 0.96, 02 0.98; 03 (2011_09_26_drive_0067, public copy of poses/03.txt) -0.36.
+# The engine's scale follows it: the sample with the tilt 0.22 / 1.55 deg too small drifts 5.3 / 36.8 %
+# instead of 0.9 % (README, Limitations).
+GROUND_TRUTH_CAMERA_TILT_DEG = {"2011_09_26": -0.36, "2011_09_30": 1.19, "2011_10_03": 0.97}
+PARAMS_TILT_DAY = "2011_09_30"  # the day params/kitti.yaml's filter.mounting_pitch was fitted on
+
+
+def day_tilt_note(date: str) -> str | None:
+    """What ``bevo convert`` says about a ``date`` drive's camera tilt against params/kitti.yaml's
+    (None for the day it was fitted on, or no day)."""
+    if not re.fullmatch(r"\d{4}_\d{2}_\d{2}", date or "") or date == PARAMS_TILT_DAY:
+        return None  # not a KITTI day (an --oxts folder elsewhere), or the params' own
+    how = ("measure it from the drive's own images: `bevo run BAG --tilt-from-images` (for bevo_node: `bevo "
+           "calibrate BAG --from-images` prints the params lines)")
+    if date not in GROUND_TRUTH_CAMERA_TILT_DEG:
+        return (f"params/kitti.yaml's camera tilt (filter.mounting_pitch) was fitted on {PARAMS_TILT_DAY} drives, and "
+                f"KITTI's camera tilt changed between days by up to 1.5 deg (~2 % of scale per 0.1 deg); for this "
+                f"{date} drive {how}")
+    less = GROUND_TRUTH_CAMERA_TILT_DEG[PARAMS_TILT_DAY] - GROUND_TRUTH_CAMERA_TILT_DEG[date]
+    return (f"params/kitti.yaml's camera tilt (filter.mounting_pitch) was fitted on {PARAMS_TILT_DAY} drives; "
+            f"{date}'s ground truth has the camera {abs(less):.2f} deg {'less' if less > 0 else 'more'} tilted to the "
+            f"road (its direction of travel), and the engine's scale follows the tilt (~2 % per 0.1 deg: with the "
+            f"params this drive may read {'short' if less > 0 else 'long'}); {how}")
+
+
 # Column indices of the 30 OXTS fields (dataformat.txt).
 OXTS_FIELDS = (
     "lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu",

@@ -84,6 +84,7 @@ class Source:
     # the drive's records around the sequence's (oxts = oxts_drive[record_offset:][:F]): a run of
     # interpolated records is judged and bridged with its real ends outside the sequence; None: oxts only
     oxts_drive: kitti.OxtsData | None = None
+    date: str = ""  # the recording day (2011_09_30), '' unknown: kitti.day_tilt_note
 
 
 # ----------------------------------------------------------------------------------------------
@@ -246,7 +247,7 @@ def odometry_source(opts: ConversionOptions) -> Source:
               file=sys.stderr)
     return Source(images, stamps, oxts, calib[key], opts.camera, poses, T_base_cam,
                   f"odometry sequence {seq} (raw {drive or oxts_dir}, from raw frame {start})", T_base_cam0, start,
-                  oxts_drive)
+                  oxts_drive, date=calib_date)
 
 
 def raw_source(opts: ConversionOptions) -> Source:
@@ -302,7 +303,7 @@ def raw_source(opts: ConversionOptions) -> Source:
                   f"stamps (the devkit's convertOxtsToPose; --poses for an odometry sequence's, --no-oxts-ground-truth "
                   f"for none)", file=sys.stderr)
     return Source(images, stamps, oxts, cam_calib[key].reshape(3, 4), opts.camera, poses,
-                  T_base_cam, f"raw drive {drive_dir.name}", T_base_cam0)
+                  T_base_cam, f"raw drive {drive_dir.name}", T_base_cam0, date=date)
 
 
 # ----------------------------------------------------------------------------------------------
