@@ -17,6 +17,8 @@ elevation and azimuth); the azimuth is reported as a check on the extrinsics' ya
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import cv2
@@ -84,8 +86,14 @@ def travel_direction(images, K) -> TravelDirection:
     if first.ndim != 2 or first.dtype != np.uint8:
         raise ValueError(f"images must be grey (F, H, W) uint8, got frames {first.shape} {first.dtype}")
     dirs, skipped = [], 0
-    for k in range(len(images) - 1):
-        d = motion_direction(np.ascontiguousarray(images[k]), np.ascontiguousarray(images[k + 1]), K)
+    # The pairs are independent and OpenCV releases the GIL: one thread per core (each pair's RANSAC seeds
+    # its own generator, so the directions are those of one thread, in order).
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    with ThreadPoolExecutor(max_workers=max(1, min(cores, 8))) as pool:
+        found = list(pool.map(lambda k: motion_direction(np.ascontiguousarray(images[k]),
+                                                         np.ascontiguousarray(images[k + 1]), K),
+                              range(len(images) - 1)))
+    for d in found:
         if d is None or d[2] <= 0:  # backwards: reversing, or a degenerate decomposition
             skipped += 1
             continue
