@@ -1000,10 +1000,26 @@ def test_a_bag_with_no_usable_imu_sample_is_refused_with_the_reason(tmp_path):
 
 
 def _endpoint_drift(out) -> float:
-    """``bevo run``'s trajectory against its ground truth: the last position's error over the path (%)."""
-    est = np.loadtxt(out / "trajectory_kitti.txt").reshape(-1, 3, 4)[:, :, 3]
-    gt = np.loadtxt(out / "gt_kitti.txt").reshape(-1, 3, 4)[:, :, 3]
-    return 100.0 * float(np.linalg.norm(est[-1] - gt[-1]) / np.linalg.norm(np.diff(gt, axis=0), axis=1).sum())
+    """``bevo run``'s trajectory against its ground truth: endpoint drift in % of the path (``bevo evaluate``'s)."""
+    from bevo_ros.evaluation.metrics import evaluate_trajectories
+
+    return evaluate_trajectories(kitti.read_poses(out / "gt_kitti.txt"),
+                                 kitti.read_poses(out / "trajectory_kitti.txt")).drift_percent
+
+
+def _drifts_without_and_with_tilt(bag_path, params: str, tmp_path, capsys) -> tuple[float, float, float, str]:
+    """``bevo run`` on ``bag_path`` with ``params`` as given and with ``--tilt-from-images``: the two endpoint
+    drifts (%), the tilt change it said (deg) and its stderr."""
+    drifts = []
+    for flag in ([], ["--tilt-from-images"]):
+        capsys.readouterr()
+        out = tmp_path / f"out{len(flag)}"
+        assert run.main([str(bag_path), "--out", str(out), "--params", params, "-q", *flag]) == 0
+        err = capsys.readouterr().err
+        drifts.append(_endpoint_drift(out))
+    said = re.search(r"\+- [0-9.]+ deg\): ([-+][0-9.]+) deg from the params'", err)
+    assert said, err
+    return drifts[0], drifts[1], float(said.group(1)), err
 
 
 def _params_with_pitch(tmp_path, source: str, pitch: float) -> str:
@@ -1029,24 +1045,15 @@ def test_run_tilt_from_images_takes_the_camera_tilt_the_images_show(tmp_path, ca
     path = write_drive_bag(drive, tmp_path / "level")
     params = _params_with_pitch(tmp_path, SYNTH_PARAMS, math.radians(1.0))
     truth = math.degrees(float(np.mean(np.asarray(drive.pitch_roll_road)[:, 0])))
-    drifts = {}
-    for flag in ([], ["--tilt-from-images"]):
-        capsys.readouterr()
-        out = tmp_path / f"out{len(flag)}"
-        assert run.main([str(path), "--out", str(out), "--params", params, "-q", *flag]) == 0
-        err = capsys.readouterr().err
-        drifts[bool(flag)] = _endpoint_drift(out)
-        if flag:
-            said = re.search(r"\+- [0-9.]+ deg\): ([-+][0-9.]+) deg from the params'", err)
-            assert said, err
-            assert abs(float(said.group(1)) - (truth - 1.0)) < 0.15, err
-            printed = yaml.safe_load("\n".join(line for line in err.splitlines() if line.startswith("    ")))
-            assert printed["filter.mounting_reference"] == "camera"
-            assert printed["filter.mounting_roll"] == 0.0  # the params' roll, kept
+    given, tilted, change, err = _drifts_without_and_with_tilt(path, params, tmp_path, capsys)
+    assert abs(change - (truth - 1.0)) < 0.15, err
+    printed = yaml.safe_load("\n".join(line for line in err.splitlines() if line.startswith("    ")))
+    assert printed["filter.mounting_reference"] == "camera"
+    assert printed["filter.mounting_roll"] == 0.0  # the params' roll, kept
     with capsys.disabled():
-        print(f"\nlevel camera, params 1 deg nose-down: drift {drifts[False]:.2f} % as given, "
-              f"{drifts[True]:.2f} % with --tilt-from-images")
-    assert drifts[False] > 8.0 and drifts[True] < 0.3 * drifts[False]
+        print(f"\nlevel camera, params 1 deg nose-down: drift {given:.2f} % as given, "
+              f"{tilted:.2f} % with --tilt-from-images")
+    assert given > 8.0 and tilted < 0.3 * given
     short = write_drive_bag(drive, tmp_path / "short", frame_range=(0, 6))  # 5 pairs: too few to say
     capsys.readouterr()
     assert run.main([str(short), "--out", str(tmp_path / "short_out"), "--params", params, "-q",
@@ -1067,17 +1074,9 @@ def test_run_tilt_from_images_on_real_kitti_recovers_another_days_tilt(kitti_roo
                          "-q"]) == 0
     params = _params_with_pitch(tmp_path, KITTI_PARAMS, load_config(KITTI_PARAMS)[0].filter.mounting_pitch
                                 - math.radians(0.22))
-    drifts = {}
-    for flag in ([], ["--tilt-from-images"]):
-        capsys.readouterr()
-        out = tmp_path / f"out{len(flag)}"
-        assert run.main([str(bag_path), "--out", str(out), "--params", params, "-q", *flag]) == 0
-        err = capsys.readouterr().err
-        drifts[bool(flag)] = _endpoint_drift(out)
-        if flag:
-            said = re.search(r"\+- [0-9.]+ deg\): ([-+][0-9.]+) deg from the params'", err)
-            assert said and abs(float(said.group(1)) - 0.22) < 0.1, err
+    given, tilted, change, err = _drifts_without_and_with_tilt(bag_path, params, tmp_path, capsys)
+    assert abs(change - 0.22) < 0.1, err
     with capsys.disabled():
-        print(f"\nKITTI 06, the tilt 0.22 deg small: drift {drifts[False]:.2f} % as given, {drifts[True]:.2f} % "
+        print(f"\nKITTI 06, the tilt 0.22 deg small: drift {given:.2f} % as given, {tilted:.2f} % "
               "with --tilt-from-images")
-    assert drifts[False] > 3.0 and drifts[True] < 1.5
+    assert given > 3.0 and tilted < 1.5

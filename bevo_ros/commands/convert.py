@@ -183,6 +183,6 @@ def main(argv: list[str] | None = None) -> int:
     for topic, c in sorted(counts.items()):
         print(f"  {topic:<{width}}  {c:6d} msgs")
     print(f"  duration {(last - first) * 1e-9:.3f} s, size {_dir_size(out) / 1e6:.2f} MB")
-    if (note := kitti.day_tilt_note(src.date)) is not None:  # even with --quiet: the scale hangs on it
-        print(f"{prog_name('kitti_to_bag')}: warning: {note}".replace("BAG", str(out)), file=sys.stderr)
+    if (note := kitti.day_tilt_note(src.date, str(out))) is not None:  # even with --quiet: the scale hangs on it
+        print(f"{prog_name('kitti_to_bag')}: warning: {note}", file=sys.stderr)
     return 0

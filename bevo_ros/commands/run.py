@@ -32,7 +32,7 @@ from bevo_ros.pipeline import run_bag, write_outputs
 
 
 # --tilt-from-images reads the direction of travel over at most this many frames (a minute at 10 Hz: the
-# median of ~600 pairs, ~0.02 deg; each pair costs ~0.1 s of feature tracking)
+# median of ~600 pairs, ~0.02 deg; each pair ~0.14 s of feature tracking on a core)
 TILT_FRAMES = 600
 
 
@@ -82,10 +82,11 @@ def _tilt_from_images(args: argparse.Namespace, config, rig: RigSettings) -> Non
         print(f"{say}: warning: --tilt-from-images: {exc}; the params' filter.mounting_pitch "
               f"{config.filter.mounting_pitch:.4f} kept", file=sys.stderr)
         return
-    before = mounting_in_use(config, seq.camera.T_base_cam.double().numpy())[0]
+    T_bag = seq.camera.T_base_cam.double().numpy()
+    before = mounting_in_use(config, T_bag)[0]
     config.filter.mounting_pitch, config.filter.mounting_roll = pitch, roll
     config.filter.mounting_reference = "camera"  # the angles are for camera.base_T_camera
-    change = math.degrees(mounting_in_use(config, seq.camera.T_base_cam.double().numpy())[0] - before)
+    change = math.degrees(mounting_in_use(config, T_bag)[0] - before)
     print(f"{say}: the camera's tilt from the images' direction of travel ({direction.pairs} frame pairs, +- "
           f"{math.degrees(direction.elevation_sem):.2f} deg): {change:+.2f} deg from the params' (nose down +; "
           f"~2 % of scale per 0.1 deg on KITTI); for bevo_node's params:\n"

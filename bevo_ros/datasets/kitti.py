@@ -55,13 +55,13 @@ GROUND_TRUTH_CAMERA_TILT_DEG = {"2011_09_26": -0.36, "2011_09_30": 1.19, "2011_1
 PARAMS_TILT_DAY = "2011_09_30"  # the day params/kitti.yaml's filter.mounting_pitch was fitted on
 
 
-def day_tilt_note(date: str) -> str | None:
-    """What ``bevo convert`` says about a ``date`` drive's camera tilt against params/kitti.yaml's
-    (None for the day it was fitted on, or no day)."""
+def day_tilt_note(date: str, bag: str = "BAG") -> str | None:
+    """What ``bevo convert`` says about a ``date`` drive's camera tilt against params/kitti.yaml's, for
+    its output ``bag`` (None for the day it was fitted on, or no day)."""
     if not re.fullmatch(r"\d{4}_\d{2}_\d{2}", date or "") or date == PARAMS_TILT_DAY:
         return None  # not a KITTI day (an --oxts folder elsewhere), or the params' own
-    how = ("measure it from the drive's own images: `bevo run BAG --tilt-from-images` (for bevo_node: `bevo "
-           "calibrate BAG --from-images` prints the params lines)")
+    how = (f"measure it from the drive's own images: `bevo run {bag} --tilt-from-images` (for bevo_node: `bevo "
+           f"calibrate {bag} --from-images` prints the params lines)")
     if date not in GROUND_TRUTH_CAMERA_TILT_DEG:
         return (f"params/kitti.yaml's camera tilt (filter.mounting_pitch) was fitted on {PARAMS_TILT_DAY} drives, and "
                 f"KITTI's camera tilt changed between days by up to 1.5 deg (~2 % of scale per 0.1 deg); for this "
