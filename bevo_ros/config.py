@@ -111,6 +111,15 @@ class FilterSettings:
     # 0 leaves the bias to the stops the images confirm (item 9).
     gyro_bias_std: float = 0.002
     gyro_bias_walk: float = 2e-4
+    # The camera's tilt to the road measured at the start from the images (core/start_tilt.py): the
+    # engine holds its inputs until this many frame pairs have shown their direction of travel (their
+    # epipolar geometry), runs them at the base pitch that puts that direction in the road's plane, and
+    # keeps it (the roll stays mounting_roll). The first pose comes that many frames late; a start with
+    # too few pairs in tilt_hold_frames images keeps mounting_pitch. For rigs whose tilt changes with the
+    # load or between calibrations (KITTI's days: up to 1.5 deg, ~2 % of scale per 0.1 deg). 0: off,
+    # mounting_pitch as is. Needs the road-tilt low-pass (road_tilt_time_constant > 0).
+    tilt_from_images: int = 0
+    tilt_hold_frames: int = 150
 
 
 @dataclass
@@ -622,6 +631,12 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
     spec = bev_spec(config)
     limits = imu_limits(config)
     gyro_bias_std, gyro_bias_walk = gyro_bias_prior(config, learned)
+    from bevo_ros.core.travel_direction import MIN_PAIRS
+
+    f = config.filter
+    if f.tilt_from_images != 0 and not MIN_PAIRS <= f.tilt_from_images < f.tilt_hold_frames:
+        raise ConfigError(f"filter.tilt_from_images must be 0 (off) or {MIN_PAIRS} up to filter.tilt_hold_frames - 1 "
+                          f"({f.tilt_hold_frames - 1}), got {f.tilt_from_images!r}")
     odometry = BevoOdometry(
         camera=camera if camera is not None else camera_model(config.camera),
         spec=spec,
@@ -647,6 +662,8 @@ def build_odometry(config: BevoConfig, learned: LearnedParams, camera=None):
         imu_time_offset=config.odometry.imu_time_offset,
         gyro_bias_std=gyro_bias_std,
         gyro_bias_walk=gyro_bias_walk,
+        tilt_from_images=config.filter.tilt_from_images,
+        tilt_hold_frames=config.filter.tilt_hold_frames,
     )
     odometry.imu_limits = limits
     return odometry

@@ -95,6 +95,7 @@ class BevoNode(Node):
         self.static_tf = StaticTransforms(self) if s.extrinsics_from_tf else None
         self._info_sub = None
         self._mounting_logged: tuple[float, float] | None = None  # the re-derived mounting last logged
+        self._tilt_logged = None  # the engine's start tilt measurement last logged
         self.rig = Rig(s, self.config, report, self.get_logger(), self.static_tf,
                        self.resolve_topic_name(s.camera_info_topic),
                        lambda: self.intake.take_all(self._info_sub) if self._info_sub is not None else [],
@@ -171,7 +172,9 @@ class BevoNode(Node):
     def summary(self) -> str:
         """The totals ros_process logs on SIGINT (with images still waiting, never silently lost)."""
         waiting = self.feed.pending_images + self.rig.held_images
-        return self.report.summary() + (f"; {waiting} image(s) still waiting (for IMU or calibration)" if waiting else "")
+        held = self.engine.held_images if self.engine is not None else 0
+        return (self.report.summary() + (f"; {waiting} image(s) still waiting (for IMU or calibration)" if waiting else "")
+                + (f"; {held} image(s) held for the start's camera tilt (filter.tilt_from_images)" if held else ""))
 
     @property
     def engine(self):
@@ -237,6 +240,21 @@ class BevoNode(Node):
             self.report.log("imu_axes_changed", f"IMU frame '{frame}' axes (/tf_static) changed after the "
                                                 "odometry's second frame: the samples from now on are rotated "
                                                 "by the new ones", level="info")
+
+    def _camera_tilt_state(self) -> str:
+        """/diagnostics: where the start's camera tilt (filter.tilt_from_images) stands."""
+        engine = self.engine
+        if engine is None or not engine.tilt_from_images:
+            return "configured (filter.mounting_pitch)"
+        m = engine.tilt_measurement
+        if m is None:
+            if engine.held_images == 0 and engine.counters.frames_out:
+                return "configured (filter.mounting_pitch)"  # paper mode or no road-tilt low-pass: nothing held
+            return (f"measuring: {engine.held_pairs} of {engine.tilt_from_images} frame pairs, {engine.held_images} "
+                    "image(s) held (no odometry until then)")
+        if not m.measured:
+            return f"configured (not measured: {m.reason})"
+        return f"measured at the start: {math.degrees(m.change):+.2f} deg from filter.mounting_pitch ({m.pairs} pairs)"
 
     def _log_mounting(self, engine=None) -> None:
         """Say so when the mounting in use is not the configured one (``filter.mounting_reference:
@@ -345,7 +363,7 @@ class BevoNode(Node):
             return
         if self.settings.ordered_intake:
             self.intake.merge([], [])  # IMU that was only queued, not missing, releases them
-            if not self.feed.pending_images:
+            if not self.feed.pending_images and not (self.engine is not None and self.engine.held_images):
                 return
         self._publish(self.feed.flush())
 
@@ -443,6 +461,10 @@ class BevoNode(Node):
     def _publish(self, steps: list | None, replayed: bool = False) -> None:
         """Publish the engine's steps; of a replay (:meth:`_rig_changed`) only frames after those
         already published (the first one stays as published: its position is the origin either way)."""
+        measured = self.engine.tilt_measurement if self.engine is not None else None
+        if measured is not None and measured is not self._tilt_logged:
+            self._tilt_logged = measured
+            self.report.log("camera_tilt", measured.describe(), level="info")
         for step in steps or ():
             if replayed and self._published_stamp is not None and step.stamp <= self._published_stamp:
                 continue
@@ -472,6 +494,7 @@ class BevoNode(Node):
         values["calibration"] = self.rig.calibration.source if self.rig.calibration is not None else "none yet"
         values["extrinsics"] = self.rig.extrinsics_source
         values["direction_of_travel"] = self.engine.direction_of_travel if self.engine is not None else "unknown"
+        values["camera_tilt"] = self._camera_tilt_state()
         values["imu_held"] = str(self.intake.hold.held)  # waiting for the next image (ordered_intake)
         if self.engine is not None:  # what the engine takes off the gyro (x, y from standstills, z the motion filter's)
             values["gyro_bias_deg_s"] = ", ".join(f"{math.degrees(b):+.4f}" for b in self.engine.gyro_bias)

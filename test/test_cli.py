@@ -149,7 +149,8 @@ def test_dump_config_to_a_file_and_run_as_a_module(tmp_path):
 def test_calibrate_prints_the_params_lines_with_their_reference(tmp_path, capsys):
     """``bevo calibrate`` on a level synthetic drive (no mounting tilt, no road tilt): the pitch
     comes back ~0, and the lines say the mounting was fitted through camera.base_T_camera
-    (``filter.mounting_reference: camera``); the three lines paste into a params file as YAML."""
+    (``filter.mounting_reference: camera``) and that it is not to be measured again at the engine's start
+    (``filter.tilt_from_images: 0``); the lines paste into a params file as YAML."""
     from bevo_ros.datasets.rosbag import write_drive_bag
     from bevo_ros.datasets.synthetic import make_drive
 
@@ -159,8 +160,10 @@ def test_calibrate_prints_the_params_lines_with_their_reference(tmp_path, capsys
                      "--frames", "0:11"]) == 0
     lines = [ln.strip() for ln in capsys.readouterr().out.splitlines() if ln.strip().startswith("filter.")]
     params = yaml.safe_load("\n".join(lines))
-    assert set(params) == {"filter.mounting_pitch", "filter.mounting_roll", "filter.mounting_reference"}
+    assert set(params) == {"filter.mounting_pitch", "filter.mounting_roll", "filter.mounting_reference",
+                           "filter.tilt_from_images"}
     assert params["filter.mounting_reference"] == "camera"
+    assert params["filter.tilt_from_images"] == 0  # the fitted pitch as is, not the engine start's measurement
     assert abs(params["filter.mounting_pitch"]) < 0.001  # rad: the drive's rig sits level on the road
 
 

@@ -932,3 +932,43 @@ def test_a_fast_camera_is_told_to_thin_its_frames(harness_factory):
             assert "every 33 ms (30 Hz)" in h.logged("fast_camera")[0]
         else:
             assert h.node.engine.counters.skipped_frame_rate >= 15 and h.node.counts["odometry_out"] <= 12
+
+
+def test_the_start_s_camera_tilt_holds_the_first_frames_then_gives_the_offline_odometry(harness_factory):
+    """``filter.tilt_from_images``: the node publishes nothing while the engine holds the start's frames
+    (``/diagnostics`` says how far the measurement is), then every frame at once, equal to the offline
+    engine's, the measurement logged; a start whose images stop before enough pairs (a bag that ended)
+    runs what it held after ``image_timeout``, at the configured tilt, nothing lost."""
+    d = small_drive(seed=5, duration=3.0)
+    ov = base_overrides(d, **{"filter.tilt_from_images": 10, "filter.tilt_hold_frames": 40, "image_timeout": 0.5,
+                              "filter.mounting_pitch": math.radians(1.0)})
+    messages = drive_messages(d)
+    expected = offline_steps(messages, ov)
+    h = harness_factory(ov, subscribe_outputs=False)
+    first_images = [i for i, (k, _) in enumerate(messages) if k == "image"][:5]
+    h.send_all(messages[: first_images[-1] + 1])
+    assert h.node.counts["odometry_out"] == 0 and h.node.engine.held_images == 5
+    h.diag.clear()
+    assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
+    values = {kv.key: kv.value for kv in h.diag[-1].status[0].values}
+    assert values["camera_tilt"].startswith("measuring: ") and "5 image(s) held" in values["camera_tilt"], values
+    h.send_all(messages[first_images[-1] + 1:])
+    h.settle()
+    m = h.node.engine.tilt_measurement
+    assert m is not None and m.measured, m
+    assert len(h.odom) == len(expected) == d.num_frames, (len(h.odom), len(expected), dict(h.node.drops))
+    for msg, step in zip(h.odom, expected):
+        assert np.allclose(_odom_arrays(msg)[0], step.position, atol=1e-6, rtol=0)
+    assert any("the camera's tilt from the images' direction of travel at the start" in text
+               for _, text in h.node.log_history), h.node.log_history
+
+    short = harness_factory(base_overrides(d, **{"filter.tilt_from_images": 10, "filter.tilt_hold_frames": 40,
+                                                 "image_timeout": 0.5}), topics_prefix="short",
+                            subscribe_outputs=False)
+    upto = [i for i, (k, _) in enumerate(messages) if k == "image"][6]
+    short.send_all(messages[: upto + 1])  # 7 images: 6 pairs, fewer than the 10 asked for
+    assert short.node.counts["odometry_out"] == 0
+    assert spin_until(short.executor, lambda: short.node.counts["odometry_out"] >= 6, 5), short.node.counts
+    m = short.node.engine.tilt_measurement
+    assert m is not None and not m.measured and short.node.engine.held_images == 0, m
+    assert sum(short.node.drops.values()) == 0, dict(short.node.drops)

@@ -15,7 +15,7 @@ Both use a constant attitude (no filter), so the result is the rig's, not the ro
 
 With no reference at all, ``--from-images`` measures the pitch from the images alone: the direction
 the camera travels in between frames (their epipolar geometry, OpenCV) lies along the road, and its
-elevation is the camera's tilt to the road (bevo_ros.training.travel_direction). It is the physical
+elevation is the camera's tilt to the road (bevo_ros.core.travel_direction). It is the physical
 tilt, so the scale then rests on camera.mount_height too; the roll is not observable this way and
 the params' own is kept. Use a drive of a minute or more: one frame pair scatters by ~0.4 deg.
 
@@ -45,7 +45,7 @@ from bevo_ros.core.geometry import mounting_for_extrinsics
 from bevo_ros.io.bag import read_speed
 from bevo_ros.training.mounting import calibrate, reference_from_ground_truth, reference_from_speed
 from bevo_ros.training.time_offset import image_rotations, imu_time_offset
-from bevo_ros.training.travel_direction import TravelDirection, mounting_pitch_from_travel, travel_direction
+from bevo_ros.core.travel_direction import TravelDirection, mounting_pitch_from_travel, travel_direction
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -125,6 +125,7 @@ def _calibrate(args: argparse.Namespace) -> int:
           f"{'left side up' if roll >= 0 else 'left side down'}")
     # Written for camera.base_T_camera: the camera's tilt to the road is what was measured.
     print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
+    print("    filter.tilt_from_images: 0   # this pitch as is, not re-measured at the engine's start")
     return 0
 
 
@@ -158,6 +159,7 @@ def _from_images(seq, frames: str, config) -> int:
     print(f"    filter.mounting_roll: {roll:.4f}    # {math.degrees(roll):+.2f} deg, the params' "
           "(not observable from the direction of travel)")
     print("    filter.mounting_reference: camera   # for camera.base_T_camera (kept with /tf_static extrinsics)")
+    print("    filter.tilt_from_images: 0   # this pitch as is, not re-measured at the engine's start")
     return 0
 
 

@@ -51,9 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tilt-from-images", action="store_true",
                    help="before the run, measure the camera's tilt to the road from the bag's images (their direction "
                         "of travel, as `bevo calibrate --from-images`; from --first-frame on, at most "
-                        f"{TILT_FRAMES} frames) and run with it instead of the params' filter.mounting_pitch: a rig "
-                        "whose tilt is not the params' (another KITTI day: `bevo convert` says so). Prints the params "
-                        "lines, for bevo_node; a drive too short or standing still keeps the params' (a warning)")
+                        f"{TILT_FRAMES} frames) and run with it instead of the params' filter.mounting_pitch (and "
+                        "instead of the engine's own measurement over the first filter.tilt_from_images pairs, "
+                        "which bevo_node makes too). Prints the params lines, for bevo_node; a drive too short or "
+                        "standing still keeps the params' (a warning)")
     p.add_argument("--mode", choices=("fused", "paper"), help="override odometry.mode of --params (fused: the default "
                    "acceleration-aware, gyro-yaw, motion-filtered odometry; paper: the paper's pipeline)")
     add_threads_option(p, ", as bevo_node's torch_threads: same arithmetic, same result")
@@ -86,12 +87,13 @@ def _tilt_from_images(args: argparse.Namespace, config, rig: RigSettings) -> Non
     before = mounting_in_use(config, T_bag)[0]
     config.filter.mounting_pitch, config.filter.mounting_roll = pitch, roll
     config.filter.mounting_reference = "camera"  # the angles are for camera.base_T_camera
+    config.filter.tilt_from_images = 0  # measured here, over more frames than the engine's start would
     change = math.degrees(mounting_in_use(config, T_bag)[0] - before)
     print(f"{say}: the camera's tilt from the images' direction of travel ({direction.pairs} frame pairs, +- "
           f"{math.degrees(direction.elevation_sem):.2f} deg): {change:+.2f} deg from the params' (nose down +; "
           f"~2 % of scale per 0.1 deg on KITTI); for bevo_node's params:\n"
           f"    filter.mounting_pitch: {pitch:.4f}\n    filter.mounting_roll: {roll:.4f}\n"
-          "    filter.mounting_reference: camera", file=sys.stderr)
+          "    filter.mounting_reference: camera\n    filter.tilt_from_images: 0", file=sys.stderr)
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -135,6 +137,8 @@ def _run(args: argparse.Namespace) -> int:
           + (f"; skipped (odometry.min_frame_interval) {c.skipped_frame_rate}" if c.skipped_frame_rate else "")
           + (f"; near the BEV's reach (README, Limitations: Top speed) {c.beyond_reach}" if c.beyond_reach else ""))
     print("wrote " + ", ".join(str(p) for p in paths))
+    if odo.tilt_measurement is not None:  # filter.tilt_from_images: the engine measured it at the start
+        print(f"{prog_name('run_bag')}: {odo.tilt_measurement.describe()}", file=sys.stderr)
     if (note := fast_camera_note(odo.frame_period, odo.min_frame_interval)) is not None:
         print(f"{prog_name('run_bag')}: note: {note}", file=sys.stderr)
     # The trajectory has a row per frame with odometry, not per image of the bag: the bag's images from

@@ -30,6 +30,8 @@ from .trajectory import PlanarTrajectory, check_pose
 from .rate_integration import GYRO_SAMPLING, interval_rate
 from .road_tilt import RoadTiltFilter
 from .standstill import CHECK_BELOW as STANDSTILL_CHECK_BELOW, StandstillDetector
+from .start_tilt import StartHold, TiltMeasurement
+from .travel_direction import MIN_PAIRS as TILT_MIN_PAIRS, mounting_pitch_from_travel
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
 from .vehicle_dynamics import GRAVITY, compensate_floats, suspension_attitude
 from .vehicle_filter import VehicleFilter, VehicleNoise, forget_accel_bias, forget_speed, initial_vehicle_state
@@ -140,6 +142,10 @@ MAX_SPEED = 150.0
 # covariance not saying so; README, Limitations: "Top speed"). Counted (``beyond_reach``) and said in
 # /diagnostics: 40 m/s at 10 Hz with the default BEV.
 REACH_SHARE = 0.4
+# passes of the start's camera tilt (filter.tilt_from_images) that take the suspension's pitch over the held
+# pairs out, each at the previous one's tilt (_settle_tilt): rendered presets, params 1 deg off, KITTI camera
+START_TILT_PASSES = 1
+START_TILT_BODY_DEADBAND = math.radians(0.1)  # rad: the suspension model's pitch at a steady speed (_start_body_pitch)
 
 
 class OutOfOrderError(InvalidInputError):
@@ -215,6 +221,7 @@ class Counters:
     pitch_correction_off: int = 0  # fused: pairs the pitch-change correction left alone (its DUKF pull or turn gate)
     skipped_frame_rate: int = 0  # frames closer than min_frame_interval to the last processed one: not processed
     beyond_reach: int = 0  # frames whose forward motion passed REACH_SHARE of the BEV's forward extent
+    dropped_held_invalid: int = 0  # inputs held for the start's tilt that the engine refused when run (camera changed)
 
 
 def _peak_height(reg) -> float:
@@ -298,6 +305,13 @@ class BevoOdometry:
         gyro_bias_std, gyro_bias_walk: fused mode: the pitch and roll gyro's bias prior std (rad/s)
             and random walk (rad/s/sqrt(s)) of the bias state beside the DUKF
             (:mod:`~bevo_ros.core.gyro_bias`); 0: the stops' estimate alone (the engine before it).
+        tilt_from_images: with the road-tilt low-pass on, the mounting pitch is measured at the start
+            from this many frame pairs' direction of travel (:mod:`~bevo_ros.core.start_tilt`): every
+            input is held until then, then run in its order at the measured tilt
+            (:attr:`tilt_measurement`); 0: the configured ``mounting_attitude`` as is. Measured once
+            per engine: a :meth:`reset` keeps it (before it, a reset forgets the held inputs too).
+        tilt_hold_frames: images held at most for it; then the pairs there are decide (at least
+            :data:`~bevo_ros.core.travel_direction.MIN_PAIRS`, else the configured tilt is kept).
     """
 
     imu_limits = ImuLimits()  # plausibility limits of add_imu (build_odometry sets the configured ones)
@@ -329,7 +343,11 @@ class BevoOdometry:
         gyro_bias_walk: float = 2e-4,
         min_frame_interval: float = 0.0,
         imu_time_offset: float = 0.0,
+        tilt_from_images: int = 0,
+        tilt_hold_frames: int = 150,
     ) -> None:
+        # the settings, for the start tilt's first pass (_start_body_pitch): an engine like this one
+        self._settings = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
         if gyro_sampling not in GYRO_SAMPLING:
@@ -349,6 +367,11 @@ class BevoOdometry:
                              f"{imu_time_offset!r}")
         self.min_frame_interval = float(min_frame_interval)  # fast_camera_note says when to set it
         self.imu_time_offset = float(imu_time_offset)
+        if tilt_from_images != 0 and not TILT_MIN_PAIRS <= tilt_from_images < tilt_hold_frames:
+            raise ValueError(f"tilt_from_images must be 0 or {TILT_MIN_PAIRS} up to tilt_hold_frames - 1 "
+                             f"({tilt_hold_frames - 1}), got {tilt_from_images!r}")
+        self.tilt_from_images, self.tilt_hold_frames = int(tilt_from_images), int(tilt_hold_frames)
+        self.tilt_measurement: TiltMeasurement | None = None  # the start's, once taken
         self._frame_clock = FrameClock(frame_clock_window)
         self.max_speed_age = 0.5  # s: an external speed older than this is not used
         self.device = torch.device(device)
@@ -412,6 +435,7 @@ class BevoOdometry:
         self._speed_log: deque[tuple[float, float, float]] = deque(maxlen=4000)  # add_speed's (stamp, m/s, var)
         self._speed_unsigned = False  # the latest add_speed was a magnitude: its sign is the direction of travel
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
+        self._body_pitch: deque[tuple[float, float]] = deque(maxlen=4000)  # fused: (stamp, suspension pitch) per IMU sample
         self._gyro_prev = None  # fused: the previous IMU sample's rates
         self._gyro_prev2 = None  # fused: the sample before that, (rates, yaw rate about the vertical); its interval is the previous _imu_dt
         # fused: (stamp, integral of the forward acceleration, DUKF start count) per IMU sample, read at
@@ -429,6 +453,9 @@ class BevoOdometry:
         self._xy_bias_time = REST_BIAS_PRIOR  # the rest time behind them, s (at most REST_BIAS_MEMORY)
         self._rest_since: float | None = None  # fused: the start of the current standstill, s
         self._standstill.reset()
+        # the start's camera tilt (start_tilt): the inputs wait in it until the tilt is measured
+        self._hold = (StartHold(self.tilt_from_images, self.tilt_hold_frames)
+                      if self.tilt_from_images and self.tilt_measurement is None and self._road_tilt.enabled else None)
         self.counters.resets += 1
 
     def set_pose(self, x: float, y: float, yaw: float, z: float = 0.0, covariance=None,
@@ -581,6 +608,7 @@ class BevoOdometry:
         """
         g = [float(v) for v in np.asarray(gyro, dtype=np.float64).reshape(3)]
         a = [float(v) for v in np.asarray(accel, dtype=np.float64).reshape(3)]
+        given = stamp
         stamp = stamp + self.imu_time_offset  # on the images' clock
         if not (math.isfinite(stamp) and all(math.isfinite(v) for v in g + a)):
             raise ImplausibleImuError("imu_nonfinite", f"IMU sample at {stamp} has NaN/inf (gyro {g}, accel {a})")
@@ -588,8 +616,13 @@ class BevoOdometry:
             raise ImplausibleImuError(*problem)
         if math.hypot(*a) < 1e-6:
             raise InvalidInputError("IMU linear acceleration is zero: no gravity, no attitude")
-        if self._last_imu is not None and stamp <= self._last_imu:
-            raise OutOfOrderError("IMU", stamp, self._last_imu)
+        last = self._last_imu if self._hold is None else self._hold.last.get("imu")
+        if last is not None and stamp <= last:
+            raise OutOfOrderError("IMU", stamp, last)
+        if self._hold is not None:  # checked now, fused once the tilt is measured (_settle_tilt)
+            self._hold.last["imu"] = stamp
+            self._hold.inputs.append(("imu", (given, g, a)))
+            return []
         self.counters.imu += 1
         if self.mode == "fused":
             # Images waiting for this sample are projected with the attitude interpolated to their
@@ -638,8 +671,13 @@ class BevoOdometry:
             raise ValueError(f"speed sample must be finite with a variance > 0, got {speed!r}, {variance!r}")
         if abs(speed) > MAX_SPEED:  # a corrupt message: 1e300 m/s overflowed the compensation to inf
             raise ValueError(f"speed {speed!r} m/s is beyond any car's ({MAX_SPEED:g} m/s)")
-        if self._ext_speed is not None and stamp <= self._ext_speed[0]:  # refused before it changes anything
-            raise OutOfOrderError("speed", stamp, self._ext_speed[0])
+        last = (self._ext_speed[0] if self._ext_speed is not None else None) if self._hold is None else self._hold.last.get("speed")
+        if last is not None and stamp <= last:  # refused before it changes anything
+            raise OutOfOrderError("speed", stamp, last)
+        if self._hold is not None:
+            self._hold.last["speed"] = stamp
+            self._hold.inputs.append(("speed", (stamp, speed, variance, signed)))
+            return
         if not signed:  # the speed crosses zero where the sign changes: no jump in the DUKF's dv/dt
             speed = math.copysign(speed, self._direction or (1.0 if self._vstate.v >= 0 else -1.0))
         if self._ext_speed is None:
@@ -816,6 +854,7 @@ class BevoOdometry:
         # The suspension's lean lasts as long as the acceleration: keep it out of the low-pass
         # (forward acceleration from the accelerometer, no loop through the images' scale).
         dyn_p, dyn_r = suspension_attitude(self._acc_fx or 0.0, speed * g[2], *self.suspension_gradients)
+        self._body_pitch.append((stamp, dyn_p))
         rp, rr = self._road_tilt.update(stamp, pitch - self._pull_kept_out - dyn_p, roll - dyn_r)
         road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])
         self._history.append((stamp, road, self._state, self._yaw_cum, self._imu_restarts,
@@ -840,9 +879,13 @@ class BevoOdometry:
         if img.dtype.kind == "f" and not np.isfinite(img).all():
             raise InvalidInputError("image has NaN or inf pixels")
         last = max([s for s, _, _ in self._pending] + ([self._last_image] if self._last_image is not None else []),
-                   default=None)
+                   default=None) if self._hold is None else self._hold.last.get("image")
         if last is not None and stamp <= last:
             raise OutOfOrderError("image", stamp, last)
+        if self._hold is not None:
+            self._hold.last["image"] = stamp
+            self._hold.add_image(stamp, img, tag, self.camera.K.detach().double().cpu().numpy())
+            return self._settle_tilt() if self._hold.ready else []
         self.counters.images += 1
         if self._last_imu is not None and self._last_imu >= stamp:
             return self._process_or_drop(stamp, img, tag)
@@ -853,8 +896,88 @@ class BevoOdometry:
         return []
 
     def flush(self) -> list[OdometryStep]:
-        """Process every waiting image with the IMU fused so far (drops them if there was none)."""
-        return self._release(lambda s: True)
+        """Process every waiting image with the IMU fused so far (drops them if there was none); inputs
+        held for the start's tilt go first, at the tilt their pairs show (the configured one with too few)."""
+        out = self._settle_tilt() if self._hold is not None else []
+        return out + self._release(lambda s: True)
+
+    @property
+    def held_images(self) -> int:
+        """Images held until the start's camera tilt is measured (``tilt_from_images``)."""
+        return self._hold.images if self._hold is not None else 0
+
+    @property
+    def held_pairs(self) -> int:
+        """Frame pairs held so far that showed a forward direction of travel."""
+        return self._hold.forward_pairs if self._hold is not None else 0
+
+    def _start_body_pitch(self, hold: StartHold, mounting: tuple[float, float], T) -> list[float]:
+        """The suspension's pitch (rad, nose down +) at each held frame pair's first frame: a pass of an
+        engine like this one over the held inputs with the base's ``mounting`` for the camera ``T (4,
+        4)``. Braking dives the nose and a pull-away squats it, and the direction of travel measured
+        then has that pitch in it (rendered `urban`, braking from 8 to 4.5 m/s over its first 3 s:
+        +0.45 deg mean); the engine adds its suspension model to the mounting, so the mounting is the
+        rest pitch. The model reads the accelerometer less gravity at the DUKF's pitch, which starts at
+        the mounting: a pass at a mounting 1 deg off reads -0.09 deg of squat at a steady speed, so
+        the pass is at the pairs' own tilt (``_settle_tilt``). At a steady speed the model still reads
+        +-0.05-0.1 deg (rendered `curve`, 15 m/s on 100 m: +0.05), so only its pitch beyond
+        :data:`START_TILT_BODY_DEADBAND` is taken out: the dives and squats of braking and pulling away."""
+        shadow = BevoOdometry(**{**self._settings, "camera": self.camera, "tilt_from_images": 0,
+                                 "mounting_attitude": mounting, "mounting_extrinsics": T})
+        shadow.imu_limits, shadow.max_pending_images = self.imu_limits, self.max_pending_images
+        for kind, args in hold.inputs:
+            try:
+                if kind == "imu":
+                    shadow.add_imu(*args)
+                elif kind == "image":
+                    shadow.add_image(*args[:2])
+                else:
+                    shadow.add_speed(*args)
+            except ValueError:  # as _settle_tilt's pass: counted there
+                continue
+        shadow.flush()
+        log = list(shadow._body_pitch)
+        stamps = [t for t, _ in log]
+        at = [log[max(bisect.bisect_right(stamps, t) - 1, 0)][1] if log else 0.0 for t in hold.stamps[:-1]]
+        return [math.copysign(max(abs(b) - START_TILT_BODY_DEADBAND, 0.0), b) for b in at]
+
+    def _settle_tilt(self) -> list[OdometryStep]:
+        """The start's camera tilt from the held pairs (:mod:`~bevo_ros.core.start_tilt`), then the held
+        inputs run in their order. -> their steps."""
+        hold, self._hold = self._hold, None
+        pitch, roll = self.mounting_attitude
+        T = self.camera.T_base_cam.detach().double().cpu().numpy()
+        body = None
+        try:
+            # the pairs as measured, then less the suspension's pitch that a pass at that tilt models
+            direction = hold.direction()
+            for _ in range(START_TILT_PASSES if self.mode == "fused" else 0):
+                body = self._start_body_pitch(hold, (mounting_pitch_from_travel(direction, T[:3, :3], roll)[0], roll), T)
+                direction = hold.direction(body)
+        except ValueError as exc:
+            self.tilt_measurement = TiltMeasurement(0.0, 0, len(hold.directions), 0.0, False, str(exc))
+        else:
+            measured, _ = mounting_pitch_from_travel(direction, T[:3, :3], roll)
+            # the camera's tilt measured: a later camera with other extrinsics keeps it (set_camera)
+            self._mounting_calibration = ((measured, roll), T)
+            self.mounting_attitude = (measured, roll)
+            self._standstill.attitude = self.mounting_attitude
+            self._mounting = self.mounting_attitude
+            self.tilt_measurement = TiltMeasurement(measured - pitch, direction.pairs, direction.pairs_skipped,
+                                                    direction.elevation_sem, True,
+                                                    body_pitch=hold.mean_offset(body))
+        out: list[OdometryStep] = []
+        for kind, args in hold.inputs:
+            try:
+                if kind == "imu":
+                    out += self.add_imu(*args)
+                elif kind == "image":
+                    out += self.add_image(*args[:2], tag=args[2])
+                else:
+                    self.add_speed(*args)
+            except ValueError:  # checked when held: only a camera changed meanwhile (another size) refuses one
+                self._count("dropped_held_invalid", args[0], args[2] if kind == "image" else None)
+        return out
 
     # ------------------------------------------------------------------ internals
     def _release(self, ready) -> list[OdometryStep]:

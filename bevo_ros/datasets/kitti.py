@@ -60,8 +60,9 @@ def day_tilt_note(date: str, bag: str = "BAG") -> str | None:
     its output ``bag`` (None for the day it was fitted on, or no day)."""
     if not re.fullmatch(r"\d{4}_\d{2}_\d{2}", date or "") or date == PARAMS_TILT_DAY:
         return None  # not a KITTI day (an --oxts folder elsewhere), or the params' own
-    how = (f"measure it from the drive's own images: `bevo run {bag} --tilt-from-images` (for bevo_node: `bevo "
-           f"calibrate {bag} --from-images` prints the params lines)")
+    how = ("params/kitti.yaml's engine measures it from the drive's first 30 frame pairs (filter.tilt_from_images: "
+           f"keep it on, node and `bevo run` alike), or over up to 600 frames: `bevo run {bag} --tilt-from-images` "
+           f"(for bevo_node: `bevo calibrate {bag} --from-images` prints the params lines)")
     if date not in GROUND_TRUTH_CAMERA_TILT_DEG:
         return (f"params/kitti.yaml's camera tilt (filter.mounting_pitch) was fitted on {PARAMS_TILT_DAY} drives, and "
                 f"KITTI's camera tilt changed between days by up to 1.5 deg (~2 % of scale per 0.1 deg); for this "
@@ -70,7 +71,7 @@ def day_tilt_note(date: str, bag: str = "BAG") -> str | None:
     return (f"params/kitti.yaml's camera tilt (filter.mounting_pitch) was fitted on {PARAMS_TILT_DAY} drives; "
             f"{date}'s ground truth has the camera {abs(less):.2f} deg {'less' if less > 0 else 'more'} tilted to the "
             f"road (its direction of travel), and the engine's scale follows the tilt (~2 % per 0.1 deg: with the "
-            f"params this drive may read {'short' if less > 0 else 'long'}); {how}")
+            f"params' tilt as is this drive may read {'short' if less > 0 else 'long'}); {how}")
 
 
 # Column indices of the 30 OXTS fields (dataformat.txt).

@@ -216,6 +216,8 @@ ENGINE_DROPS = (
      "more than max_pending_images={s.max_pending_images} images were waiting for IMU"),
     ("dropped_invalid_bev", "invalid_bev",
      "whose BEV had no valid pixel (pitch/roll put the ground patch out of the image)"),
+    ("dropped_held_invalid", "held_invalid",
+     "held for the start's camera tilt that the engine refused when they ran (the camera changed meanwhile)"),
 )
 
 
@@ -394,6 +396,7 @@ class EngineFeed:
         self.journal = Journal(2 * self._imu_backlog.maxlen, self._journal_images())
         self._pose_request: dict | None = None  # a set_pose that came before the engine
         self._speed_backlog: collections.deque = collections.deque(maxlen=self._imu_backlog.maxlen)  # likewise
+        self._last_image_arrival = time.time()  # wall clock, for the held images' flush (flush_due)
 
     def start(self, engine, images: list | None = None) -> list:
         """Use ``engine`` from now on: the IMU that arrived before it and the ``images``
@@ -542,6 +545,7 @@ class EngineFeed:
         args = self.inputs("image", t, raw)
         if args is None:
             return None
+        self._last_image_arrival = time.time()
         steps = self._call("image", t, lambda: self.engine.add_image(t, *args, tag=tag))
         self._journal("image", t, raw, tag)
         return steps
@@ -552,7 +556,11 @@ class EngineFeed:
         self.journal.check(self.engine.counters.frames_out)
 
     def flush_due(self) -> bool:
-        """Images have waited for IMU past their stamp longer than ``image_wait``."""
+        """Images have waited for IMU past their stamp longer than ``image_wait``, or images held for the
+        start's camera tilt (``filter.tilt_from_images``) saw no further image for ``image_timeout`` (the
+        camera stopped, a bag ended: they run at what their pairs show)."""
+        if self.engine is not None and self.engine.held_images:
+            return time.time() - self._last_image_arrival >= self.settings.image_timeout
         if not self.pending_images:
             return False
         oldest = min(tag[-1] for tag in self.engine.pending_tags)  # (stamp, arrival, waiting since)
@@ -560,8 +568,15 @@ class EngineFeed:
 
     def flush(self) -> list:
         """Process the waiting images with the IMU fused so far."""
-        n = self.engine.pending_images
+        n, held = self.engine.pending_images, self.engine.held_images
         steps = self.engine.flush()
+        if held:
+            self._journal("flush", float("nan"))
+            self._report_events()
+            self.report.log("image_wait", f"{held} image(s) held for the start's camera tilt saw no further image for "
+                                          f"image_timeout={self.settings.image_timeout} s: run now ({len(steps)} "
+                                          "published)", level="info")
+            return steps
         self._journal("flush", float("nan"))
         self.report.events["flushed_images"] += len(steps)
         self._report_events()

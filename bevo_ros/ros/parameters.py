@@ -39,6 +39,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "filter.road_tilt_time_constant": (0.0, 3600.0), "filter.max_imu_gap": (0.001, 3600.0),
     "filter.mounting_pitch": (-math.pi / 2, math.pi / 2), "filter.mounting_roll": (-math.pi / 2, math.pi / 2),
     "filter.gyro_bias_std": (0.0, 1.0), "filter.gyro_bias_walk": (0.0, 1.0),
+    "filter.tilt_from_images": (0, 100_000), "filter.tilt_hold_frames": (2, 100_000),
     "filter.max_acceleration": (0.1, INF), "filter.max_angular_rate": (0.01, INF),
     "max_time_jump_forward": (0.001, INF), "time_jump_confirmations": (1, 1000),
     "odometry.min_quality": (0.0, 1.0), "odometry.gate": (1.0, INF), "odometry.rotation_gate": (0.0, math.pi),

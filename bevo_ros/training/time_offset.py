@@ -5,7 +5,7 @@ clocks show (rendered ``urban``, 100 Hz IMU: 4.9 % per frame aligned, 17.4 % wit
 ahead). Between two frames the camera turns by what the gyro integrates over the same interval; with
 the IMU's stamps off by ``tau`` the gyro's integral over ``[t0 + tau, t1 + tau]`` matches instead.
 The images give that rotation without the IMU: per frame pair, the relative pose from their epipolar
-geometry (:func:`~bevo_ros.training.travel_direction.relative_pose`, OpenCV). The offset is the
+geometry (:func:`~bevo_ros.core.travel_direction.relative_pose`, OpenCV). The offset is the
 ``tau`` at which the gyro's integrals best match the images' rotations (compared in the base's
 axes), a constant gyro bias fitted along, the worst pairs (a moving car's matches) trimmed.
 
@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from bevo_ros.core.rate_integration import GYRO_SAMPLING
-from bevo_ros.training.travel_direction import relative_pose
+from bevo_ros.core.travel_direction import relative_pose
 
 MAX_OFFSET = 1.0  # s searched either way
 COARSE_STEP = 0.005  # s between the offsets tried over the whole search (the cost is smooth on this scale)
