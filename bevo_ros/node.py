@@ -247,11 +247,11 @@ class BevoNode(Node):
         if engine is None or not engine.tilt_from_images:
             return "configured (filter.mounting_pitch)"
         m = engine.tilt_measurement
-        if m is None:
-            if engine.held_images == 0 and engine.counters.frames_out:
-                return "configured (filter.mounting_pitch)"  # paper mode or no road-tilt low-pass: nothing held
+        if engine.holding:
             return (f"measuring: {engine.held_pairs} of {engine.tilt_from_images} frame pairs, {engine.held_images} "
                     "image(s) held (no odometry until then)")
+        if m is None:
+            return "configured (filter.mounting_pitch; no road-tilt low-pass: nothing to measure)"
         if not m.measured:
             return f"configured (not measured: {m.reason})"
         return f"measured at the start: {math.degrees(m.change):+.2f} deg from filter.mounting_pitch ({m.pairs} pairs)"

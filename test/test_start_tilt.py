@@ -94,7 +94,7 @@ def _order(d):
 def test_a_start_standing_still_keeps_the_configured_tilt(drive):
     """The same image over and over (a car waiting at the start): no pair shows a direction, so after
     tilt_hold_frames images the configured tilt is kept, said why, and every frame comes out; a reset
-    later does not hold again."""
+    then holds again (the tilt is still to be measured), one after a measurement does not."""
     odo = engine(drive.camera, ONE_DEG, pairs=10, hold=12)
     steps = []
     for k in range(15):
@@ -109,8 +109,8 @@ def test_a_start_standing_still_keeps_the_configured_tilt(drive):
     assert odo.mounting_attitude[0] == pytest.approx(ONE_DEG)
     assert len(steps) == 15 and all(np.allclose(s.position, 0.0, atol=0.1) for s in steps)
     odo.reset()
-    assert odo.held_images == 0 and odo.add_imu(10.0, [0.0] * 3, [0.0, 0.0, 9.81]) == []
-    assert len(odo.add_image(10.0, drive.images[0])) == 1  # no second hold
+    assert odo.holding and odo.add_imu(10.0, [0.0] * 3, [0.0, 0.0, 9.81]) == []
+    assert odo.add_image(10.0, drive.images[0]) == [] and odo.held_images == 1
 
 
 def test_held_inputs_are_checked_when_they_come_and_flush_runs_them(drive):
@@ -133,6 +133,8 @@ def test_held_inputs_are_checked_when_they_come_and_flush_runs_them(drive):
     m = odo.tilt_measurement
     assert m.measured and 10 <= m.pairs <= 14, m
     assert len(steps) == 15 and odo.counters.images == 15
+    odo.reset()  # measured: kept, no second hold
+    assert not odo.holding and odo.tilt_measurement is m
     # a reset before the measurement forgets the held inputs and holds anew
     fresh = engine(drive.camera, ONE_DEG, pairs=30)
     for kind, j in order[:stop]:
@@ -190,3 +192,19 @@ def test_a_start_that_brakes_measures_the_rest_tilt_not_the_dive():
           f"{math.degrees(rest.change):+.2f} less the suspension's {math.degrees(rest.body_pitch):+.2f} (truth -1.00)")
     assert seen.body_pitch == 0.0 and math.degrees(rest.body_pitch) > 0.15
     assert abs(math.degrees(rest.change) + 1.0) < abs(math.degrees(seen.change) + 1.0) - 0.08
+
+
+def test_a_camera_change_during_the_hold_pairs_nothing_across_it(drive):
+    """A camera that changes while the start is held (another size, another K: a late CameraInfo) gives
+    no pair across the change: no OpenCV error on frames of two sizes, and the pairs after it count."""
+    from bevo_ros.core.start_tilt import StartHold
+
+    K = drive.camera.K.double().numpy()
+    hold = StartHold(pairs=30, max_frames=150)
+    for k in range(3):
+        hold.add_image(0.1 * k, drive.images[k], None, K)
+    small = np.ascontiguousarray(drive.images[3][::2, ::2])
+    hold.add_image(0.3, small, None, K * np.array([[0.5], [0.5], [1.0]]))
+    hold.add_image(0.4, np.ascontiguousarray(drive.images[4][::2, ::2]), None, K * np.array([[0.5], [0.5], [1.0]]))
+    assert len(hold.directions) == 4 and hold.directions[2] is None
+    assert hold.directions[0] is not None and hold.directions[3] is not None and hold.images == 5

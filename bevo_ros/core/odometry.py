@@ -145,6 +145,11 @@ REACH_SHARE = 0.4
 # passes of the start's camera tilt (filter.tilt_from_images) that take the suspension's pitch over the held
 # pairs out, each at the previous one's tilt (_settle_tilt): rendered presets, params 1 deg off, KITTI camera
 START_TILT_PASSES = 1
+# what a caller may set on an engine after building it (tools, the node's live parameters): the start tilt's
+# pass (_start_body_pitch) takes them from the engine, not its constructor's arguments
+_LIVE_SETTINGS = ("pitch_change_correction", "direction_lock", "min_frame_interval", "imu_time_offset",
+                  "suspension_gradients", "max_speed_age", "turn_compensation", "max_imu_gap", "initial_attitude_std",
+                  "road_tilt_time_constant", "dpc", "imu_limits", "max_pending_images", "gyro_sampling")
 START_TILT_BODY_DEADBAND = math.radians(0.1)  # rad: the suspension model's pitch at a steady speed (_start_body_pitch)
 
 
@@ -390,6 +395,7 @@ class BevoOdometry:
         self.counters = Counters()
         # what was counted, for a caller that reports it (the node); bounded for callers that never read it
         self._events: deque[EngineEvent] = deque(maxlen=1000)
+        self._body_pitch: list[tuple[float, float]] | None = None  # the start tilt's pass: (stamp, suspension pitch)
         self._trajectory = PlanarTrajectory()  # the pose in odom; set_pose's stamps reach back over its frames
         self.reset()
         self.counters.resets = 0  # count explicit resets only
@@ -435,7 +441,6 @@ class BevoOdometry:
         self._speed_log: deque[tuple[float, float, float]] = deque(maxlen=4000)  # add_speed's (stamp, m/s, var)
         self._speed_unsigned = False  # the latest add_speed was a magnitude: its sign is the direction of travel
         self._acc_fx = None  # low-passed forward acceleration from the accelerometer, m/s^2
-        self._body_pitch: deque[tuple[float, float]] = deque(maxlen=4000)  # fused: (stamp, suspension pitch) per IMU sample
         self._gyro_prev = None  # fused: the previous IMU sample's rates
         self._gyro_prev2 = None  # fused: the sample before that, (rates, yaw rate about the vertical); its interval is the previous _imu_dt
         # fused: (stamp, integral of the forward acceleration, DUKF start count) per IMU sample, read at
@@ -454,8 +459,10 @@ class BevoOdometry:
         self._rest_since: float | None = None  # fused: the start of the current standstill, s
         self._standstill.reset()
         # the start's camera tilt (start_tilt): the inputs wait in it until the tilt is measured
+        # (again after a start that did not measure it: it stood still, or a flush came first)
+        measured = self.tilt_measurement is not None and self.tilt_measurement.measured
         self._hold = (StartHold(self.tilt_from_images, self.tilt_hold_frames)
-                      if self.tilt_from_images and self.tilt_measurement is None and self._road_tilt.enabled else None)
+                      if self.tilt_from_images and not measured and self._road_tilt.enabled else None)
         self.counters.resets += 1
 
     def set_pose(self, x: float, y: float, yaw: float, z: float = 0.0, covariance=None,
@@ -854,7 +861,8 @@ class BevoOdometry:
         # The suspension's lean lasts as long as the acceleration: keep it out of the low-pass
         # (forward acceleration from the accelerometer, no loop through the images' scale).
         dyn_p, dyn_r = suspension_attitude(self._acc_fx or 0.0, speed * g[2], *self.suspension_gradients)
-        self._body_pitch.append((stamp, dyn_p))
+        if self._body_pitch is not None:
+            self._body_pitch.append((stamp, dyn_p))
         rp, rr = self._road_tilt.update(stamp, pitch - self._pull_kept_out - dyn_p, roll - dyn_r)
         road = (rp + dyn_p + self._mounting[0], rr + dyn_r + self._mounting[1])
         self._history.append((stamp, road, self._state, self._yaw_cum, self._imu_restarts,
@@ -907,6 +915,11 @@ class BevoOdometry:
         return self._hold.images if self._hold is not None else 0
 
     @property
+    def holding(self) -> bool:
+        """Inputs are held until the start's camera tilt is measured."""
+        return self._hold is not None
+
+    @property
     def held_pairs(self) -> int:
         """Frame pairs held so far that showed a forward direction of travel."""
         return self._hold.forward_pairs if self._hold is not None else 0
@@ -922,9 +935,13 @@ class BevoOdometry:
         the pass is at the pairs' own tilt (``_settle_tilt``). At a steady speed the model still reads
         +-0.05-0.1 deg (rendered `curve`, 15 m/s on 100 m: +0.05), so only its pitch beyond
         :data:`START_TILT_BODY_DEADBAND` is taken out: the dives and squats of braking and pulling away."""
-        shadow = BevoOdometry(**{**self._settings, "camera": self.camera, "tilt_from_images": 0,
+        # eager kernels: the pass needs the suspension's pitch, not the compiled kernels' last bit
+        shadow = BevoOdometry(**{**self._settings, "camera": self.camera, "tilt_from_images": 0, "kernels": "eager",
                                  "mounting_attitude": mounting, "mounting_extrinsics": T})
-        shadow.imu_limits, shadow.max_pending_images = self.imu_limits, self.max_pending_images
+        for name in _LIVE_SETTINGS:  # settings a caller may have changed since the construction
+            setattr(shadow, name, getattr(self, name))
+        shadow.reset()
+        shadow._body_pitch = []
         for kind, args in hold.inputs:
             try:
                 if kind == "imu":
@@ -933,10 +950,10 @@ class BevoOdometry:
                     shadow.add_image(*args[:2])
                 else:
                     shadow.add_speed(*args)
-            except ValueError:  # as _settle_tilt's pass: counted there
+            except (InvalidInputError, ImplausibleImuError):  # as _settle_tilt's run: counted there
                 continue
         shadow.flush()
-        log = list(shadow._body_pitch)
+        log = shadow._body_pitch
         stamps = [t for t, _ in log]
         at = [log[max(bisect.bisect_right(stamps, t) - 1, 0)][1] if log else 0.0 for t in hold.stamps[:-1]]
         return [math.copysign(max(abs(b) - START_TILT_BODY_DEADBAND, 0.0), b) for b in at]
@@ -944,7 +961,7 @@ class BevoOdometry:
     def _settle_tilt(self) -> list[OdometryStep]:
         """The start's camera tilt from the held pairs (:mod:`~bevo_ros.core.start_tilt`), then the held
         inputs run in their order. -> their steps."""
-        hold, self._hold = self._hold, None
+        hold = self._hold  # kept until measured: an error escaping the measurement loses no input
         pitch, roll = self.mounting_attitude
         T = self.camera.T_base_cam.detach().double().cpu().numpy()
         body = None
@@ -954,7 +971,7 @@ class BevoOdometry:
             for _ in range(START_TILT_PASSES if self.mode == "fused" else 0):
                 body = self._start_body_pitch(hold, (mounting_pitch_from_travel(direction, T[:3, :3], roll)[0], roll), T)
                 direction = hold.direction(body)
-        except ValueError as exc:
+        except ValueError as exc:  # too few pairs (direction_of_pairs)
             self.tilt_measurement = TiltMeasurement(0.0, 0, len(hold.directions), 0.0, False, str(exc))
         else:
             measured, _ = mounting_pitch_from_travel(direction, T[:3, :3], roll)
@@ -966,6 +983,7 @@ class BevoOdometry:
             self.tilt_measurement = TiltMeasurement(measured - pitch, direction.pairs, direction.pairs_skipped,
                                                     direction.elevation_sem, True,
                                                     body_pitch=hold.mean_offset(body))
+        self._hold = None
         out: list[OdometryStep] = []
         for kind, args in hold.inputs:
             try:
@@ -975,7 +993,7 @@ class BevoOdometry:
                     out += self.add_image(*args[:2], tag=args[2])
                 else:
                     self.add_speed(*args)
-            except ValueError:  # checked when held: only a camera changed meanwhile (another size) refuses one
+            except (InvalidInputError, ImplausibleImuError):  # checked when held: a camera changed meanwhile
                 self._count("dropped_held_invalid", args[0], args[2] if kind == "image" else None)
         return out
 

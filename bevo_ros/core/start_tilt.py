@@ -59,15 +59,17 @@ class StartHold:
     images: int = 0
     stamps: list[float] = field(default_factory=list)  # the held images'
     last: dict[str, float] = field(default_factory=dict)  # the latest stamp held per kind (order checks)
-    _previous: np.ndarray | None = None
+    _previous: tuple[np.ndarray, np.ndarray] | None = None  # the latest image (equalised) and its K
 
     def add_image(self, stamp: float, image: np.ndarray, tag: Any, K: np.ndarray) -> None:
-        """Hold an image ``(H, W)`` (uint8, or float in [0, 1]) and measure its pair with the previous one."""
+        """Hold an image ``(H, W)`` (uint8, or float in [0, 1]) and measure its pair with the previous one
+        (none across a camera change: another size or ``K (3, 3)``)."""
         grey = image if image.dtype == np.uint8 else np.clip(np.rint(image * 255.0), 0, 255).astype(np.uint8)
         grey = equalized(grey)
         if self._previous is not None:
-            self.directions.append(motion_direction(self._previous, grey, K))
-        self._previous = grey
+            same = self._previous[0].shape == grey.shape and np.array_equal(self._previous[1], K)
+            self.directions.append(motion_direction(self._previous[0], grey, K) if same else None)
+        self._previous = (grey, np.array(K, dtype=np.float64))
         self.images += 1
         self.stamps.append(stamp)
         self.inputs.append(("image", (stamp, image, tag)))

@@ -422,8 +422,14 @@ class EngineFeed:
 
     def _journal_images(self) -> int:
         """Images a start may take to be replayable: the pending ones and two frames, at most
-        JOURNAL_MAX_IMAGES + 2 (raw messages: 20 of 1080p rgb8 are 124 MB, beside the engine's own)."""
-        return min(self.settings.max_pending_images, JOURNAL_MAX_IMAGES) + 2
+        JOURNAL_MAX_IMAGES + 2 (raw messages: 20 of 1080p rgb8 are 124 MB, beside the engine's own); an
+        engine that holds its start for the camera's tilt (``filter.tilt_from_images``) its pairs and ten
+        more (a rig that comes during the hold is then replayed too; one that comes later, after pairs
+        that gave no direction, is taken by the running engine)."""
+        base = min(self.settings.max_pending_images, JOURNAL_MAX_IMAGES) + 2
+        if self.engine is not None and self.engine.holding:
+            return max(base, self.engine.tilt_from_images + 12)
+        return base
 
     def replay(self, engine) -> list:
         """Use ``engine`` (another rig) from now on, fed again what the current one had since its
