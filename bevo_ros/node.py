@@ -172,7 +172,7 @@ class BevoNode(Node):
     def summary(self) -> str:
         """The totals ros_process logs on SIGINT (with images still waiting, never silently lost)."""
         waiting = self.feed.pending_images + self.rig.held_images
-        held = self.engine.held_images if self.engine is not None else 0
+        held = self.feed.held_images
         return (self.report.summary() + (f"; {waiting} image(s) still waiting (for IMU or calibration)" if waiting else "")
                 + (f"; {held} image(s) held for the start's camera tilt (filter.tilt_from_images)" if held else ""))
 
@@ -244,7 +244,7 @@ class BevoNode(Node):
     def _camera_tilt_state(self) -> str:
         """/diagnostics: where the start's camera tilt (filter.tilt_from_images) stands."""
         engine = self.engine
-        if engine is None or not engine.tilt_from_images:
+        if not getattr(engine, "tilt_from_images", 0):
             return "configured (filter.mounting_pitch)"
         m = engine.tilt_measurement
         if engine.holding:
@@ -363,7 +363,7 @@ class BevoNode(Node):
             return
         if self.settings.ordered_intake:
             self.intake.merge([], [])  # IMU that was only queued, not missing, releases them
-            if not self.feed.pending_images and not (self.engine is not None and self.engine.held_images):
+            if not self.feed.pending_images and not self.feed.held_images:
                 return
         self._publish(self.feed.flush())
 
@@ -461,7 +461,7 @@ class BevoNode(Node):
     def _publish(self, steps: list | None, replayed: bool = False) -> None:
         """Publish the engine's steps; of a replay (:meth:`_rig_changed`) only frames after those
         already published (the first one stays as published: its position is the origin either way)."""
-        measured = self.engine.tilt_measurement if self.engine is not None else None
+        measured = getattr(self.engine, "tilt_measurement", None)  # duck-typed: a test's engine may not measure
         if measured is not None and measured is not self._tilt_logged:
             self._tilt_logged = measured
             self.report.log("camera_tilt", measured.describe(), level="info")

@@ -427,7 +427,7 @@ class EngineFeed:
         more (a rig that comes during the hold is then replayed too; one that comes later, after pairs
         that gave no direction, is taken by the running engine)."""
         base = min(self.settings.max_pending_images, JOURNAL_MAX_IMAGES) + 2
-        if self.engine is not None and self.engine.holding:
+        if getattr(self.engine, "holding", False):  # duck-typed: a test's engine may not hold
             return max(base, self.engine.tilt_from_images + 12)
         return base
 
@@ -499,6 +499,11 @@ class EngineFeed:
     def pending_images(self) -> int:
         return self.engine.pending_images if self.engine is not None else 0
 
+    @property
+    def held_images(self) -> int:
+        """Images the engine holds for the start's camera tilt (``filter.tilt_from_images``)."""
+        return getattr(self.engine, "held_images", 0)  # duck-typed: a test's engine may not hold
+
     def imu(self, t: float, raw) -> list | None:
         """One IMU sample (``raw``: in its own axes, as ``inputs`` takes it)."""
         if self.engine is None:  # kept (bounded) and fused once the camera is known: the filter warms up
@@ -565,7 +570,7 @@ class EngineFeed:
         """Images have waited for IMU past their stamp longer than ``image_wait``, or images held for the
         start's camera tilt (``filter.tilt_from_images``) saw no further image for ``image_timeout`` (the
         camera stopped, a bag ended: they run at what their pairs show)."""
-        if self.engine is not None and self.engine.held_images:
+        if self.held_images:
             return time.time() - self._last_image_arrival >= self.settings.image_timeout
         if not self.pending_images:
             return False
@@ -574,7 +579,7 @@ class EngineFeed:
 
     def flush(self) -> list:
         """Process the waiting images with the IMU fused so far."""
-        n, held = self.engine.pending_images, self.engine.held_images
+        n, held = self.engine.pending_images, self.held_images
         steps = self.engine.flush()
         if held:
             self._journal("flush", float("nan"))
