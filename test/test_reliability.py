@@ -407,7 +407,8 @@ def test_fuzzed_node_survives_then_gives_odometry_and_answers_reset(process_cont
         valid = drive_messages(drive, offset=5000.0)
         tester.publish(valid, 0.001)
         frames = [m.header.stamp for k, m in valid if k == "image"]
-        assert spin_until(tester.executor, lambda: tester.odom[-1].header.stamp == frames[-1], 30), \
+        # params/kitti.yaml holds the start for the camera's tilt: these 12 frames come after image_timeout
+        assert spin_until(tester.executor, lambda: bool(tester.odom) and tester.odom[-1].header.stamp == frames[-1], 30), \
             (len(tester.odom) - n, len(frames), node.output[-3000:])
         got = [m.header.stamp for m in tester.odom[n:]]
         assert sum(f in got for f in frames) >= len(frames) - 1, (got, frames)
@@ -451,7 +452,8 @@ def test_sigint_and_sigterm_while_data_streams_exit_0_without_a_traceback(proces
     messages = [m for lap in range(3) for m in drive_messages(drive, offset=2.0 * lap)]
     cam = drive.camera
     info = camera_info(cam.K.double().numpy(), cam.width, cam.height_px)
-    params = node_params(tmp_path, **camera_overrides(cam))
+    # the odometry flows from the first frames (no hold for the start's camera tilt): signals land in its callbacks
+    params = node_params(tmp_path, **camera_overrides(cam), **{"filter.tilt_from_images": 0})
     rng = np.random.default_rng(1)
     tester = Peer(process_context)
     try:
