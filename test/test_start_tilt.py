@@ -176,7 +176,7 @@ def test_a_start_that_brakes_measures_the_rest_tilt_not_the_dive():
     """Rendered `urban`, braking from 8 to ~4 m/s through the held pairs (the body's pitch on the road
     +0.34 deg over the first 31 frames): the pairs as seen put the dive into the mounting (-0.63 deg of
     the true -1.00 measured); less the suspension model's pitch (beyond its steady-speed deadband) from a
-    pass at that tilt, -0.74 (the model reads 0.23 of it)."""
+    pass at that tilt, -0.76 (the model reads 0.26 of it)."""
     import bevo_ros.core.odometry as odometry
 
     d = make_drive(seed=0, duration=3.5, preset="urban", camera=kitti_like_camera(), render="lazy")

@@ -150,7 +150,7 @@ START_TILT_PASSES = 1
 _LIVE_SETTINGS = ("pitch_change_correction", "direction_lock", "min_frame_interval", "imu_time_offset",
                   "suspension_gradients", "max_speed_age", "turn_compensation", "max_imu_gap", "initial_attitude_std",
                   "road_tilt_time_constant", "dpc", "imu_limits", "max_pending_images", "gyro_sampling")
-START_TILT_BODY_DEADBAND = math.radians(0.1)  # rad: the suspension model's pitch at a steady speed (_start_body_pitch)
+START_TILT_BODY_DEADBAND = math.radians(0.05)  # rad: the suspension model's pitch at a steady speed (_start_body_pitch)
 
 
 class OutOfOrderError(InvalidInputError):
@@ -933,8 +933,9 @@ class BevoOdometry:
         rest pitch. The model reads the accelerometer less gravity at the DUKF's pitch, which starts at
         the mounting: a pass at a mounting 1 deg off reads -0.09 deg of squat at a steady speed, so
         the pass is at the pairs' own tilt (``_settle_tilt``). At a steady speed the model still reads
-        +-0.05-0.1 deg (rendered `curve`, 15 m/s on 100 m: +0.05), so only its pitch beyond
-        :data:`START_TILT_BODY_DEADBAND` is taken out: the dives and squats of braking and pulling away."""
+        a few hundredths of a degree (rendered `curve`, 15 m/s on 100 m: +0.05; the KITTI sample -0.04), so
+        only its pitch beyond :data:`START_TILT_BODY_DEADBAND` is taken out: the dives and squats of braking
+        and pulling away. Measured deadbands (docs/FUSED_ODOMETRY.md): 0, 0.05 (kept), 0.1 deg."""
         # eager kernels: the pass needs the suspension's pitch, not the compiled kernels' last bit
         shadow = BevoOdometry(**{**self._settings, "camera": self.camera, "tilt_from_images": 0, "kernels": "eager",
                                  "mounting_attitude": mounting, "mounting_extrinsics": T})
