@@ -945,12 +945,7 @@ class BevoOdometry:
         shadow._body_pitch = []
         for kind, args in hold.inputs:
             try:
-                if kind == "imu":
-                    shadow.add_imu(*args)
-                elif kind == "image":
-                    shadow.add_image(*args[:2])
-                else:
-                    shadow.add_speed(*args)
+                shadow._feed_held(kind, args)
             except (InvalidInputError, ImplausibleImuError):  # as _settle_tilt's run: counted there
                 continue
         shadow.flush()
@@ -967,14 +962,14 @@ class BevoOdometry:
         T = self.camera.T_base_cam.detach().double().cpu().numpy()
         body = None
         try:
-            # the pairs as measured, then less the suspension's pitch that a pass at that tilt models
-            direction = hold.direction()
+            direction = hold.direction()  # the pairs as measured
+        except ValueError as exc:  # too few pairs (direction_of_pairs): nothing else here may pass for that
+            self.tilt_measurement = TiltMeasurement(0.0, 0, len(hold.directions), 0.0, False, str(exc))
+        else:
+            # less the suspension's pitch that a pass at the pairs' tilt models (the same pairs: no ValueError)
             for _ in range(START_TILT_PASSES if self.mode == "fused" else 0):
                 body = self._start_body_pitch(hold, (mounting_pitch_from_travel(direction, T[:3, :3], roll)[0], roll), T)
                 direction = hold.direction(body)
-        except ValueError as exc:  # too few pairs (direction_of_pairs)
-            self.tilt_measurement = TiltMeasurement(0.0, 0, len(hold.directions), 0.0, False, str(exc))
-        else:
             measured, _ = mounting_pitch_from_travel(direction, T[:3, :3], roll)
             # the camera's tilt measured: a later camera with other extrinsics keeps it (set_camera)
             self._mounting_calibration = ((measured, roll), T)
@@ -988,15 +983,20 @@ class BevoOdometry:
         out: list[OdometryStep] = []
         for kind, args in hold.inputs:
             try:
-                if kind == "imu":
-                    out += self.add_imu(*args)
-                elif kind == "image":
-                    out += self.add_image(*args[:2], tag=args[2])
-                else:
-                    self.add_speed(*args)
+                out += self._feed_held(kind, args)
             except (InvalidInputError, ImplausibleImuError):  # checked when held: a camera changed meanwhile
                 self._count("dropped_held_invalid", args[0], args[2] if kind == "image" else None)
         return out
+
+    def _feed_held(self, kind: str, args: tuple) -> list[OdometryStep]:
+        """One held input (:class:`~bevo_ros.core.start_tilt.StartHold`'s ``inputs``) through the public
+        method of its kind, as it came. -> the steps it gives."""
+        if kind == "imu":
+            return self.add_imu(*args)
+        if kind == "image":
+            return self.add_image(*args[:2], tag=args[2])
+        self.add_speed(*args)
+        return []
 
     # ------------------------------------------------------------------ internals
     def _release(self, ready) -> list[OdometryStep]:
