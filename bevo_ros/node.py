@@ -462,7 +462,8 @@ class BevoNode(Node):
         """Publish the engine's steps; of a replay (:meth:`_rig_changed`) only frames after those
         already published (the first one stays as published: its position is the origin either way)."""
         measured = getattr(self.engine, "tilt_measurement", None)  # duck-typed: a test's engine may not measure
-        if measured is not None and measured is not self._tilt_logged:
+        released = measured is not None and measured is not self._tilt_logged  # these steps: the frames held for it
+        if released:
             self._tilt_logged = measured
             self.report.log("camera_tilt", measured.describe(), level="info")
         for step in steps or ():
@@ -474,7 +475,7 @@ class BevoNode(Node):
                 self.outputs.path.clear()
             stamp, arrival, _ = step.tag
             odom = self.outputs.odometry(step, stamp)
-            self.report.published(arrival, float(step.peak_quality))
+            self.report.published(arrival, float(step.peak_quality), held=released)
             self.outputs.extras(step, odom)
         if not self._fast_camera_noted and self.engine is not None and self.engine.counters.frames_out >= 20:
             self._fast_camera_noted = True  # once the frame clock has a period

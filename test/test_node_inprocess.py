@@ -961,6 +961,14 @@ def test_the_start_s_camera_tilt_holds_the_first_frames_then_gives_the_offline_o
         assert np.allclose(_odom_arrays(msg)[0], step.position, atol=1e-6, rtol=0)
     assert any("the camera's tilt from the images' direction of travel at the start" in text
                for _, text in h.node.log_history), h.node.log_history
+    # the held frames' wait is no running latency: counted apart, the percentiles are the rest's
+    held, longest = h.node.report.start_hold
+    assert m.pairs + 1 <= held < d.num_frames and held + len(h.node.report.latency) == d.num_frames, (held, m)
+    h.diag.clear()
+    assert spin_until(h.executor, lambda: len(h.diag) > 0, 5)
+    values = {kv.key: kv.value for kv in h.diag[-1].status[0].values}
+    assert values["start_hold_frames"] == str(held) and float(values["start_hold_max_ms"]) == pytest.approx(
+        longest * 1e3, abs=0.01), values
 
     short = harness_factory(base_overrides(d, **{"filter.tilt_from_images": 10, "filter.tilt_hold_frames": 40,
                                                  "image_timeout": 0.5}), topics_prefix="short",

@@ -274,6 +274,9 @@ def main() -> int:
     ap.add_argument("--quarter", action="store_true", help="synthetic camera at 1/4 resolution (320x96)")
     ap.add_argument("--qos", choices=["reliable", "sensor_data"], default="reliable",
                     help="QoS of the replay and of the node's inputs (bag replay: reliable)")
+    ap.add_argument("--image-qos-depth", type=int, default=100,
+                    help="the node's image_qos_depth (its default, 5, shows what a live camera's best-effort "
+                         "queue loses while the node is busy)")
     ap.add_argument("--torch-threads", type=int, default=None,
                     help="node parameter torch_threads (default: the parameters file's)")
     ap.add_argument("--imu-topic", default="/imu/data")
@@ -294,7 +297,7 @@ def main() -> int:
         from bevo_ros.config import resolve_path
 
         params["learned_params_file"] = str(resolve_path(str(learned), base.resolve().parent))
-    params.update(input_qos=args.qos, imu_qos_depth=1000, image_qos_depth=100, diagnostics_period=args.diag_period,
+    params.update(input_qos=args.qos, imu_qos_depth=1000, image_qos_depth=args.image_qos_depth, diagnostics_period=args.diag_period,
                   latency_window=100000, imu_topic=args.imu_topic, image_topic=args.image_topic,
                   use_camera_info=False)
     if args.torch_threads is not None:

@@ -168,7 +168,7 @@ def _keep_trained_oq_if_the_engine_agrees(learned, base, seqs, config, split: st
 def _train(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from bevo_ros.datasets.rosbag import RigSettings, load_sequence
+    from bevo_ros.datasets.rosbag import RigSettings, load_sequence, with_start_tilt
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import LOSS_TEMPERATURE, TrainOptions, check_resume, train, training_setup
     from bevo_ros.training.gyro_bias import fit_gyro_bias_on_sequences
@@ -214,6 +214,8 @@ def _train(args: argparse.Namespace) -> int:
         seqs.append(s)
         print(f"{b}: {len(s)} frames, {s.imu_stamps.numel()} IMU samples "
               f"({s.imu_stamps.numel() / max(float(s.imu_stamps[-1] - s.imu_stamps[0]), 1e-9):.0f} Hz)")
+    # the loss at the tilt the engine measures at each bag's start (filter.tilt_from_images), not the configured one
+    with_start_tilt(seqs, config, base)
     lr_said = "the checkpoint's" if args.resume and args.lr is None else f"{options.lr:g}"
     print(f"loaded {len(seqs)} bag(s) in {time.perf_counter() - t0:.1f} s; split {args.split}, "
           f"{args.epochs} epochs, lr {lr_said}, checkpoint {checkpoint}")

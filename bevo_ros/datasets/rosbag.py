@@ -10,7 +10,7 @@ import os
 import warnings
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -104,6 +104,9 @@ class Recording:
     gt_poses: torch.Tensor | None  # (F, 4, 4) base poses at the frames
     gt_pitch_roll: torch.Tensor | None  # (F, 2) gravity-referenced reference attitude
     name: str = ""
+    # the base's (pitch, roll) on the road the engine measured at the recording's start
+    # (filter.tilt_from_images: measure_start_tilt); None: the configuration's (mounting_in_use)
+    mounting: tuple[float, float] | None = None
 
     def __len__(self) -> int:
         return int(self.frame_stamps.shape[0])
@@ -124,7 +127,8 @@ class Recording:
         return Recording(self.imu_stamps[:n], self.gyro[:n], self.accel[:n], self.frame_stamps[start:stop],
                          self.images[start:stop], self.camera,
                          None if self.gt_poses is None else self.gt_poses[start:stop],
-                         None if self.gt_pitch_roll is None else self.gt_pitch_roll[start:stop], self.name)
+                         None if self.gt_pitch_roll is None else self.gt_pitch_roll[start:stop], self.name,
+                         self.mounting)  # the engine run on keeps the start's tilt
 
 
 @dataclass(frozen=True)
@@ -465,12 +469,15 @@ def stamp_order(imu_stamps, frame_stamps, image_first: bool = False,
 
 def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: bool = False,
                 trailing: bool = True, by_stamp: bool = False,
-                speeds: Sequence[tuple] = ()) -> list:
+                speeds: Sequence[tuple] = (), until: Callable[[], bool] | None = None) -> list:
     """Feed ``odo`` (a ``BevoOdometry``) in :func:`stamp_order`, then flush; ``image(k)`` gives frame
     ``k``; ``speeds``, ``add_speed``'s arguments ``(stamp, m/s, variance[, signed])`` in stamp order,
-    each before the first IMU sample or image stamped at or after it. Returns every ``OdometryStep``."""
+    each before the first IMU sample or image stamped at or after it. ``until``: checked before each
+    input; once true the feeding stops there, unflushed. Returns every ``OdometryStep``."""
     steps, n = [], 0
     for kind, j in stamp_order(imu_stamps, frame_stamps, image_first, trailing, by_stamp):
+        if until is not None and until():
+            return steps
         stamp = float(imu_stamps[j] if kind == "imu" else frame_stamps[j])
         while n < len(speeds) and speeds[n][0] <= stamp:
             odo.add_speed(*speeds[n])
@@ -480,6 +487,32 @@ def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: 
         else:
             steps += odo.add_image(stamp, image(j))
     return steps + odo.flush()
+
+
+def measure_start_tilt(sequence: Recording, config: BevoConfig, learned):
+    """The base's ``(pitch, roll)`` on the road that the engine (``build_odometry``, ``filter.tilt_from_images``)
+    measures at ``sequence``'s start, and its :class:`~bevo_ros.core.start_tilt.TiltMeasurement`: fed as
+    :func:`run_engine` feeds it until the hold releases (or the recording ends: flushed, as ``bevo run`` at a
+    bag's end). For the code that runs the core without the engine (the training's loss, the ablation's
+    given-attitude rows), so that it works at the tilt the engine does. None with the measurement off."""
+    from bevo_ros.config import build_odometry
+
+    odo = build_odometry(config, learned, camera=sequence.camera)
+    if not odo.holding:
+        return None
+    feed_engine(odo, sequence.imu_stamps.tolist(), sequence.gyro.tolist(), sequence.accel.tolist(),
+                sequence.frame_stamps.tolist(), lambda k: sequence.images[k].numpy(), until=lambda: not odo.holding)
+    return tuple(map(float, odo.mounting_attitude)), odo.tilt_measurement
+
+
+def with_start_tilt(sequences: list[Recording], config: BevoConfig, learned, log=print) -> None:
+    """Each recording's :attr:`Recording.mounting` set to what :func:`measure_start_tilt` gives (nothing with
+    ``filter.tilt_from_images: 0``), each said in one line through ``log``."""
+    for s in sequences:
+        found = measure_start_tilt(s, config, learned)
+        if found is not None:
+            s.mounting = found[0] if found[1].measured else None
+            log(f"{s.name or 'recording'}: {found[1].describe()}")
 
 
 def run_engine(sequence: Recording, config: BevoConfig, learned, mode: str | None = None) -> list:

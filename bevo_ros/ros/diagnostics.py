@@ -110,6 +110,9 @@ class Report:
         self.log_history: collections.deque[tuple[str, str]] = collections.deque(maxlen=200)
         self._throttle: dict[str, list[float]] = {}
         self.latency: collections.deque[float] = collections.deque(maxlen=settings.latency_window)
+        # the frames held for the start's camera tilt (filter.tilt_from_images): seconds late by design, not a
+        # running latency; their count and the longest wait, kept apart from the percentiles
+        self.start_hold: tuple[int, float] = (0, 0.0)
         self.quality: collections.deque[float] = collections.deque(maxlen=100)
         self._last = (time.monotonic(), collections.Counter())  # (time, counts) of the last values()
 
@@ -137,9 +140,13 @@ class Report:
         self.drops[reason] += count
         self.log(reason, f"dropped ({reason}): {text}", level)
 
-    def published(self, arrival: float | None, quality: float) -> None:
-        """One odometry message out: its latency since the image arrived (wall clock), its quality."""
-        if arrival is not None:
+    def published(self, arrival: float | None, quality: float, held: bool = False) -> None:
+        """One odometry message out: its latency since the image arrived (wall clock), its quality;
+        ``held``: a frame the engine held for the start's camera tilt (:attr:`start_hold`)."""
+        if arrival is not None and held:
+            n, longest = self.start_hold
+            self.start_hold = (n + 1, max(longest, time.time() - arrival))
+        elif arrival is not None:
             self.latency.append(time.time() - arrival)
         self.counts["odometry_out"] += 1
         if math.isfinite(quality):
@@ -176,6 +183,9 @@ class Report:
             "pending_images": str(pending_images),
             "tf": tf_backend,
         }
+        if self.start_hold[0]:  # the latency above is the running frames'
+            values["start_hold_frames"] = str(self.start_hold[0])
+            values["start_hold_max_ms"] = f"{self.start_hold[1] * 1e3:.2f}"
         if self.counts["speed_in"]:
             values["speeds_received"] = str(self.counts["speed_in"])
         values.update(counter_values("drop", self.drops))

@@ -55,7 +55,9 @@ def reference_attitude(seq, mode, config):
         return torch.as_tensor(mode, dtype=torch.float64)
     from bevo_ros.config import mounting_in_use
 
-    mounting = torch.tensor(mounting_in_use(config, seq.camera.T_base_cam), dtype=torch.float64)  # the engine's, for this camera
+    # the engine's, for this camera: the one measured at the start (filter.tilt_from_images) where it was
+    mounting = torch.tensor(seq.mounting if seq.mounting is not None else mounting_in_use(config, seq.camera.T_base_cam),
+                            dtype=torch.float64)
     if mode == "zero":
         return torch.zeros(len(seq), 2, dtype=torch.float64) + mounting
     if mode == "road-poses":
@@ -295,7 +297,7 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
     writes OUT/ablation.md, OUT/ablation.json and OUT/<bag>_ablation.png. Progress goes to ``log``,
     a diverged training's message to ``warn``. ``rig``: how the bags' rig and calibration are taken
     (``RigSettings``, the params' node settings of the same names). Raises ``ValueError`` (and the loaders' errors) on bad input."""
-    from bevo_ros.datasets.rosbag import RigSettings, load_sequence, split_frames
+    from bevo_ros.datasets.rosbag import RigSettings, load_sequence, split_frames, with_start_tilt
     from bevo_ros.io.files import atomic_write_text
     from bevo_ros.io.learned_params import load_learned_params, save_learned_params
     from bevo_ros.training.trainer import TrainOptions, resolve_device, train
@@ -317,6 +319,8 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
         bag_paths.append(syn)
         gt_modes[str(syn)] = np.asarray(drive.pitch_roll_road, dtype=np.float64)  # exact, per frame
     seqs = [load_sequence(b, config, rig=rig or RigSettings()) for b in bag_paths]
+    fused_learned = load_learned_params(o.fused_learned)
+    with_start_tilt(seqs, config, fused_learned, log)  # every row at the tilt the fused row's engine measures
     eval_mode = o.eval or ("held-out" if o.train else "all")
     if o.train:
         topts = TrainOptions(epochs=o.epochs, lr=o.lr, split=o.split, seed=o.seed,
@@ -338,7 +342,6 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
         learned = load_learned_params(path)
         learned_src = f"from {path}"
     log(f"learned O = {list(learned.process_noise_density)}, Q = {list(learned.measurement_noise_variance)}")
-    fused_learned = load_learned_params(o.fused_learned)
 
     md = ["# BEVO ablation (paper Table 3)", "",
           f"Parameters: {o.params}. Frames evaluated: {eval_mode}. Every variant runs the engine's BEV "

@@ -182,8 +182,9 @@ def sequence_pass(
     need_grad = backward and source == "dukf" and dukf is not None
     if turn_compensation is None:
         turn_compensation = bool(getattr(config.filter, "turn_compensation", False))
-    # the engine's mounting for this recording's camera (re-derived for other extrinsics, e.g. the bag's /tf_static)
-    mounting = mounting_in_use(config, seq.camera.T_base_cam)
+    # the engine's mounting for this recording's camera (re-derived for other extrinsics, e.g. the bag's /tf_static),
+    # or the one it measured at the recording's start (filter.tilt_from_images: with_start_tilt)
+    mounting = seq.mounting if seq.mounting is not None else mounting_in_use(config, seq.camera.T_base_cam)
     gt = seq.gt_motion() if seq.gt_poses is not None else None
     targets = registration_targets(gt.to(dev), spec) if gt is not None else None
 
