@@ -30,8 +30,8 @@ from .trajectory import PlanarTrajectory, check_pose
 from .rate_integration import GYRO_SAMPLING, interval_rate
 from .road_tilt import RoadTiltFilter
 from .standstill import CHECK_BELOW as STANDSTILL_CHECK_BELOW, StandstillDetector
-from .start_tilt import StartHold, TiltMeasurement
-from .travel_direction import MIN_PAIRS as TILT_MIN_PAIRS, mounting_pitch_from_travel
+from .start_tilt import StartHold, TiltMeasurement, mean_offset
+from .travel_direction import MIN_PAIRS as TILT_MIN_PAIRS, direction_of_pairs, mounting_pitch_from_travel
 from .validation import ImplausibleImuError, ImuLimits, imu_problem
 from .vehicle_dynamics import GRAVITY, compensate_floats, suspension_attitude
 from .vehicle_filter import VehicleFilter, VehicleNoise, forget_accel_bias, forget_speed, initial_vehicle_state
@@ -461,6 +461,8 @@ class BevoOdometry:
         # the start's camera tilt (start_tilt): the inputs wait in it until the tilt is measured
         # (again after a start that did not measure it: it stood still, or a flush came first)
         measured = self.tilt_measurement is not None and self.tilt_measurement.measured
+        if getattr(self, "_hold", None) is not None:
+            self._hold.close()  # its pairs no longer wanted
         self._hold = (StartHold(self.tilt_from_images, self.tilt_hold_frames)
                       if self.tilt_from_images and not measured and self._road_tilt.enabled else None)
         self.counters.resets += 1
@@ -629,7 +631,8 @@ class BevoOdometry:
         if self._hold is not None:  # checked now, fused once the tilt is measured (_settle_tilt)
             self._hold.last["imu"] = stamp
             self._hold.inputs.append(("imu", (given, g, a)))
-            return []
+            # the pairs are measured in worker threads: the next input after the last one needed releases
+            return self._settle_tilt() if self._hold.ready else []
         self.counters.imu += 1
         if self.mode == "fused":
             # Images waiting for this sample are projected with the attitude interpolated to their
@@ -924,9 +927,9 @@ class BevoOdometry:
         """Frame pairs held so far that showed a forward direction of travel."""
         return self._hold.forward_pairs if self._hold is not None else 0
 
-    def _start_body_pitch(self, hold: StartHold, mounting: tuple[float, float], T) -> list[float]:
-        """The suspension's pitch (rad, nose down +) at each held frame pair's first frame: a pass of an
-        engine like this one over the held inputs with the base's ``mounting`` for the camera ``T (4,
+    def _start_body_pitch(self, inputs: list, stamps: list[float], mounting: tuple[float, float], T) -> list[float]:
+        """The suspension's pitch (rad, nose down +) at each held frame pair's first frame (``stamps``): a pass
+        of an engine like this one over the held ``inputs`` with the base's ``mounting`` for the camera ``T (4,
         4)``. Braking dives the nose and a pull-away squats it, and the direction of travel measured
         then has that pitch in it (rendered `urban`, braking from 8 to 4.5 m/s over its first 3 s:
         +0.45 deg mean); the engine adds its suspension model to the mounting, so the mounting is the
@@ -943,15 +946,15 @@ class BevoOdometry:
             setattr(shadow, name, getattr(self, name))
         shadow.reset()
         shadow._body_pitch = []
-        for kind, args in hold.inputs:
+        for kind, args in inputs:
             try:
                 shadow._feed_held(kind, args)
             except (InvalidInputError, ImplausibleImuError):  # as _settle_tilt's run: counted there
                 continue
         shadow.flush()
         log = shadow._body_pitch
-        stamps = [t for t, _ in log]
-        at = [log[max(bisect.bisect_right(stamps, t) - 1, 0)][1] if log else 0.0 for t in hold.stamps[:-1]]
+        logged = [t for t, _ in log]
+        at = [log[max(bisect.bisect_right(logged, t) - 1, 0)][1] if log else 0.0 for t in stamps]
         return [math.copysign(max(abs(b) - START_TILT_BODY_DEADBAND, 0.0), b) for b in at]
 
     def _settle_tilt(self) -> list[OdometryStep]:
@@ -961,15 +964,18 @@ class BevoOdometry:
         pitch, roll = self.mounting_attitude
         T = self.camera.T_base_cam.detach().double().cpu().numpy()
         body = None
+        # the pairs it takes (the first tilt_from_images forward ones, else all), the inputs up to them
+        directions, inputs, stamps = hold.taken()
         try:
-            direction = hold.direction()  # the pairs as measured
-        except ValueError as exc:  # too few pairs (direction_of_pairs): nothing else here may pass for that
-            self.tilt_measurement = TiltMeasurement(0.0, 0, len(hold.directions), 0.0, False, str(exc))
+            direction = direction_of_pairs(directions)  # the pairs as measured
+        except ValueError as exc:  # too few pairs: nothing else here may pass for that
+            self.tilt_measurement = TiltMeasurement(0.0, 0, len(directions), 0.0, False, str(exc))
         else:
             # less the suspension's pitch that a pass at the pairs' tilt models (the same pairs: no ValueError)
             for _ in range(START_TILT_PASSES if self.mode == "fused" else 0):
-                body = self._start_body_pitch(hold, (mounting_pitch_from_travel(direction, T[:3, :3], roll)[0], roll), T)
-                direction = hold.direction(body)
+                mounting = (mounting_pitch_from_travel(direction, T[:3, :3], roll)[0], roll)
+                body = self._start_body_pitch(inputs, stamps, mounting, T)
+                direction = direction_of_pairs(directions, body)
             measured, _ = mounting_pitch_from_travel(direction, T[:3, :3], roll)
             # the camera's tilt measured: a later camera with other extrinsics keeps it (set_camera)
             self._mounting_calibration = ((measured, roll), T)
@@ -978,7 +984,7 @@ class BevoOdometry:
             self._mounting = self.mounting_attitude
             self.tilt_measurement = TiltMeasurement(measured - pitch, direction.pairs, direction.pairs_skipped,
                                                     direction.elevation_sem, True,
-                                                    body_pitch=hold.mean_offset(body))
+                                                    body_pitch=mean_offset(directions, body))
         self._hold = None
         out: list[OdometryStep] = []
         for kind, args in hold.inputs:

@@ -16,12 +16,15 @@ keeps the configured tilt (:attr:`TiltMeasurement.measured` false, with the reas
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
-from .travel_direction import TravelDirection, direction_of_pairs, equalized, forward, motion_direction
+from .travel_direction import equalized, forward, motion_direction
 
 
 @dataclass(frozen=True)
@@ -47,53 +50,115 @@ class TiltMeasurement:
                 "(nose down +; ~2 % of scale per 0.1 deg at a 1.65 m camera height)")
 
 
+PAIR_WORKERS = 4  # threads measuring the held pairs at most (OpenCV releases the GIL), one per core below that
+
+
+def _pair_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | None:
+    """:func:`motion_direction` of a held pair, in a worker thread; a pair OpenCV cannot process gives no direction
+    (as one it cannot track): an error here would otherwise surface at a later, unrelated input."""
+    try:
+        return motion_direction(image0, image1, K)
+    except cv2.error:
+        return None
+
+
 @dataclass
 class StartHold:
-    """The inputs an engine holds until the camera's tilt is measured, in their order, and the
-    frame pairs' directions of travel (``(3,)`` unit vectors in the camera's optical frame, or None)."""
+    """The inputs an engine holds until the camera's tilt is measured, in their order, and the frame pairs'
+    directions of travel (``(3,)`` unit vectors in the camera's optical frame, or None), each measured in a
+    worker thread as its second image comes: the caller only equalises the image, so a node keeps up with
+    its camera while it holds (a pair costs 40-140 ms of a core at 1226x370, a 10 Hz camera gives 100 ms).
+    What is measured does not depend on the threads' timing: the measurement takes the first ``pairs``
+    forward pairs, with the pairs between them (:meth:`taken`), whenever they are done."""
 
     pairs: int  # forward pairs wanted
     max_frames: int  # images held at most: then the tilt is taken from what there is
     inputs: list[tuple[str, tuple]] = field(default_factory=list)  # ("imu" | "image" | "speed", arguments)
-    directions: list = field(default_factory=list)
     images: int = 0
     stamps: list[float] = field(default_factory=list)  # the held images'
     last: dict[str, float] = field(default_factory=dict)  # the latest stamp held per kind (order checks)
+    _found: list = field(default_factory=list)  # per pair: its direction, None, or the Future measuring it
+    _image_inputs: list[int] = field(default_factory=list)  # per held image: its index in ``inputs``
     _previous: tuple[np.ndarray, np.ndarray] | None = None  # the latest image (equalised) and its K
+    _pool: ThreadPoolExecutor | None = None
+    _counted: int = 0  # pairs counted by forward_pairs, and the forward ones among them
+    _forward: int = 0
 
     def add_image(self, stamp: float, image: np.ndarray, tag: Any, K: np.ndarray) -> None:
-        """Hold an image ``(H, W)`` (uint8, or float in [0, 1]) and measure its pair with the previous one
-        (none across a camera change: another size or ``K (3, 3)``)."""
+        """Hold an image ``(H, W)`` (uint8, or float in [0, 1]) and start measuring its pair with the previous
+        one (none across a camera change: another size or ``K (3, 3)``)."""
         grey = image if image.dtype == np.uint8 else np.clip(np.rint(image * 255.0), 0, 255).astype(np.uint8)
         grey = equalized(grey)
+        K = np.array(K, dtype=np.float64)
         if self._previous is not None:
             same = self._previous[0].shape == grey.shape and np.array_equal(self._previous[1], K)
-            self.directions.append(motion_direction(self._previous[0], grey, K) if same else None)
-        self._previous = (grey, np.array(K, dtype=np.float64))
+            if same and self._pool is None:
+                cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+                self._pool = ThreadPoolExecutor(max_workers=max(1, min(cores, PAIR_WORKERS)),
+                                                thread_name_prefix="bevo_start_tilt")
+            self._found.append(self._pool.submit(_pair_direction, self._previous[0], grey, K) if same else None)
+        self._previous = (grey, K)
         self.images += 1
         self.stamps.append(stamp)
+        self._image_inputs.append(len(self.inputs))
         self.inputs.append(("image", (stamp, image, tag)))
 
     @property
     def forward_pairs(self) -> int:
-        return sum(forward(d) for d in self.directions)
+        """Forward pairs among those measured so far, in order up to the first still being measured (checked
+        at every input: what was counted stays counted)."""
+        while self._counted < len(self._found):
+            f = self._found[self._counted]
+            if isinstance(f, Future):
+                if not f.done():
+                    break
+                self._found[self._counted] = f = f.result()
+            self._forward += forward(f)
+            self._counted += 1
+        return self._forward
 
     @property
     def ready(self) -> bool:
-        """Enough forward pairs, or as many images as it may hold."""
-        return self.forward_pairs >= self.pairs or self.images >= self.max_frames
+        """Enough forward pairs measured, or as many images as it may hold (then :meth:`taken` waits)."""
+        return self.images >= self.max_frames or self.forward_pairs >= self.pairs
 
-    def direction(self, body_pitch: list[float] | None = None) -> TravelDirection:
-        """The pairs' direction of travel, each pair's elevation less the body's ``body_pitch`` (rad, nose
-        down +, per pair: its first frame's) if given; ValueError with too few."""
-        return direction_of_pairs(self.directions, body_pitch)
+    @property
+    def directions(self) -> list:
+        """Every held pair's direction (None: none), waiting for those still being measured."""
+        for k, f in enumerate(self._found):
+            if isinstance(f, Future):
+                self._found[k] = f.result()
+        return list(self._found)
 
-    def mean_offset(self, body_pitch: list[float] | None) -> float:
-        """The mean of ``body_pitch`` over the pairs that showed a direction."""
-        if not body_pitch:
-            return 0.0
-        used = [b for d, b in zip(self.directions, body_pitch) if forward(d)]
-        return float(np.mean(used)) if used else 0.0
+    def taken(self) -> tuple[list, list[tuple[str, tuple]], list[float]]:
+        """The pairs the measurement takes, waiting for them: the first ``pairs`` forward ones and those between,
+        else (as many images as it may hold, or a flush) every pair. -> (their directions, the held inputs up to
+        their last image, their first images' stamps); then the pairs after them are not measured."""
+        directions, count, upto = [], 0, len(self.inputs)
+        for k, f in enumerate(self._found):
+            d = f.result() if isinstance(f, Future) else f
+            self._found[k] = d
+            directions.append(d)
+            count += forward(d)
+            if count >= self.pairs:
+                upto = self._image_inputs[k + 1] + 1  # the inputs up to the pair's second image
+                break
+        self.close()
+        return directions, self.inputs[:upto], self.stamps[:len(directions)]
+
+    def close(self) -> None:
+        """Stop measuring: the pairs not started are dropped (a reset, or the measurement taken)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
 
-__all__ = ["StartHold", "TiltMeasurement"]
+def mean_offset(directions: list, body_pitch: list[float] | None) -> float:
+    """The mean of ``body_pitch`` (one per pair) over the pairs that showed a direction."""
+    if not body_pitch:
+        return 0.0
+    used = [b for d, b in zip(directions, body_pitch) if forward(d)]
+    return float(np.mean(used)) if used else 0.0
+
+
+__all__ = ["StartHold", "TiltMeasurement", "mean_offset"]
