@@ -9,8 +9,8 @@ frame pairs have shown the direction the camera travels in (their epipolar geome
 :mod:`~bevo_ros.core.travel_direction`), takes the base's pitch on the road at which that direction lies
 in the road's plane, and then runs the held inputs in their order. Every pose is at the measured tilt and
 the node's are those of ``bevo run``; the first pose comes when the N-th pair has been measured (a
-pair costs 40-140 ms of one core at 1226x370, so a node falls behind by that much per frame meanwhile and
-catches up after). A start that stands still, or too few textured pairs within ``max_frames`` images,
+pair costs 40-140 ms of a core at 1226x370, measured in worker threads: the caller keeps up with its
+camera). A start that stands still, or too few textured pairs within ``max_frames`` images,
 keeps the configured tilt (:attr:`TiltMeasurement.measured` false, with the reason).
 """
 from __future__ import annotations
