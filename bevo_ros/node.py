@@ -475,7 +475,10 @@ class BevoNode(Node):
                 self.outputs.path.clear()
             stamp, arrival, _ = step.tag
             odom = self.outputs.odometry(step, stamp)
-            self.report.published(arrival, float(step.peak_quality), held=released)
+            # held: its image waited for the start's tilt (with an IMU sample after it, it may come a call later)
+            until = getattr(self.engine, "held_until", None)
+            self.report.published(arrival, float(step.peak_quality),
+                                  held=released or (until is not None and step.stamp <= until))
             self.outputs.extras(step, odom)
         if not self._fast_camera_noted and self.engine is not None and self.engine.counters.frames_out >= 20:
             self._fast_camera_noted = True  # once the frame clock has a period

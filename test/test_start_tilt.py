@@ -244,3 +244,56 @@ def test_training_and_the_ablation_work_at_the_tilt_the_engine_measures(drive):
     plain = drive.to_recording()
     with_start_tilt([plain], config, LEARNED, lines.append)
     assert plain.mounting is None and len(lines) == 1
+
+
+def test_a_pair_whose_measurement_raises_gives_no_direction_and_is_said(drive, monkeypatch):
+    """A pair's measurement runs in a worker thread: one that raises counts as giving no direction, with its
+    error in the measurement's line, instead of being raised again at every later input; the engine measures
+    from the other pairs."""
+    import bevo_ros.core.start_tilt as start_tilt
+    from bevo_ros.core.travel_direction import motion_direction
+
+    calls = []
+
+    def flaky(image0, image1, K):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("a broken pair")
+        return motion_direction(image0, image1, K)
+
+    monkeypatch.setattr(start_tilt, "motion_direction", flaky)
+    odo = engine(drive.camera, ONE_DEG, pairs=20)
+    steps = run(odo, drive)
+    m = odo.tilt_measurement
+    assert len(steps) == drive.num_frames and m.measured and m.pairs == 20, m
+    assert m.failed == ("RuntimeError: a broken pair",) and "1 pair(s) failed to measure" in m.describe(), m
+
+
+def test_a_hold_dropped_while_measuring_drops_its_queued_pairs(drive):
+    """An engine replaced while it holds (the node's rig replay) stops its measurement threads: close, or
+    the hold's garbage collection, cancel the pairs not started."""
+    import gc
+
+    from bevo_ros.core.start_tilt import StartHold
+
+    K = drive.camera.K.double().numpy()
+    hold = StartHold(pairs=30, max_frames=150)
+    for k in range(12):
+        hold.add_image(0.1 * k, drive.images[k], None, K)
+    futures = list(hold._found)
+    del hold
+    gc.collect()
+    for f in futures:
+        try:
+            f.result(timeout=30)
+        except Exception:  # noqa: BLE001 - cancelled
+            pass
+    assert any(f.cancelled() for f in futures), [f.done() for f in futures]
+
+    odo = engine(drive.camera, ONE_DEG, pairs=30)
+    for k in range(12):
+        odo.add_imu(0.1 * k, [0.0] * 3, [0.0, 0.0, 9.81])
+        odo.add_image(0.1 * k, drive.images[k])
+    futures = list(odo._hold._found)
+    odo.close()
+    assert odo._hold._pool is None and any(f.cancelled() for f in futures)

@@ -463,6 +463,7 @@ class BevoOdometry:
         measured = self.tilt_measurement is not None and self.tilt_measurement.measured
         if getattr(self, "_hold", None) is not None:
             self._hold.close()  # its pairs no longer wanted
+        self.held_until = None  # the latest image held for the start's tilt, once released (None: none)
         self._hold = (StartHold(self.tilt_from_images, self.tilt_hold_frames)
                       if self.tilt_from_images and not measured and self._road_tilt.enabled else None)
         self.counters.resets += 1
@@ -894,6 +895,8 @@ class BevoOdometry:
         if last is not None and stamp <= last:
             raise OutOfOrderError("image", stamp, last)
         if self._hold is not None:
+            # held images are ordered against the last one held, skipped or not: a little stricter than the
+            # running engine (against the last processed), only for an image older than one already received
             self._hold.last["image"] = stamp
             self._hold.add_image(stamp, img, tag, self.camera.K.detach().double().cpu().numpy())
             return self._settle_tilt() if self._hold.ready else []
@@ -911,6 +914,11 @@ class BevoOdometry:
         held for the start's tilt go first, at the tilt their pairs show (the configured one with too few)."""
         out = self._settle_tilt() if self._hold is not None else []
         return out + self._release(lambda s: True)
+
+    def close(self) -> None:
+        """Stop the start tilt's measurement threads (an engine replaced while it holds its start)."""
+        if self._hold is not None:
+            self._hold.close()
 
     @property
     def held_images(self) -> int:
@@ -969,7 +977,8 @@ class BevoOdometry:
         try:
             direction = direction_of_pairs(directions)  # the pairs as measured
         except ValueError as exc:  # too few pairs: nothing else here may pass for that
-            self.tilt_measurement = TiltMeasurement(0.0, 0, len(directions), 0.0, False, str(exc))
+            self.tilt_measurement = TiltMeasurement(0.0, 0, len(directions), 0.0, False, str(exc),
+                                                    failed=tuple(hold.failed))
         else:
             # less the suspension's pitch that a pass at the pairs' tilt models (the same pairs: no ValueError)
             for _ in range(START_TILT_PASSES if self.mode == "fused" else 0):
@@ -984,8 +993,9 @@ class BevoOdometry:
             self._mounting = self.mounting_attitude
             self.tilt_measurement = TiltMeasurement(measured - pitch, direction.pairs, direction.pairs_skipped,
                                                     direction.elevation_sem, True,
-                                                    body_pitch=mean_offset(directions, body))
+                                                    body_pitch=mean_offset(directions, body), failed=tuple(hold.failed))
         self._hold = None
+        self.held_until = hold.stamps[-1] if hold.stamps else None
         out: list[OdometryStep] = []
         for kind, args in hold.inputs:
             try:

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import math
 import os
+import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
-import cv2
 import numpy as np
 
 from .travel_direction import equalized, forward, motion_direction
@@ -39,27 +39,20 @@ class TiltMeasurement:
     measured: bool
     reason: str = ""  # why the configured tilt was kept
     body_pitch: float = 0.0  # the suspension's mean pitch over the pairs taken out (rad, nose down +)
+    failed: tuple[str, ...] = ()  # the errors of pairs whose measurement raised (counted as giving no direction)
 
     def describe(self) -> str:
         """One line for a log."""
+        failed = (f"; {len(self.failed)} pair(s) failed to measure, e.g. {self.failed[0]}" if self.failed else "")
         if not self.measured:
-            return f"the camera's tilt was not measured at the start ({self.reason}): the configured one kept"
+            return f"the camera's tilt was not measured at the start ({self.reason}{failed}): the configured one kept"
         return (f"the camera's tilt from the images' direction of travel at the start ({self.pairs} frame pairs, "
                 f"+- {math.degrees(self.sem):.2f} deg; the suspension's {math.degrees(self.body_pitch):+.2f} deg over "
-                f"them taken out): {math.degrees(self.change):+.2f} deg from the configured filter.mounting_pitch "
-                "(nose down +; ~2 % of scale per 0.1 deg at a 1.65 m camera height)")
+                f"them taken out{failed}): {math.degrees(self.change):+.2f} deg from the configured "
+                "filter.mounting_pitch (nose down +; ~2 % of scale per 0.1 deg at a 1.65 m camera height)")
 
 
 PAIR_WORKERS = 4  # threads measuring the held pairs at most (OpenCV releases the GIL), one per core below that
-
-
-def _pair_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | None:
-    """:func:`motion_direction` of a held pair, in a worker thread; a pair OpenCV cannot process gives no direction
-    (as one it cannot track): an error here would otherwise surface at a later, unrelated input."""
-    try:
-        return motion_direction(image0, image1, K)
-    except cv2.error:
-        return None
 
 
 @dataclass
@@ -83,6 +76,23 @@ class StartHold:
     _pool: ThreadPoolExecutor | None = None
     _counted: int = 0  # pairs counted by forward_pairs, and the forward ones among them
     _forward: int = 0
+    failed: list[str] = field(default_factory=list)  # the pairs whose measurement raised: their errors
+
+    def _resolve(self, k: int) -> np.ndarray | None:
+        """Pair ``k``'s direction, waiting for it if it is still being measured. A pair whose measurement
+        raised gives none (its error kept in :attr:`failed`: in a worker it would otherwise be raised again
+        at every later input), a pair dropped by :meth:`close` none either."""
+        f = self._found[k]
+        if isinstance(f, Future):
+            if f.cancelled():
+                f = None
+            elif (error := f.exception()) is not None:
+                self.failed.append(f"{type(error).__name__}: {error}")
+                f = None
+            else:
+                f = f.result()
+            self._found[k] = f
+        return f
 
     def add_image(self, stamp: float, image: np.ndarray, tag: Any, K: np.ndarray) -> None:
         """Hold an image ``(H, W)`` (uint8, or float in [0, 1]) and start measuring its pair with the previous
@@ -96,7 +106,9 @@ class StartHold:
                 cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
                 self._pool = ThreadPoolExecutor(max_workers=max(1, min(cores, PAIR_WORKERS)),
                                                 thread_name_prefix="bevo_start_tilt")
-            self._found.append(self._pool.submit(_pair_direction, self._previous[0], grey, K) if same else None)
+                # a hold dropped while measuring (its engine replaced) drops its queued pairs with it
+                weakref.finalize(self, self._pool.shutdown, wait=False, cancel_futures=True)
+            self._found.append(self._pool.submit(motion_direction, self._previous[0], grey, K) if same else None)
         self._previous = (grey, K)
         self.images += 1
         self.stamps.append(stamp)
@@ -109,11 +121,9 @@ class StartHold:
         at every input: what was counted stays counted)."""
         while self._counted < len(self._found):
             f = self._found[self._counted]
-            if isinstance(f, Future):
-                if not f.done():
-                    break
-                self._found[self._counted] = f = f.result()
-            self._forward += forward(f)
+            if isinstance(f, Future) and not f.done():
+                break
+            self._forward += forward(self._resolve(self._counted))
             self._counted += 1
         return self._forward
 
@@ -125,19 +135,15 @@ class StartHold:
     @property
     def directions(self) -> list:
         """Every held pair's direction (None: none), waiting for those still being measured."""
-        for k, f in enumerate(self._found):
-            if isinstance(f, Future):
-                self._found[k] = f.result()
-        return list(self._found)
+        return [self._resolve(k) for k in range(len(self._found))]
 
     def taken(self) -> tuple[list, list[tuple[str, tuple]], list[float]]:
         """The pairs the measurement takes, waiting for them: the first ``pairs`` forward ones and those between,
         else (as many images as it may hold, or a flush) every pair. -> (their directions, the held inputs up to
         their last image, their first images' stamps); then the pairs after them are not measured."""
         directions, count, upto = [], 0, len(self.inputs)
-        for k, f in enumerate(self._found):
-            d = f.result() if isinstance(f, Future) else f
-            self._found[k] = d
+        for k in range(len(self._found)):
+            d = self._resolve(k)
             directions.append(d)
             count += forward(d)
             if count >= self.pairs:

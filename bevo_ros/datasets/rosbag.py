@@ -489,14 +489,19 @@ def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: 
     return steps + odo.flush()
 
 
-def measure_start_tilt(sequence: Recording, config: BevoConfig, learned):
+def measure_start_tilt(sequence: Recording, config: BevoConfig, learned, mode: str | None = None):
     """The base's ``(pitch, roll)`` on the road that the engine (``build_odometry``, ``filter.tilt_from_images``)
     measures at ``sequence``'s start, and its :class:`~bevo_ros.core.start_tilt.TiltMeasurement`: fed as
     :func:`run_engine` feeds it until the hold releases (or the recording ends: flushed, as ``bevo run`` at a
     bag's end). For the code that runs the core without the engine (the training's loss, the ablation's
-    given-attitude rows), so that it works at the tilt the engine does. None with the measurement off."""
+    given-attitude rows), so that it works at the tilt the engine does. ``mode`` overrides ``odometry.mode`` (the
+    fused engine takes the suspension's pitch out of the pairs, the paper's does not). None with the measurement off."""
+    import dataclasses
+
     from bevo_ros.config import build_odometry
 
+    if mode is not None:
+        config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))
     odo = build_odometry(config, learned, camera=sequence.camera)
     if not odo.holding:
         return None
@@ -505,11 +510,11 @@ def measure_start_tilt(sequence: Recording, config: BevoConfig, learned):
     return tuple(map(float, odo.mounting_attitude)), odo.tilt_measurement
 
 
-def with_start_tilt(sequences: list[Recording], config: BevoConfig, learned, log=print) -> None:
+def with_start_tilt(sequences: list[Recording], config: BevoConfig, learned, log=print, mode: str | None = None) -> None:
     """Each recording's :attr:`Recording.mounting` set to what :func:`measure_start_tilt` gives (nothing with
     ``filter.tilt_from_images: 0``), each said in one line through ``log``."""
     for s in sequences:
-        found = measure_start_tilt(s, config, learned)
+        found = measure_start_tilt(s, config, learned, mode)
         if found is not None:
             s.mounting = found[0] if found[1].measured else None
             log(f"{s.name or 'recording'}: {found[1].describe()}")

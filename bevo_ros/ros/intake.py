@@ -458,6 +458,8 @@ class EngineFeed:
             except (ImplausibleImuError, InvalidInputError):
                 pass  # dropped and counted when it came
         engine.take_events()
+        if callable(getattr(self.engine, "close", None)):  # duck-typed: its start tilt's threads, if it holds
+            self.engine.close()
         self.engine = engine
         self._states_seen = self._state_counts()
         # the journal counts this engine's frames from its start (the old one's count ran on past a reset)

@@ -320,7 +320,8 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
         gt_modes[str(syn)] = np.asarray(drive.pitch_roll_road, dtype=np.float64)  # exact, per frame
     seqs = [load_sequence(b, config, rig=rig or RigSettings()) for b in bag_paths]
     fused_learned = load_learned_params(o.fused_learned)
-    with_start_tilt(seqs, config, fused_learned, log)  # every row at the tilt the fused row's engine measures
+    # the trained rows at the tilt the engine measures at each bag's start (the fused row's, when it runs the bag whole)
+    with_start_tilt(seqs, config, fused_learned, log, mode="fused")
     eval_mode = o.eval or ("held-out" if o.train else "all")
     if o.train:
         topts = TrainOptions(epochs=o.epochs, lr=o.lr, split=o.split, seed=o.seed,
@@ -363,6 +364,8 @@ def run_ablation(bags: list[str | Path], config, options: AblationOptions, out: 
         else:
             c, d = 0, len(s)
         part = s.frames(c, d)
+        if c:  # the fused row's engine starts at the part, and measures the tilt there: every row at it
+            with_start_tilt([part], config, fused_learned, log, mode="fused")
         mode = gt_modes.get(str(b), o.gt_attitude)
         if not isinstance(mode, str):
             if len(mode) != len(s):

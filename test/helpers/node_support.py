@@ -158,7 +158,9 @@ def pitched(T: np.ndarray, degrees: float) -> np.ndarray:
 
 
 def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) -> list:
-    """The offline core (``build_odometry``) fed the same messages in order, plus a final flush."""
+    """The offline core (``build_odometry``) fed the same messages in order; an engine still holding its start
+    for the camera's tilt (its pairs measured in threads, not yet all done) is flushed, as the node flushes
+    held images after ``image_timeout``."""
     from bevo_ros.config import BevoConfig, build_odometry, camera_model, resolve_path
     from bevo_ros.io.learned_params import load_learned_params
     from bevo_ros.io.ros_conversions import forward_speed_from_msg, image_to_gray, imu_to_arrays, stamp_to_sec
@@ -176,7 +178,7 @@ def offline_steps(messages: list[tuple[str, Any]], overrides: dict[str, Any]) ->
                                                      overrides.get("speed_variance", 0.01)))
         else:
             steps += odo.add_image(t, image_to_gray(msg))
-    return steps
+    return steps + (odo.flush() if odo.holding else [])
 
 
 # ------------------------------------------------------------------------------ parameters files
