@@ -150,6 +150,10 @@ START_TILT_PASSES = 1
 _LIVE_SETTINGS = ("pitch_change_correction", "direction_lock", "min_frame_interval", "imu_time_offset",
                   "suspension_gradients", "max_speed_age", "turn_compensation", "max_imu_gap", "initial_attitude_std",
                   "road_tilt_time_constant", "dpc", "imu_limits", "max_pending_images", "gyro_sampling")
+# A start's first this many held frame pairs all standing still (core/start_tilt): their frames are run as they
+# came (at the configured tilt: a standing car's frames move nothing whatever the tilt) and the hold goes on
+# from the next; a car waiting longer than tilt_hold_frames at its start still has its tilt measured
+STANDING_RELEASE_PAIRS = 20
 START_TILT_BODY_DEADBAND = math.radians(0.05)  # rad: the suspension model's pitch at a steady speed (_start_body_pitch)
 
 
@@ -464,6 +468,8 @@ class BevoOdometry:
         if getattr(self, "_hold", None) is not None:
             self._hold.close()  # its pairs no longer wanted
         self.held_until = None  # the latest image held for the start's tilt, once released (None: none)
+        self._standing_released = 0  # the start's frames run while it stood still, before the tilt (_release_standing)
+        self._standing_bridge: list[tuple[str, tuple]] = []  # the IMU inputs after the last of them
         self._hold = (StartHold(self.tilt_from_images, self.tilt_hold_frames)
                       if self.tilt_from_images and not measured and self._road_tilt.enabled else None)
         self.counters.resets += 1
@@ -633,7 +639,7 @@ class BevoOdometry:
             self._hold.last["imu"] = stamp
             self._hold.inputs.append(("imu", (given, g, a)))
             # the pairs are measured in worker threads: the next input after the last one needed releases
-            return self._settle_tilt() if self._hold.ready else []
+            return self._hold_progress()
         self.counters.imu += 1
         if self.mode == "fused":
             # Images waiting for this sample are projected with the attitude interpolated to their
@@ -899,7 +905,7 @@ class BevoOdometry:
             # running engine (against the last processed), only for an image older than one already received
             self._hold.last["image"] = stamp
             self._hold.add_image(stamp, img, tag, self.camera.K.detach().double().cpu().numpy())
-            return self._settle_tilt() if self._hold.ready else []
+            return self._hold_progress()
         self.counters.images += 1
         if self._last_imu is not None and self._last_imu >= stamp:
             return self._process_or_drop(stamp, img, tag)
@@ -912,7 +918,10 @@ class BevoOdometry:
     def flush(self) -> list[OdometryStep]:
         """Process every waiting image with the IMU fused so far (drops them if there was none); inputs
         held for the start's tilt go first, at the tilt their pairs show (the configured one with too few)."""
-        out = self._settle_tilt() if self._hold is not None else []
+        out = []
+        if self._hold is not None:
+            self._hold.directions  # every pair, then as _hold_progress decides
+            out = self._release_standing() + self._settle_tilt()
         return out + self._release(lambda s: True)
 
     def close(self) -> None:
@@ -974,11 +983,13 @@ class BevoOdometry:
         body = None
         # the pairs it takes (the first tilt_from_images forward ones, else all), the inputs up to them
         directions, inputs, stamps = hold.taken()
+        if self._standing_released:  # the held frames begin after standing ones: the IMU before the first too
+            inputs = self._standing_bridge + inputs
         try:
             direction = direction_of_pairs(directions)  # the pairs as measured
         except ValueError as exc:  # too few pairs: nothing else here may pass for that
             self.tilt_measurement = TiltMeasurement(0.0, 0, len(directions), 0.0, False, str(exc),
-                                                    failed=tuple(hold.failed))
+                                                    failed=tuple(hold.failed), standing_frames=self._standing_released)
         else:
             # less the suspension's pitch that a pass at the pairs' tilt models (the same pairs: no ValueError)
             for _ in range(START_TILT_PASSES if self.mode == "fused" else 0):
@@ -993,15 +1004,67 @@ class BevoOdometry:
             self._mounting = self.mounting_attitude
             self.tilt_measurement = TiltMeasurement(measured - pitch, direction.pairs, direction.pairs_skipped,
                                                     direction.elevation_sem, True,
-                                                    body_pitch=mean_offset(directions, body), failed=tuple(hold.failed))
+                                                    body_pitch=mean_offset(directions, body), failed=tuple(hold.failed),
+                                                    standing_frames=self._standing_released)
+            if self._standing_released:
+                # Frames stood still at the configured tilt before: the held ones start afresh at the measured
+                # one, where those left the car (a BEV whose tilt jumps between two frames reads a shift), the
+                # filters from the held inputs, which begin standing still.
+                (x, y, yaw), z, cov = self._trajectory.pose, self._trajectory.z, self._trajectory.cov.copy()
+                bridge = self._standing_bridge
+                self.reset()
+                self.counters.resets -= 1  # the engine's own restart, not an explicit reset (counted)
+                self.set_pose(x, y, yaw, z, cov)
+                for kind, args in bridge:  # fed before, to the engine now forgotten
+                    try:
+                        self._feed_held(kind, args)
+                    except (InvalidInputError, ImplausibleImuError):
+                        pass  # refused (and counted) when it was fed the first time
         self._hold = None
-        self.held_until = hold.stamps[-1] if hold.stamps else None
+        self.held_until = hold.stamps[-1] if hold.stamps else self.held_until
         out: list[OdometryStep] = []
         for kind, args in hold.inputs:
             try:
                 out += self._feed_held(kind, args)
             except (InvalidInputError, ImplausibleImuError):  # checked when held: a camera changed meanwhile
                 self._count("dropped_held_invalid", args[0], args[2] if kind == "image" else None)
+        return out
+
+    def _hold_progress(self) -> list[OdometryStep]:
+        """While the start is held, after each input: the frames of a car standing still released, and the
+        tilt measured once enough pairs are (or as many images as may be held). At the most images held it
+        waits for every pair first, so that what is released and measured depends on the pairs alone, not on
+        how far their threads had got (a node paced by its camera and ``bevo run`` give the same poses)."""
+        out = self._release_standing()
+        if self._hold.images >= self._hold.max_frames:
+            self._hold.directions  # waits for them
+            out += self._release_standing()
+        return out + (self._settle_tilt() if self._hold.ready else [])
+
+    def _release_standing(self) -> list[OdometryStep]:
+        """The held frames of a car standing still at its start, run as they came while the hold goes on
+        (:data:`STANDING_RELEASE_PAIRS`). What is released depends on the pairs' content alone, not on when
+        their threads finished. -> their steps."""
+        out: list[OdometryStep] = []
+        hold = self._hold
+        while hold.standing_prefix(STANDING_RELEASE_PAIRS):
+            released = hold.release_prefix(STANDING_RELEASE_PAIRS)
+            self._hold = None  # run through the public methods as a running engine
+            try:
+                for kind, args in released:
+                    try:
+                        out += self._feed_held(kind, args)
+                    except (InvalidInputError, ImplausibleImuError):  # checked when held
+                        self._count("dropped_held_invalid", args[0], args[2] if kind == "image" else None)
+            finally:
+                self._hold = hold
+            self._standing_released += STANDING_RELEASE_PAIRS
+            self.held_until = max([a[0] for k, a in released if k == "image"], default=self.held_until)
+            # the IMU after the last frame released: what a restart at the measured tilt needs before the
+            # first held frame (_settle_tilt), or an image with no attitude is dropped
+            last_image = max((i for i, (k, _) in enumerate(released) if k == "image"), default=-1)
+            bridge = [entry for entry in released[last_image + 1:] if entry[0] == "imu"]
+            self._standing_bridge = bridge or [e for e in released if e[0] == "imu"][-1:] or self._standing_bridge
         return out
 
     def _feed_held(self, kind: str, args: tuple) -> list[OdometryStep]:

@@ -10,7 +10,9 @@ frame pairs have shown the direction the camera travels in (their epipolar geome
 in the road's plane, and then runs the held inputs in their order. Every pose is at the measured tilt and
 the node's are those of ``bevo run``; the first pose comes when the N-th pair has been measured (a
 pair costs 40-140 ms of a core at 1226x370, measured in worker threads: the caller keeps up with its
-camera). A start that stands still, or too few textured pairs within ``max_frames`` images,
+camera). A car standing still at its start has its frames run as they come, 20 pairs at a time
+(``BevoOdometry._release_standing``), and the tilt measured when it drives off. Too few textured pairs within
+``max_frames`` images
 keeps the configured tilt (:attr:`TiltMeasurement.measured` false, with the reason).
 """
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .travel_direction import equalized, forward, motion_direction
+from .travel_direction import STANDING, equalized, forward, held_pair_motion
 
 
 @dataclass(frozen=True)
@@ -40,10 +42,13 @@ class TiltMeasurement:
     reason: str = ""  # why the configured tilt was kept
     body_pitch: float = 0.0  # the suspension's mean pitch over the pairs taken out (rad, nose down +)
     failed: tuple[str, ...] = ()  # the errors of pairs whose measurement raised (counted as giving no direction)
+    standing_frames: int = 0  # frames run at the configured tilt while the car stood still at its start
 
     def describe(self) -> str:
         """One line for a log."""
         failed = (f"; {len(self.failed)} pair(s) failed to measure, e.g. {self.failed[0]}" if self.failed else "")
+        if self.standing_frames:
+            failed += f"; after {self.standing_frames} frame(s) standing still, run as they came"
         if not self.measured:
             return f"the camera's tilt was not measured at the start ({self.reason}{failed}): the configured one kept"
         return (f"the camera's tilt from the images' direction of travel at the start ({self.pairs} frame pairs, "
@@ -108,7 +113,7 @@ class StartHold:
                                                 thread_name_prefix="bevo_start_tilt")
                 # a hold dropped while measuring (its engine replaced) drops its queued pairs with it
                 weakref.finalize(self, self._pool.shutdown, wait=False, cancel_futures=True)
-            self._found.append(self._pool.submit(motion_direction, self._previous[0], grey, K) if same else None)
+            self._found.append(self._pool.submit(held_pair_motion, self._previous[0], grey, K) if same else None)
         self._previous = (grey, K)
         self.images += 1
         self.stamps.append(stamp)
@@ -151,6 +156,31 @@ class StartHold:
                 break
         self.close()
         return directions, self.inputs[:upto], self.stamps[:len(directions)]
+
+    def standing_prefix(self, pairs: int) -> bool:
+        """The first ``pairs`` held pairs are measured and each stood still (:data:`STANDING`): a car waiting at
+        its start, whose frames need no tilt (they move nothing) and need not wait for one."""
+        if len(self._found) < pairs:
+            return False
+        for k in range(pairs):
+            f = self._found[k]
+            if isinstance(f, Future) and not f.done():
+                return False
+            if not (isinstance(d := self._resolve(k), str) and d == STANDING):
+                return False
+        return True
+
+    def release_prefix(self, images: int) -> list[tuple[str, tuple]]:
+        """Stop holding the first ``images`` images and every input before the next one: -> those inputs, in
+        order. The pairs among them (and the one to the next image) go with them; the rest stay held."""
+        cut = self._image_inputs[images] if images < self.images else len(self.inputs)
+        released, self.inputs = self.inputs[:cut], self.inputs[cut:]
+        self._found = self._found[images:]
+        self.stamps = self.stamps[images:]
+        self._image_inputs = [i - cut for i in self._image_inputs[images:]]
+        self.images -= images
+        self._counted, self._forward = 0, 0  # counted again from the held pairs (resolved ones stay resolved)
+        return released
 
     def close(self) -> None:
         """Stop measuring: the pairs not started are dropped (a reset, or the measurement taken)."""

@@ -41,11 +41,12 @@ def equalized(image: np.ndarray) -> np.ndarray:
     return cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(np.ascontiguousarray(image))
 
 
-def relative_pose(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The camera's motion from ``image0`` to ``image1`` (``(H, W)`` uint8): ``R (3, 3)`` with ``x1 = R x0 + t``
-    for a point's optical-frame coordinates, and the unit ``(3,)`` direction of the second camera's centre in
-    the first camera's optical frame (x right, y down, z forward); None where the pair does not determine it
-    (too few tracks, too little motion, no essential matrix)."""
+STANDING = "standing"  # held_pair_motion: the pair's tracks moved less than MIN_FLOW_PX
+
+
+def _tracks(image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Shi-Tomasi corners of ``image0`` tracked into ``image1`` (``(H, W)`` uint8) and back: ``(a, b)`` ``(M, 2)``
+    px, the ones whose backward track returns within FB_TOLERANCE_PX; None with fewer than MIN_MATCHES."""
     p0 = cv2.goodFeaturesToTrack(image0, MAX_CORNERS, 0.01, 8)
     if p0 is None or len(p0) < MIN_MATCHES:
         return None
@@ -54,8 +55,22 @@ def relative_pose(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> tupl
     back, st_back, _ = cv2.calcOpticalFlowPyrLK(image1, image0, p1, None, **lk)
     ok = (st[:, 0] == 1) & (st_back[:, 0] == 1) & (np.linalg.norm(back - p0, axis=2)[:, 0] < FB_TOLERANCE_PX)
     a, b = p0[ok, 0].astype(np.float64), p1[ok, 0].astype(np.float64)
-    if len(a) < MIN_MATCHES or np.median(np.linalg.norm(b - a, axis=1)) < MIN_FLOW_PX:
+    return (a, b) if len(a) >= MIN_MATCHES else None
+
+
+def relative_pose(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The camera's motion from ``image0`` to ``image1`` (``(H, W)`` uint8): ``R (3, 3)`` with ``x1 = R x0 + t``
+    for a point's optical-frame coordinates, and the unit ``(3,)`` direction of the second camera's centre in
+    the first camera's optical frame (x right, y down, z forward); None where the pair does not determine it
+    (too few tracks, too little motion, no essential matrix)."""
+    tracks = _tracks(image0, image1)
+    if tracks is None or np.median(np.linalg.norm(tracks[1] - tracks[0], axis=1)) < MIN_FLOW_PX:
         return None
+    return _pose_from_tracks(*tracks, K)
+
+
+def _pose_from_tracks(a: np.ndarray, b: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`relative_pose` from a pair's tracks ``a``, ``b`` ``(M, 2)``."""
     E, inliers = cv2.findEssentialMat(a, b, K, method=cv2.RANSAC, prob=0.999, threshold=RANSAC_THRESHOLD_PX)
     if E is None or E.shape != (3, 3):  # none, or several stacked solutions: ambiguous
         return None
@@ -71,6 +86,19 @@ def relative_pose(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> tupl
 def motion_direction(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | None:
     """The camera's translation direction from ``image0`` to ``image1`` (:func:`relative_pose`'s), or None."""
     pose = relative_pose(image0, image1, K)
+    return None if pose is None else pose[1]
+
+
+def held_pair_motion(image0: np.ndarray, image1: np.ndarray, K: np.ndarray) -> np.ndarray | str | None:
+    """:func:`motion_direction`, with :data:`STANDING` where the pair's tracks moved less than MIN_FLOW_PX (the
+    camera stood still, or barely crept) instead of None: the engine's start runs such frames as they come
+    (``core/start_tilt``)."""
+    tracks = _tracks(image0, image1)
+    if tracks is None:
+        return None
+    if np.median(np.linalg.norm(tracks[1] - tracks[0], axis=1)) < MIN_FLOW_PX:
+        return STANDING
+    pose = _pose_from_tracks(*tracks, K)
     return None if pose is None else pose[1]
 
 
@@ -106,12 +134,12 @@ def travel_direction(images, K) -> TravelDirection:
 def forward(direction: np.ndarray | None) -> bool:
     """A pair's direction counts toward the direction of travel: found, and forward (not reversing, not a
     degenerate decomposition)."""
-    return direction is not None and direction[2] > 0
+    return isinstance(direction, np.ndarray) and direction[2] > 0
 
 
 def direction_of_pairs(directions: list, body_pitch: list[float] | None = None) -> TravelDirection:
-    """The direction of travel from consecutive pairs' :func:`motion_direction` results (None: the pair
-    gave none): the medians of the forward ones. ``body_pitch`` (rad, nose down +, one per pair): the
+    """The direction of travel from consecutive pairs' :func:`motion_direction` results (None or
+    :data:`STANDING`: the pair gave none): the medians of the forward ones. ``body_pitch`` (rad, nose down +, one per pair): the
     body's pitch on its suspension at each pair, whose direction is then the one at rest (a nose dived by
     ``b`` sees the road ``b`` higher: the elevation, below the axis +, gains ``b``). ValueError with fewer
     than MIN_PAIRS of them."""
@@ -149,5 +177,5 @@ def mounting_pitch_from_travel(direction: TravelDirection, R_base_cam, roll: flo
     return pitch, math.atan2(y_road, x_road)
 
 
-__all__ = ["TravelDirection", "equalized", "relative_pose", "motion_direction", "travel_direction", "direction_of_pairs", "forward",
+__all__ = ["TravelDirection", "equalized", "relative_pose", "motion_direction", "held_pair_motion", "STANDING", "travel_direction", "direction_of_pairs", "forward",
            "mounting_pitch_from_travel"]
