@@ -249,7 +249,7 @@ class BevoNode(Node):
         m = engine.tilt_measurement
         if engine.holding:
             return (f"measuring: {engine.held_pairs} of {engine.tilt_from_images} frame pairs, {engine.held_images} "
-                    "image(s) held (no odometry until then)")
+                    "image(s) held (no odometry until then, but for the frames of a car standing still)")
         if m is None:
             return "configured (filter.mounting_pitch; no road-tilt low-pass: nothing to measure)"
         if not m.measured:

@@ -313,10 +313,10 @@ def test_a_car_waiting_at_its_start_runs_its_standing_frames_and_measures_the_ti
     poses = base_poses_4x4(d)
     truth = (np.linalg.inv(poses[f0]) @ poses[f1 - 1])[:2, 3]
 
-    def run_it(pairs: int, paced: bool = False):
+    def run_it(pairs: int, paced: bool = False, by_stamp: bool = False):
         odo = engine(d.camera, ONE_DEG, pairs=pairs, hold=40)
         steps = []
-        for kind, j in _order_of(d.imu_stamps[imu], d.frame_stamps[f0:f1]):
+        for kind, j in _order_of(d.imu_stamps[imu], d.frame_stamps[f0:f1], by_stamp):
             if kind == "imu":
                 k = np.flatnonzero(imu)[j]
                 steps += odo.add_imu(d.imu_stamps[k], d.gyro[k], d.accel[k])
@@ -339,9 +339,15 @@ def test_a_car_waiting_at_its_start_runs_its_standing_frames_and_measures_the_ti
     print(f"\na 4 s wait at the start, params 1 deg off: endpoint error {e_given:.2f} m as given, {e_measured:.2f} m "
           f"with the tilt measured on the pull-away ({m.describe()})")
     assert e_measured < 0.5 * e_given
+    # frames played by stamp (each before the IMU stamped after it): none lost at the restart either
+    by_stamp, odo = run_it(30, by_stamp=True)
+    c = odo.counters
+    drops = (c.dropped_no_imu, c.dropped_pending_overflow, c.dropped_invalid_bev, c.dropped_held_invalid)
+    assert len(by_stamp) == f1 - f0 and odo.tilt_measurement.measured and drops == (0, 0, 0, 0), (len(by_stamp), drops)
+    assert float(np.linalg.norm(by_stamp[-1].position[:2] - truth)) < 0.5 * e_given
 
 
-def _order_of(imu_stamps, frame_stamps):
+def _order_of(imu_stamps, frame_stamps, by_stamp: bool = False):
     from bevo_ros.datasets.rosbag import stamp_order
 
-    return list(stamp_order(imu_stamps, frame_stamps, False, True, False))
+    return list(stamp_order(imu_stamps, frame_stamps, False, True, by_stamp))

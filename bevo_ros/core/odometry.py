@@ -11,6 +11,7 @@ what the engine drops or rejects is counted (:class:`Counters`) and reported as
 from __future__ import annotations
 
 import bisect
+import copy
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -469,7 +470,7 @@ class BevoOdometry:
             self._hold.close()  # its pairs no longer wanted
         self.held_until = None  # the latest image held for the start's tilt, once released (None: none)
         self._standing_released = 0  # the start's frames run while it stood still, before the tilt (_release_standing)
-        self._standing_bridge: list[tuple[str, tuple]] = []  # the IMU inputs after the last of them
+        self._standing_imu: list[tuple[str, tuple]] = []  # the IMU inputs released with them (the latest 4000)
         self._hold = (StartHold(self.tilt_from_images, self.tilt_hold_frames)
                       if self.tilt_from_images and not measured and self._road_tilt.enabled else None)
         self.counters.resets += 1
@@ -981,10 +982,12 @@ class BevoOdometry:
         pitch, roll = self.mounting_attitude
         T = self.camera.T_base_cam.detach().double().cpu().numpy()
         body = None
+        pre: list[OdometryStep] = []  # standing frames run before a restart at the measured tilt
         # the pairs it takes (the first tilt_from_images forward ones, else all), the inputs up to them
         directions, inputs, stamps = hold.taken()
+        bridge = self._standing_bridge(hold)
         if self._standing_released:  # the held frames begin after standing ones: the IMU before the first too
-            inputs = self._standing_bridge + inputs
+            inputs = bridge + inputs
         try:
             direction = direction_of_pairs(directions)  # the pairs as measured
         except ValueError as exc:  # too few pairs: nothing else here may pass for that
@@ -1000,7 +1003,7 @@ class BevoOdometry:
             # the camera's tilt measured: a later camera with other extrinsics keeps it (set_camera)
             self._mounting_calibration = ((measured, roll), T)
             self.mounting_attitude = (measured, roll)
-            self._standstill.attitude = self.mounting_attitude
+            self._standstill.set_attitude(self.mounting_attitude)
             self._mounting = self.mounting_attitude
             self.tilt_measurement = TiltMeasurement(measured - pitch, direction.pairs, direction.pairs_skipped,
                                                     direction.elevation_sem, True,
@@ -1010,19 +1013,22 @@ class BevoOdometry:
                 # Frames stood still at the configured tilt before: the held ones start afresh at the measured
                 # one, where those left the car (a BEV whose tilt jumps between two frames reads a shift), the
                 # filters from the held inputs, which begin standing still.
-                (x, y, yaw), z, cov = self._trajectory.pose, self._trajectory.z, self._trajectory.cov.copy()
-                bridge = self._standing_bridge
+                # Kept: the trajectory (its pose, a set_pose waiting for a frame, the frames a stamped one
+                # reaches back over) and the gyro's biases, learnt best standing still.
+                pre = self._release(lambda s: True)  # a standing frame still waiting for IMU: run with what came
+                kept = (copy.deepcopy(self._trajectory), self._gyro_bias, self._xy_bias_time, self.counters.imu)
                 self.reset()
                 self.counters.resets -= 1  # the engine's own restart, not an explicit reset (counted)
-                self.set_pose(x, y, yaw, z, cov)
+                self._trajectory, self._gyro_bias, self._xy_bias_time, imu_count = kept
                 for kind, args in bridge:  # fed before, to the engine now forgotten
                     try:
                         self._feed_held(kind, args)
                     except (InvalidInputError, ImplausibleImuError):
                         pass  # refused (and counted) when it was fed the first time
+                self.counters.imu = imu_count
         self._hold = None
         self.held_until = hold.stamps[-1] if hold.stamps else self.held_until
-        out: list[OdometryStep] = []
+        out: list[OdometryStep] = pre
         for kind, args in hold.inputs:
             try:
                 out += self._feed_held(kind, args)
@@ -1039,7 +1045,20 @@ class BevoOdometry:
         if self._hold.images >= self._hold.max_frames:
             self._hold.directions  # waits for them
             out += self._release_standing()
+        if not self._hold.ready:
+            return out
+        # the pairs ready counted are done: a standing start among them, finished meanwhile, goes first
+        out += self._release_standing()
         return out + (self._settle_tilt() if self._hold.ready else [])
+
+    def _standing_bridge(self, hold: StartHold) -> list[tuple[str, tuple]]:
+        """The released IMU inputs a restart feeds before the held ones: from the last stamped at or before the
+        first held frame (in the order they came), so that frame has an attitude."""
+        imu = self._standing_imu
+        if not imu or not hold.stamps:
+            return list(imu)
+        before = [i for i, (_, args) in enumerate(imu) if args[0] <= hold.stamps[0]]
+        return imu[before[-1]:] if before else list(imu)
 
     def _release_standing(self) -> list[OdometryStep]:
         """The held frames of a car standing still at its start, run as they came while the hold goes on
@@ -1060,11 +1079,9 @@ class BevoOdometry:
                 self._hold = hold
             self._standing_released += STANDING_RELEASE_PAIRS
             self.held_until = max([a[0] for k, a in released if k == "image"], default=self.held_until)
-            # the IMU after the last frame released: what a restart at the measured tilt needs before the
-            # first held frame (_settle_tilt), or an image with no attitude is dropped
-            last_image = max((i for i, (k, _) in enumerate(released) if k == "image"), default=-1)
-            bridge = [entry for entry in released[last_image + 1:] if entry[0] == "imu"]
-            self._standing_bridge = bridge or [e for e in released if e[0] == "imu"][-1:] or self._standing_bridge
+            # the IMU released lately: a restart at the measured tilt needs the samples from the last one stamped
+            # at or before the first held frame (_settle_tilt), or that frame has no attitude and is dropped
+            self._standing_imu = (self._standing_imu + [e for e in released if e[0] == "imu"])[-4000:]
         return out
 
     def _feed_held(self, kind: str, args: tuple) -> list[OdometryStep]:

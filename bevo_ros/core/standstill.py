@@ -277,6 +277,11 @@ class StandstillDetector:
     def enabled(self) -> bool:
         return self.max_speed > 0
 
+    def set_attitude(self, attitude: tuple[float, float]) -> None:
+        """The base's attitude on the road the flow basis is built at (the start's measured tilt)."""
+        self.attitude = (float(attitude[0]), float(attitude[1]))
+        self._basis = self._coarse_basis = None  # built again on next use
+
     def set_camera(self, camera: CameraModel) -> None:
         self.camera = camera
         self._basis: FlowBasis | None = None  # built on first use
