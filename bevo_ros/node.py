@@ -359,6 +359,8 @@ class BevoNode(Node):
         if self.rig.held_images:  # the parameters' fallback is due even when no further image comes
             self.rig.await_calibration()
         self.intake.release_stale(self.settings.image_wait)  # no image came for the IMU held for one
+        if self.feed.held_images:  # the start's pairs, measured in threads, may release it with no new input
+            self._publish(self.feed.poll())
         if not self.feed.flush_due():
             return
         if self.settings.ordered_intake:

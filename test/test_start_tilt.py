@@ -351,3 +351,22 @@ def _order_of(imu_stamps, frame_stamps, by_stamp: bool = False):
     from bevo_ros.datasets.rosbag import stamp_order
 
     return list(stamp_order(imu_stamps, frame_stamps, False, True, by_stamp))
+
+
+def test_poll_releases_the_hold_once_its_pairs_are_done_with_no_further_input(drive):
+    """Inputs fed flat out end before the pairs' threads do (a bag played at --rate 0): no input comes to
+    release them, so the node polls the engine on a timer; the release is the one a later input would have
+    given (a flush instead runs the last frames without the IMU still on its way)."""
+    odo = engine(drive.camera, ONE_DEG, pairs=30)
+    steps = []
+    for kind, j in _order(drive):
+        steps += (odo.add_imu(drive.imu_stamps[j], drive.gyro[j], drive.accel[j]) if kind == "imu"
+                  else odo.add_image(drive.frame_stamps[j], drive.images[j]))
+    if odo.holding:
+        odo._hold.directions  # the threads done
+    steps += odo.poll()
+    assert not odo.holding and odo.tilt_measurement.measured and odo.poll() == []
+    steps += odo.flush()
+    reference = run(engine(drive.camera, ONE_DEG, pairs=30), drive)
+    assert len(steps) == len(reference) == drive.num_frames
+    np.testing.assert_array_equal(np.array([s.position for s in steps]), np.array([s.position for s in reference]))

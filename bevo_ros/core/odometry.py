@@ -925,6 +925,12 @@ class BevoOdometry:
             out = self._release_standing() + self._settle_tilt()
         return out + self._release(lambda s: True)
 
+    def poll(self) -> list[OdometryStep]:
+        """While the start is held: its release if the pairs done since the latest input allow it (a node calls
+        it on a timer: after a bag that ended flat out, or a camera that stopped, no input comes to release
+        them, and a flush would run the last frames without the IMU still on its way). -> the steps."""
+        return self._hold_progress() if self._hold is not None else []
+
     def close(self) -> None:
         """Stop the start tilt's measurement threads (an engine replaced while it holds its start)."""
         if self._hold is not None:

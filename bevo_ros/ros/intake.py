@@ -579,6 +579,16 @@ class EngineFeed:
         oldest = min(tag[-1] for tag in self.engine.pending_tags)  # (stamp, arrival, waiting since)
         return time.time() - oldest >= self.settings.image_wait
 
+    def poll(self) -> list:
+        """The engine's start released once the pairs it holds for the camera's tilt are measured, with no
+        further input (:meth:`~bevo_ros.core.odometry.BevoOdometry.poll`; duck-typed: a test's engine may not hold)."""
+        if not self.held_images or not callable(getattr(self.engine, "poll", None)):
+            return []
+        steps = self.engine.poll()
+        if steps:
+            self._report_events()
+        return steps
+
     def flush(self) -> list:
         """Process the waiting images with the IMU fused so far."""
         n, held = self.engine.pending_images, self.held_images
