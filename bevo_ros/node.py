@@ -464,8 +464,7 @@ class BevoNode(Node):
         """Publish the engine's steps; of a replay (:meth:`_rig_changed`) only frames after those
         already published (the first one stays as published: its position is the origin either way)."""
         measured = getattr(self.engine, "tilt_measurement", None)  # duck-typed: a test's engine may not measure
-        released = measured is not None and measured is not self._tilt_logged  # these steps: the frames held for it
-        if released:
+        if measured is not None and measured is not self._tilt_logged:
             self._tilt_logged = measured
             self.report.log("camera_tilt", measured.describe(), level="info")
         for step in steps or ():
@@ -477,10 +476,9 @@ class BevoNode(Node):
                 self.outputs.path.clear()
             stamp, arrival, _ = step.tag
             odom = self.outputs.odometry(step, stamp)
-            # held: its image waited for the start's tilt (with an IMU sample after it, it may come a call later)
+            # held: its image waited for the start's tilt (duck-typed: a test's engine may not hold)
             until = getattr(self.engine, "held_until", None)
-            self.report.published(arrival, float(step.peak_quality),
-                                  held=released or (until is not None and step.stamp <= until))
+            self.report.published(arrival, float(step.peak_quality), held=until is not None and step.stamp <= until)
             self.outputs.extras(step, odom)
         if not self._fast_camera_noted and self.engine is not None and self.engine.counters.frames_out >= 20:
             self._fast_camera_noted = True  # once the frame clock has a period

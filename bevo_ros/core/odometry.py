@@ -991,9 +991,9 @@ class BevoOdometry:
         pre: list[OdometryStep] = []  # standing frames run before a restart at the measured tilt
         # the pairs it takes (the first tilt_from_images forward ones, else all), the inputs up to them
         directions, inputs, stamps = hold.taken()
-        bridge = self._standing_bridge(hold)
-        if self._standing_released:  # the held frames begin after standing ones: the IMU before the first too
-            inputs = bridge + inputs
+        # the held frames begin after standing ones: the IMU before the first too
+        bridge = self._standing_bridge(hold) if self._standing_released else []
+        inputs = bridge + inputs
         try:
             direction = direction_of_pairs(directions)  # the pairs as measured
         except ValueError as exc:  # too few pairs: nothing else here may pass for that
@@ -1047,15 +1047,11 @@ class BevoOdometry:
         tilt measured once enough pairs are (or as many images as may be held). At the most images held it
         waits for every pair first, so that what is released and measured depends on the pairs alone, not on
         how far their threads had got (a node paced by its camera and ``bevo run`` give the same poses)."""
-        out = self._release_standing()
         if self._hold.images >= self._hold.max_frames:
             self._hold.directions  # waits for them
-            out += self._release_standing()
-        if not self._hold.ready:
-            return out
-        # the pairs ready counted are done: a standing start among them, finished meanwhile, goes first
-        out += self._release_standing()
-        return out + (self._settle_tilt() if self._hold.ready else [])
+        ready = self._hold.ready  # the pairs it counted are done: a standing start among them goes first
+        out = self._release_standing()
+        return out + (self._settle_tilt() if ready and self._hold.ready else [])
 
     def _standing_bridge(self, hold: StartHold) -> list[tuple[str, tuple]]:
         """The released IMU inputs a restart feeds before the held ones: from the last stamped at or before the

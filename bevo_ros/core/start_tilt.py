@@ -18,7 +18,6 @@ keeps the configured tilt (:attr:`TiltMeasurement.measured` false, with the reas
 from __future__ import annotations
 
 import math
-import os
 import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -26,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from .travel_direction import STANDING, equalized, forward, held_pair_motion
+from .travel_direction import STANDING, equalized, forward, held_pair_motion, usable_cores
 
 
 @dataclass(frozen=True)
@@ -108,8 +107,7 @@ class StartHold:
         if self._previous is not None:
             same = self._previous[0].shape == grey.shape and np.array_equal(self._previous[1], K)
             if same and self._pool is None:
-                cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-                self._pool = ThreadPoolExecutor(max_workers=max(1, min(cores, PAIR_WORKERS)),
+                self._pool = ThreadPoolExecutor(max_workers=max(1, min(usable_cores(), PAIR_WORKERS)),
                                                 thread_name_prefix="bevo_start_tilt")
                 # a hold dropped while measuring (its engine replaced) drops its queued pairs with it
                 weakref.finalize(self, self._pool.shutdown, wait=False, cancel_futures=True)

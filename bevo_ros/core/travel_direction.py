@@ -33,6 +33,11 @@ RANSAC_THRESHOLD_PX = 0.5  # epipolar distance of an inlier
 DISTANCE_THRESHOLD = 1e4  # baselines: recoverPose's points in front of both cameras, however far
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
 def equalized(image: np.ndarray) -> np.ndarray:
     """``image (H, W)`` uint8 with its local contrast equalised (CLAHE, 8x8 tiles): the corners found in the
     shadows as in the sun and tracked through an exposure change. The KITTI sample's first 30 pairs
@@ -124,8 +129,7 @@ def travel_direction(images, K) -> TravelDirection:
         raise ValueError(f"images must be grey (F, H, W) uint8, got frames {first.shape} {first.dtype}")
     # The pairs are independent and OpenCV releases the GIL: one thread per core (each pair's RANSAC seeds
     # its own generator, so the directions are those of one thread, in order).
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    with ThreadPoolExecutor(max_workers=max(1, min(cores, 8))) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, min(usable_cores(), 8))) as pool:
         found = list(pool.map(lambda k: motion_direction(equalized(images[k]), equalized(images[k + 1]), K),
                               range(len(images) - 1)))
     return direction_of_pairs(found)
@@ -178,4 +182,4 @@ def mounting_pitch_from_travel(direction: TravelDirection, R_base_cam, roll: flo
 
 
 __all__ = ["TravelDirection", "equalized", "relative_pose", "motion_direction", "held_pair_motion", "STANDING", "travel_direction", "direction_of_pairs", "forward",
-           "mounting_pitch_from_travel"]
+           "mounting_pitch_from_travel", "usable_cores"]

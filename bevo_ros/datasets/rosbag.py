@@ -119,6 +119,13 @@ class Recording:
         yaw = torch.atan2(rel[:, 1, 0], rel[:, 0, 0])
         return torch.stack([rel[:, 0, 3], rel[:, 1, 3], yaw], dim=-1)
 
+    def mounting_in_use(self, config: BevoConfig) -> tuple[float, float]:
+        """The base's (pitch, roll) on the road the engine runs this recording at: the one it measured at the
+        start (:attr:`mounting`), else the configuration's for this camera (``config.mounting_in_use``)."""
+        from bevo_ros.config import mounting_in_use
+
+        return self.mounting if self.mounting is not None else mounting_in_use(config, self.camera.T_base_cam)
+
     def frames(self, start: int, stop: int) -> "Recording":
         """Frames ``[start, stop)`` with the IMU from the start of the recording up to the last frame
         (the filter needs its history; the extra IMU only warms it up)."""
@@ -489,6 +496,17 @@ def feed_engine(odo, imu_stamps, gyro, accel, frame_stamps, image, image_first: 
     return steps + odo.flush()
 
 
+def _engine(sequence: Recording, config: BevoConfig, learned, mode: str | None):
+    """``build_odometry`` for ``sequence``'s camera, ``mode`` overriding ``odometry.mode``."""
+    import dataclasses
+
+    from bevo_ros.config import build_odometry
+
+    if mode is not None:
+        config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))
+    return build_odometry(config, learned, camera=sequence.camera)
+
+
 def measure_start_tilt(sequence: Recording, config: BevoConfig, learned, mode: str | None = None):
     """The base's ``(pitch, roll)`` on the road that the engine (``build_odometry``, ``filter.tilt_from_images``)
     measures at ``sequence``'s start, and its :class:`~bevo_ros.core.start_tilt.TiltMeasurement`: fed as
@@ -496,13 +514,7 @@ def measure_start_tilt(sequence: Recording, config: BevoConfig, learned, mode: s
     bag's end). For the code that runs the core without the engine (the training's loss, the ablation's
     given-attitude rows), so that it works at the tilt the engine does. ``mode`` overrides ``odometry.mode`` (the
     fused engine takes the suspension's pitch out of the pairs, the paper's does not). None with the measurement off."""
-    import dataclasses
-
-    from bevo_ros.config import build_odometry
-
-    if mode is not None:
-        config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))
-    odo = build_odometry(config, learned, camera=sequence.camera)
+    odo = _engine(sequence, config, learned, mode)
     if not odo.holding:
         return None
     feed_engine(odo, sequence.imu_stamps.tolist(), sequence.gyro.tolist(), sequence.accel.tolist(),
@@ -523,13 +535,7 @@ def with_start_tilt(sequences: list[Recording], config: BevoConfig, learned, log
 def run_engine(sequence: Recording, config: BevoConfig, learned, mode: str | None = None) -> list:
     """The node's engine (``build_odometry``) fed a :class:`Recording` in stamp order (IMU first on
     equal stamps), then flushed. Returns every ``OdometryStep``; ``mode`` overrides ``odometry.mode``."""
-    import dataclasses
-
-    from bevo_ros.config import build_odometry
-
-    if mode is not None:
-        config = dataclasses.replace(config, odometry=dataclasses.replace(config.odometry, mode=mode))
-    odo = build_odometry(config, learned, camera=sequence.camera)
+    odo = _engine(sequence, config, learned, mode)
     return feed_engine(odo, sequence.imu_stamps.tolist(), sequence.gyro.tolist(), sequence.accel.tolist(),
                        sequence.frame_stamps.tolist(), lambda k: sequence.images[k].numpy())
 

@@ -53,11 +53,7 @@ def reference_attitude(seq, mode, config):
 
     if not isinstance(mode, str):  # the simulator's own road-relative attitude of these frames
         return torch.as_tensor(mode, dtype=torch.float64)
-    from bevo_ros.config import mounting_in_use
-
-    # the engine's, for this camera: the one measured at the start (filter.tilt_from_images) where it was
-    mounting = torch.tensor(seq.mounting if seq.mounting is not None else mounting_in_use(config, seq.camera.T_base_cam),
-                            dtype=torch.float64)
+    mounting = torch.tensor(seq.mounting_in_use(config), dtype=torch.float64)  # the engine's, for this camera
     if mode == "zero":
         return torch.zeros(len(seq), 2, dtype=torch.float64) + mounting
     if mode == "road-poses":

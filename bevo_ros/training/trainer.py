@@ -45,7 +45,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from bevo_ros.config import BevoConfig, _flatten, bev_spec, mounting_in_use, read_yaml
+from bevo_ros.config import BevoConfig, _flatten, bev_spec, read_yaml
 from bevo_ros.io.learned_params import LearnedParams, provenance, save_learned_params
 from bevo_ros.io.files import atomic_write_text
 from bevo_ros.core.device import resolve_device
@@ -184,7 +184,7 @@ def sequence_pass(
         turn_compensation = bool(getattr(config.filter, "turn_compensation", False))
     # the engine's mounting for this recording's camera (re-derived for other extrinsics, e.g. the bag's /tf_static),
     # or the one it measured at the recording's start (filter.tilt_from_images: with_start_tilt)
-    mounting = seq.mounting if seq.mounting is not None else mounting_in_use(config, seq.camera.T_base_cam)
+    mounting = seq.mounting_in_use(config)
     gt = seq.gt_motion() if seq.gt_poses is not None else None
     targets = registration_targets(gt.to(dev), spec) if gt is not None else None
 
