@@ -947,6 +947,11 @@ class BevoOdometry:
         return self._hold is not None
 
     @property
+    def measuring(self) -> bool:
+        """Held frame pairs are still being measured (in their threads) for the start's tilt."""
+        return self._hold is not None and self._hold.measuring
+
+    @property
     def held_pairs(self) -> int:
         """Frame pairs held so far that showed a forward direction of travel."""
         return self._hold.forward_pairs if self._hold is not None else 0

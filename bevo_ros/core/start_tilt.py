@@ -131,6 +131,11 @@ class StartHold:
         return self._forward
 
     @property
+    def measuring(self) -> bool:
+        """A held pair is still being measured."""
+        return any(isinstance(f, Future) and not f.done() for f in self._found)
+
+    @property
     def ready(self) -> bool:
         """Enough forward pairs measured, or as many images as it may hold (then :meth:`taken` waits)."""
         return self.images >= self.max_frames or self.forward_pairs >= self.pairs

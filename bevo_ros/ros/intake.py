@@ -570,10 +570,13 @@ class EngineFeed:
 
     def flush_due(self) -> bool:
         """Images have waited for IMU past their stamp longer than ``image_wait``, or images held for the
-        start's camera tilt (``filter.tilt_from_images``) saw no further image for ``image_timeout`` (the
-        camera stopped, a bag ended: they run at what their pairs show)."""
+        start's camera tilt (``filter.tilt_from_images``) saw no further image for ``image_timeout`` and
+        their pairs are measured (the camera stopped, a bag ended: they run at what their pairs show)."""
         if self.held_images:
-            return time.time() - self._last_image_arrival >= self.settings.image_timeout
+            # pairs still measured release the start when done (poll), with the IMU still on its way: a loaded
+            # machine measuring past image_timeout after a bag's last frame flushed them without it (3.9 mm)
+            return (not getattr(self.engine, "measuring", False)
+                    and time.time() - self._last_image_arrival >= self.settings.image_timeout)
         if not self.pending_images:
             return False
         oldest = min(tag[-1] for tag in self.engine.pending_tags)  # (stamp, arrival, waiting since)
